@@ -1,0 +1,17 @@
+"""o3dreg: elastic registration of 3D surface meshes and statistical shape models of anatomy.
+
+A plugin for the Open3D / libigl ecosystem implementing the multi-resolution trilinear
+("octree-spline") registration with a symmetric distance of Berar et al. (2005).
+"""
+
+from __future__ import annotations
+
+import logging
+
+__version__ = "0.1.0"
+
+logging.getLogger("o3dreg").addHandler(logging.NullHandler())
+
+from .meshio import read_triangle_mesh, write_triangle_mesh  # noqa: E402
+
+__all__ = ["__version__", "read_triangle_mesh", "write_triangle_mesh"]

@@ -1,0 +1,180 @@
+"""Validation at the public boundary: one place that turns user input into clean arrays.
+
+Every public function calls these helpers once, then works on arrays it owns. Errors name the
+parameter, the expectation and what was received.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "as_mesh_arrays",
+    "as_points",
+    "as_transformation",
+    "check_positive",
+    "check_probability",
+    "check_output_path",
+]
+
+
+def _describe(value: Any) -> str:
+    if isinstance(value, np.ndarray):
+        return f"array of shape {value.shape} and dtype {value.dtype}"
+    return f"{type(value).__name__}"
+
+
+def as_points(value: Any, name: str, *, allow_empty: bool = False) -> np.ndarray:
+    """Return ``value`` as a new ``(n, 3) float64`` array of finite coordinates."""
+    try:
+        import open3d as o3d
+
+        if isinstance(value, o3d.geometry.PointCloud):
+            value = np.asarray(value.points)
+        elif isinstance(value, o3d.geometry.TriangleMesh):
+            value = np.asarray(value.vertices)
+    except ImportError:  # pragma: no cover - open3d is a dependency
+        pass
+    if not isinstance(value, (np.ndarray, list, tuple)):
+        raise TypeError(f"`{name}` must be an (n, 3) array of points, got {_describe(value)}")
+    arr = np.asarray(value)
+    if arr.dtype == object or not (
+        np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+    ):
+        raise TypeError(f"`{name}` must hold real numbers, got dtype {arr.dtype}")
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"`{name}` must have shape (n, 3), got {arr.shape}")
+    if arr.shape[0] == 0 and not allow_empty:
+        raise ValueError(f"`{name}` must hold at least one point, got 0")
+    out = np.array(arr, dtype=np.float64, order="C", copy=True)
+    if not np.all(np.isfinite(out)):
+        bad = int(np.count_nonzero(~np.isfinite(out).all(axis=1)))
+        raise ValueError(f"`{name}` must hold finite coordinates, got {bad} row(s) with NaN or inf")
+    return out
+
+
+def as_mesh_arrays(
+    mesh: Any, name: str, *, min_faces: int = 1, drop_degenerate: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(vertices (n, 3) float64, faces (m, 3) int64)`` copies of a triangle mesh.
+
+    ``mesh`` is an ``open3d.geometry.TriangleMesh`` or a ``(vertices, faces)`` pair. Faces must
+    index existing vertices. Degenerate triangles (repeated index or zero area) raise unless
+    ``drop_degenerate`` is true, in which case they are removed.
+    """
+    import open3d as o3d
+
+    if isinstance(mesh, o3d.geometry.TriangleMesh):
+        vertices_in: Any = np.asarray(mesh.vertices)
+        faces_in: Any = np.asarray(mesh.triangles)
+    elif isinstance(mesh, (tuple, list)) and len(mesh) == 2:
+        vertices_in, faces_in = mesh
+    else:
+        raise TypeError(
+            f"`{name}` must be an open3d.geometry.TriangleMesh or a (vertices, faces) pair, "
+            f"got {_describe(mesh)}"
+        )
+    vertices = as_points(vertices_in, f"{name}.vertices")
+    faces_arr = np.asarray(faces_in)
+    if faces_arr.size == 0:
+        faces_arr = faces_arr.reshape(0, 3)
+    if not np.issubdtype(faces_arr.dtype, np.integer):
+        if np.issubdtype(faces_arr.dtype, np.floating) and np.all(
+            np.mod(faces_arr, 1) == 0
+        ):
+            faces_arr = faces_arr.astype(np.int64)
+        else:
+            raise TypeError(f"`{name}.faces` must hold integers, got dtype {faces_arr.dtype}")
+    if faces_arr.ndim != 2 or faces_arr.shape[1] != 3:
+        raise ValueError(f"`{name}.faces` must have shape (m, 3), got {faces_arr.shape}")
+    faces = np.array(faces_arr, dtype=np.int64, order="C", copy=True)
+    if faces.shape[0] < min_faces:
+        raise ValueError(
+            f"`{name}` must have at least {min_faces} triangle(s), got {faces.shape[0]}"
+        )
+    if faces.size and (faces.min() < 0 or faces.max() >= vertices.shape[0]):
+        raise ValueError(
+            f"`{name}.faces` must index vertices in [0, {vertices.shape[0] - 1}], "
+            f"got indices in [{faces.min()}, {faces.max()}]"
+        )
+    if faces.size:
+        degenerate = _degenerate_faces(vertices, faces)
+        if degenerate.any():
+            if not drop_degenerate:
+                raise ValueError(
+                    f"`{name}` must not contain degenerate triangles (repeated vertex or zero "
+                    f"area), got {int(degenerate.sum())} of {faces.shape[0]}"
+                )
+            faces = faces[~degenerate]
+            if faces.shape[0] < min_faces:
+                raise ValueError(
+                    f"`{name}` must have at least {min_faces} non-degenerate triangle(s), "
+                    f"got {faces.shape[0]}"
+                )
+    return vertices, faces
+
+
+def _degenerate_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    repeated = (
+        (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
+    )
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    doubled_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    scale = np.ptp(vertices, axis=0).max() if vertices.shape[0] > 1 else 1.0
+    # Relative to the mesh extent, so the test is independent of units.
+    return repeated | (doubled_area <= (1e-12 * max(scale, 1e-300)) ** 2)
+
+
+def as_transformation(value: Any, name: str = "init") -> np.ndarray:
+    """Return a ``(4, 4) float64`` affine transformation with last row ``[0, 0, 0, 1]``."""
+    if not isinstance(value, (np.ndarray, list, tuple)):
+        raise TypeError(f"`{name}` must be a (4, 4) array, got {_describe(value)}")
+    arr = np.array(value, dtype=np.float64, copy=True)
+    if arr.shape != (4, 4):
+        raise ValueError(f"`{name}` must have shape (4, 4), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"`{name}` must hold finite values, got NaN or inf")
+    if not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise ValueError(f"`{name}` must have last row [0, 0, 0, 1], got {arr[3].tolist()}")
+    if abs(np.linalg.det(arr[:3, :3])) < 1e-12:
+        raise ValueError(f"`{name}` must be invertible, got a singular 3x3 block")
+    return arr
+
+
+def check_positive(value: Any, name: str, *, integer: bool = False, allow_zero: bool = False) -> Any:
+    """Check that ``value`` is a finite positive number (or integer) and return it."""
+    kind = "integer" if integer else "number"
+    ok_type = isinstance(value, (int, np.integer)) if integer else isinstance(
+        value, (int, float, np.integer, np.floating)
+    )
+    if isinstance(value, bool) or not ok_type:
+        raise TypeError(f"`{name}` must be a {kind}, got {_describe(value)}")
+    if not np.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
+        bound = ">= 0" if allow_zero else "> 0"
+        raise ValueError(f"`{name}` must be a finite {kind} {bound}, got {value!r}")
+    return int(value) if integer else float(value)
+
+
+def check_probability(value: Any, name: str) -> float:
+    """Check that ``value`` is a number in ``[0, 1]`` and return it as float."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"`{name}` must be a number in [0, 1], got {_describe(value)}")
+    if not 0.0 <= float(value) <= 1.0:
+        raise ValueError(f"`{name}` must be in [0, 1], got {value!r}")
+    return float(value)
+
+
+def check_output_path(path: Any, name: str, *, overwrite: bool) -> str:
+    """Check an output path: a string or path-like whose folder exists."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"`{name}` must be a path, got {_describe(path)}")
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise OSError(f"`{name}`: folder {folder!r} does not exist")
+    if os.path.exists(path) and not overwrite:
+        raise OSError(f"`{name}`: {path!r} exists; pass overwrite=True to replace it")
+    return path

@@ -1,0 +1,62 @@
+"""The ``o3dreg`` command line: one sub-command per module in this package.
+
+Exit codes: 0 success, 1 the job ran but did not converge / found nothing, 2 bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+
+from .. import __version__
+
+# Each sub-command module defines ``add_parser(subparsers)`` which registers itself with a
+# ``func(args) -> int`` default. New sub-commands are added to this tuple.
+_COMMANDS = ("_register", "_reconstruct", "_demo")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="o3dreg",
+        description="Elastic registration of surface meshes and statistical shape models.",
+    )
+    parser.add_argument("--version", action="version", version=f"o3dreg {__version__}")
+    verbosity = parser.add_mutually_exclusive_group()
+    verbosity.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+    verbosity.add_argument("-v", "--verbose", action="store_true", help="print debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    import importlib
+
+    for module_name in _COMMANDS:
+        try:
+            module = importlib.import_module(f".{module_name}", __name__)
+        except ModuleNotFoundError as exc:
+            if exc.name and exc.name.endswith(module_name):
+                continue  # sub-command not built yet
+            raise
+        module.add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.ERROR if args.quiet else logging.DEBUG if args.verbose else logging.INFO
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args))
+    except (TypeError, ValueError, OSError, RuntimeError) as exc:
+        print(f"o3dreg {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"o3dreg {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
