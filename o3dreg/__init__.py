@@ -15,3 +15,31 @@ logging.getLogger("o3dreg").addHandler(logging.NullHandler())
 from .meshio import read_triangle_mesh, write_triangle_mesh  # noqa: E402
 
 __all__ = ["__version__", "read_triangle_mesh", "write_triangle_mesh"]
+
+# --- elastic registration -----------------------------------------------------------------------
+from .deformation import LatticeDeformation  # noqa: E402
+from .elastic import evaluate_elastic, registration_elastic  # noqa: E402
+from .lattice import TrilinearLattice  # noqa: E402
+from .options import (  # noqa: E402
+    DistanceEstimation,
+    ElasticCriteria,
+    ElasticLevel,
+    default_levels,
+)
+from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances  # noqa: E402
+from .rigid import registration_rigid  # noqa: E402
+
+__all__ += [
+    "DistanceEstimation",
+    "ElasticCriteria",
+    "ElasticLevel",
+    "ElasticRegistrationResult",
+    "LatticeDeformation",
+    "LevelReport",
+    "SurfaceDistances",
+    "TrilinearLattice",
+    "default_levels",
+    "evaluate_elastic",
+    "registration_elastic",
+    "registration_rigid",
+]

@@ -1,0 +1,204 @@
+"""The cost of one level, eq. (3) of Berar et al. (2005), with its analytic Jacobian.
+
+Unknowns ``u`` are the displacements of the level's free lattice nodes, node-major
+(``[u_0x, u_0y, u_0z, u_1x, ...]``). The template points ``x`` (rigidly aligned) are fixed, so the
+moved points ``y = x + prev(x) + W u`` are linear in ``u`` with the constant sparse matrix ``W`` of
+trilinear weights (8 nodes per point). Residual blocks:
+
+(a) ``d(y_i, S)`` for every template vertex: point-to-surface distance to the target (AABB tree);
+    its derivative is the unit vector from the closest point (point-to-plane on the surface);
+(b) ``sqrt(w_s) (y_i - b_i)`` for every template vertex that is the nearest template vertex of at
+    least one target vertex, ``b_i`` the barycentre of those target vertices (re-assigned at every
+    evaluation, held fixed in the Jacobian as an ICP step does);
+(c) ``sqrt(lambda N / E) (D u)`` over the ``E`` finite-difference stencils of the lattice that
+    touch a free node: second differences (thin-plate bending energy, free for affine motion) or
+    first differences (membrane energy). Fixed nodes keep a zero increment.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from .distance import SurfaceDistanceQuery
+from .lattice import TrilinearLattice
+
+def _stencils() -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+    eye = np.eye(3, dtype=np.int64)
+    membrane = [(np.array([np.zeros(3, np.int64), e]), np.array([-1.0, 1.0])) for e in eye]
+    bending = [(np.array([np.zeros(3, np.int64), e, 2 * e]), np.array([1.0, -2.0, 1.0])) for e in eye]
+    for a, b in ((0, 1), (1, 2), (0, 2)):
+        offsets = np.array([np.zeros(3, np.int64), eye[a], eye[b], eye[a] + eye[b]])
+        bending.append((offsets, np.sqrt(2.0) * np.array([1.0, -1.0, -1.0, 1.0])))
+    return {"membrane": membrane, "bending": bending}
+
+
+_STENCILS = _stencils()
+
+
+@dataclass
+class Evaluation:
+    """Residuals, Jacobian and cost terms at one ``u``."""
+
+    u: np.ndarray
+    residuals: np.ndarray
+    jacobian: sp.csr_matrix
+    cost: float
+    cost_distance: float
+    cost_symmetric: float
+    cost_regularization: float
+    distances: np.ndarray
+    moved: np.ndarray
+
+
+class LevelProblem:
+    """Residuals and Jacobian of one lattice level for a fixed set of template points.
+
+    Parameters
+    ----------
+    points : (n, 3) ndarray
+        Template vertices after the rigid transformation.
+    previous : (n, 3) ndarray
+        Displacement of ``points`` by the coarser levels (held fixed).
+    lattice : TrilinearLattice
+        The level's lattice (its displacements are ignored: the increment starts at zero).
+    active : (n,) bool ndarray
+        Points whose cells are refined; the nodes of those cells are the unknowns.
+    target : SurfaceDistanceQuery
+        The target surface.
+    target_points : (k, 3) ndarray or None
+        Target vertices for the symmetric term; ``None`` disables it.
+    symmetric_weight, regularization : float
+    """
+
+    def __init__(
+        self,
+        points: np.ndarray,
+        previous: np.ndarray,
+        lattice: TrilinearLattice,
+        active: np.ndarray,
+        target: SurfaceDistanceQuery,
+        target_points: np.ndarray | None,
+        symmetric_weight: float,
+        regularization: float,
+        energy: str = "bending",
+    ) -> None:
+        self.lattice = lattice
+        self.base = points + previous
+        self.target = target
+        self.target_points = target_points if symmetric_weight > 0 else None
+        self.sqrt_ws = float(np.sqrt(symmetric_weight))
+        n = points.shape[0]
+        nodes, weights = lattice.weights(points)
+        free_nodes = np.unique(nodes[active].ravel())
+        lookup = np.full(lattice.number_of_nodes, -1, dtype=np.int64)
+        lookup[free_nodes] = np.arange(free_nodes.size)
+        self.free_nodes = free_nodes
+        local = lookup[nodes]
+        keep = local >= 0
+        rows = np.broadcast_to(np.arange(n)[:, None], local.shape)[keep]
+        # W restricted to free nodes, (n, m).
+        self.W = sp.csr_matrix(
+            (weights[keep], (rows, local[keep])), shape=(n, free_nodes.size)
+        )
+        self.number_of_unknowns = 3 * free_nodes.size
+        self._G = self._stencil_matrix(lookup, energy)
+        edges = max(self._G.shape[0], 1)
+        self.sqrt_reg = float(np.sqrt(regularization * n / edges))
+        self._Jreg = sp.kron(self._G, sp.identity(3), format="csr") * self.sqrt_reg
+        self._Wx = sp.kron(self.W, sp.identity(3), format="csr")  # (3n, 3m) for vector residuals
+
+    def _stencil_matrix(self, lookup: np.ndarray, energy: str) -> sp.csr_matrix:
+        """Finite-difference operator over the lattice, one row per stencil touching a free node.
+
+        ``'membrane'``: first differences along x, y, z (``int |grad u|^2``).
+        ``'bending'``: second differences along each axis and mixed differences weighted
+        ``sqrt(2)`` (the thin-plate energy ``int |Hess u|^2``), whose null space is the affine
+        maps: a level may add any affine motion without cost.
+        """
+        lat = self.lattice
+        node_shape = np.asarray(lat.node_shape)
+        stencils = _STENCILS[energy]
+        all_ijk = np.stack(
+            np.meshgrid(*[np.arange(s) for s in lat.node_shape], indexing="ij"), axis=-1
+        ).reshape(-1, 3)
+        rows, cols, vals = [], [], []
+        count = 0
+        for offsets, coefs in stencils:
+            span = offsets.max(axis=0)
+            anchors = all_ijk[np.all(all_ijk + span < node_shape, axis=1)]
+            local = lookup[lat.node_index(anchors[:, None, :] + offsets[None, :, :])]
+            keep = np.any(local >= 0, axis=1)
+            local = local[keep]
+            e = count + np.arange(local.shape[0])
+            for j, c in enumerate(coefs):
+                free = local[:, j] >= 0
+                rows.append(e[free])
+                cols.append(local[free, j])
+                vals.append(np.full(int(free.sum()), c))
+            count += local.shape[0]
+        return sp.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(count, self.free_nodes.size),
+        )
+
+    def moved(self, u: np.ndarray) -> np.ndarray:
+        """Template points moved by the coarser levels and the increment ``u``."""
+        return self.base + self.W @ u.reshape(-1, 3)
+
+    def scatter(self, u: np.ndarray) -> TrilinearLattice:
+        """The level's lattice with the free nodes displaced by ``u``."""
+        d = np.zeros((self.lattice.number_of_nodes, 3))
+        d[self.free_nodes] = u.reshape(-1, 3)
+        return self.lattice.with_displacements(d)
+
+    def evaluate(self, u: np.ndarray) -> Evaluation:
+        y = self.moved(u)
+        n = y.shape[0]
+        dist, _, grad = self.target.gradient(y)
+        # (a) point-to-surface distances: row i has grad_i (x) W_i.
+        Ja = sp.csr_matrix(
+            (
+                (self.W.data[:, None] * grad[np.repeat(np.arange(n), np.diff(self.W.indptr))]).ravel(),
+                (3 * self.W.indices[:, None] + np.arange(3)).ravel(),
+                self.W.indptr * 3,
+            ),
+            shape=(n, self.number_of_unknowns),
+        )
+        blocks = [Ja]
+        residuals = [dist]
+        cost_sym = 0.0
+        if self.target_points is not None:
+            # (b) barycentre of the target vertices whose nearest template vertex is i.
+            _, nearest = cKDTree(y).query(self.target_points, workers=-1)
+            counts = np.bincount(nearest, minlength=n)
+            sums = np.zeros((n, 3))
+            np.add.at(sums, nearest, self.target_points)
+            assigned = np.nonzero(counts)[0]
+            bary = sums[assigned] / counts[assigned, None]
+            rb = self.sqrt_ws * (y[assigned] - bary).ravel()
+            rows3 = (3 * assigned[:, None] + np.arange(3)).ravel()
+            blocks.append(self._Wx[rows3] * self.sqrt_ws)
+            residuals.append(rb)
+            cost_sym = float(rb @ rb)
+        rc = self._Jreg @ u
+        blocks.append(self._Jreg)
+        residuals.append(rc)
+        r = np.concatenate(residuals)
+        J = sp.vstack(blocks, format="csr")
+        cost_d = float(dist @ dist)
+        cost_r = float(rc @ rc)
+        return Evaluation(
+            u=u,
+            residuals=r,
+            jacobian=J,
+            cost=cost_d + cost_sym + cost_r,
+            cost_distance=cost_d,
+            cost_symmetric=cost_sym,
+            cost_regularization=cost_r,
+            distances=dist,
+            moved=y,
+        )

@@ -1,0 +1,160 @@
+"""Solvers for one level, behind one interface: ``solve(problem, criteria, method)``.
+
+* ``'lm'``: Levenberg-Marquardt on the sparse normal equations ``(J^T J + mu D) delta = -J^T r``
+  with Marquardt's diagonal scaling ``D = diag(J^T J)`` and Nielsen's damping update. The system
+  is symmetric positive definite and sparse (27-node stencil); it is solved by a sparse Cholesky
+  -like LU (SuperLU) factorisation.
+* ``'trf'``: :func:`scipy.optimize.least_squares` ``method='trf'`` with the sparse Jacobian.
+* ``'lm-dense'``: :func:`scipy.optimize.least_squares` ``method='lm'`` (MINPACK, dense Jacobian).
+
+Non-convergence is reported (``success=False`` and a message), never raised.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.optimize import least_squares
+
+from ._cost import Evaluation, LevelProblem
+from .options import ElasticCriteria
+
+
+@dataclass
+class SolveInfo:
+    evaluation: Evaluation
+    initial_cost: float
+    iterations: int
+    evaluations: int
+    success: bool
+    message: str
+    seconds: float
+
+
+def solve(problem: LevelProblem, criteria: ElasticCriteria, method: str = "lm") -> SolveInfo:
+    """Minimise the level cost from ``u = 0``."""
+    if problem.number_of_unknowns == 0:
+        ev = problem.evaluate(np.zeros(0))
+        return SolveInfo(ev, ev.cost, 0, 1, True, "no free node at this level", 0.0)
+    if method == "lm":
+        return _levenberg_marquardt(problem, criteria)
+    return _scipy(problem, criteria, method)
+
+
+def _cell(problem: LevelProblem) -> float:
+    return float(problem.lattice.cell_size.min())
+
+
+def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> SolveInfo:
+    start = time.perf_counter()
+    u = np.zeros(problem.number_of_unknowns)
+    ev = problem.evaluate(u)
+    initial = ev.cost
+    evaluations = 1
+    mu = None
+    nu = 2.0
+    cell = _cell(problem)
+    message = f"reached max_iteration={criteria.max_iteration}"
+    success = False
+    iterations = 0
+    while iterations < criteria.max_iteration:
+        J = ev.jacobian
+        A = (J.T @ J).tocsc()
+        g = J.T @ ev.residuals
+        diag = A.diagonal()
+        diag = np.maximum(diag, 1e-12 * max(float(diag.max()), 1e-300))
+        if mu is None:
+            mu = 1e-3
+        accepted = False
+        while not accepted:
+            delta = spla.spsolve(A + sp.diags(mu * diag, format="csc"), -g)
+            if not np.all(np.isfinite(delta)):
+                mu *= 10.0
+                continue
+            trial = problem.evaluate(u + delta)
+            evaluations += 1
+            predicted = -(g @ delta) - 0.5 * delta @ (A @ delta)
+            actual = 0.5 * (ev.cost - trial.cost)
+            rho = actual / predicted if predicted > 0 else -1.0
+            if rho > 0:
+                accepted = True
+                mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+            else:
+                mu *= nu
+                nu *= 2.0
+                if mu > 1e12:
+                    break
+        if not accepted:
+            message = "no step decreases the cost (a local minimum to solver precision)"
+            success = True
+            break
+        iterations += 1
+        decrease = (ev.cost - trial.cost) / max(ev.cost, 1e-300)
+        step = float(np.sqrt((delta.reshape(-1, 3) ** 2).sum(axis=1)).max()) / cell
+        u = u + delta
+        ev = trial
+        if decrease < criteria.relative_cost:
+            message = f"relative cost decrease {decrease:.2e} < relative_cost"
+            success = True
+            break
+        if step < criteria.relative_step:
+            message = f"relative step {step:.2e} < relative_step"
+            success = True
+            break
+    return SolveInfo(
+        ev, initial, iterations, evaluations, success, message, time.perf_counter() - start
+    )
+
+
+def _scipy(problem: LevelProblem, criteria: ElasticCriteria, method: str) -> SolveInfo:
+    start = time.perf_counter()
+    cache: dict[bytes, Evaluation] = {}
+
+    def evaluate(u: np.ndarray) -> Evaluation:
+        key = u.tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = problem.evaluate(u.copy())
+        return cache[key]
+
+    u0 = np.zeros(problem.number_of_unknowns)
+    initial = evaluate(u0).cost
+    dense = method == "lm-dense"
+    m = evaluate(u0).residuals.size
+    if dense and m < u0.size:
+        raise ValueError(
+            f"solver 'lm-dense' needs at least as many residuals as unknowns, got {m} < {u0.size}"
+        )
+
+    def jac(u: np.ndarray):
+        J = evaluate(u).jacobian
+        return J.toarray() if dense else J
+
+    max_nfev = criteria.max_iteration * (u0.size + 1) if dense else criteria.max_iteration * 3
+    res = least_squares(
+        lambda u: evaluate(u).residuals,
+        u0,
+        jac=jac,
+        method="lm" if dense else "trf",
+        ftol=max(criteria.relative_cost, 1e-15),
+        xtol=max(criteria.relative_step * 1e-3, 1e-15),
+        gtol=1e-12,
+        max_nfev=max_nfev,
+        x_scale=1.0 if dense else "jac",
+        tr_solver=None if dense else "lsmr",
+    )
+    ev = problem.evaluate(res.x)
+    return SolveInfo(
+        ev,
+        initial,
+        int(res.njev or res.nfev),
+        int(res.nfev),
+        bool(res.success),
+        str(res.message),
+        time.perf_counter() - start,
+    )

@@ -1,0 +1,217 @@
+"""The elastic deformation of space: a hierarchy of trilinear lattices.
+
+``T(x) = x + sum_k u_k(x)`` where ``u_k`` is the displacement field of level ``k`` (a
+:class:`~o3dreg.lattice.TrilinearLattice`; all levels share one box). Each level adds detail to the
+coarser ones, as in the multi-resolution scheme of Berar et al. (2005), Fig. 3, and the
+octree-splines of Szeliski and Lavallee (1996). The map applies to any points: template vertices,
+landmarks, other meshes.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from functools import reduce
+from math import gcd
+from typing import Any
+
+import numpy as np
+
+from ._validation import as_points
+from .lattice import TrilinearLattice
+from .meshio import atomic_write
+
+__all__ = ["LatticeDeformation"]
+
+_FORMAT = "o3dreg.LatticeDeformation"
+_VERSION = 1
+
+
+def _lcm(a: int, b: int) -> int:
+    return a * b // gcd(a, b)
+
+
+@dataclass(frozen=True, eq=False)
+class LatticeDeformation:
+    """A map of space ``T(x) = x + sum_k u_k(x)`` made of nested trilinear lattices.
+
+    Attributes
+    ----------
+    levels : tuple of TrilinearLattice
+        Coarse to fine; all share the same box. An empty tuple is the identity.
+
+    Notes
+    -----
+    Outside the common box every level is clamped, so ``T`` is continuous on all of space and
+    moves far points rigidly by the displacement of the nearest box point.
+    """
+
+    levels: tuple[TrilinearLattice, ...] = ()
+
+    def __post_init__(self) -> None:
+        levels = tuple(self.levels)
+        for lat in levels:
+            if not isinstance(lat, TrilinearLattice):
+                raise TypeError(
+                    f"`levels` must hold TrilinearLattice objects, got {type(lat).__name__}"
+                )
+            if not lat.same_box(levels[0]):
+                raise ValueError("`levels` must all cover the same box (origin and size)")
+        object.__setattr__(self, "levels", levels)
+
+    def __repr__(self) -> str:
+        shapes = [lat.shape[0] if len(set(lat.shape)) == 1 else lat.shape for lat in self.levels]
+        return (
+            f"LatticeDeformation(levels={shapes}, "
+            f"max_displacement={self.max_displacement:.4g})"
+        )
+
+    @property
+    def max_displacement(self) -> float:
+        """Largest node displacement summed over levels (an upper bound on |T(x) - x|)."""
+        return float(sum(lat.max_displacement for lat in self.levels))
+
+    def with_level(self, lattice: TrilinearLattice) -> LatticeDeformation:
+        """A new deformation with ``lattice`` appended as its finest level."""
+        return LatticeDeformation((*self.levels, lattice))
+
+    # -- the map --------------------------------------------------------------------------------
+    def displacement(self, points: Any) -> np.ndarray:
+        """``T(x) - x`` at ``points (n, 3)``."""
+        pts = as_points(points, "points", allow_empty=True)
+        out = np.zeros_like(pts)
+        for lat in self.levels:
+            out += lat.displacement(pts)
+        return out
+
+    def transform(self, points: Any) -> np.ndarray:
+        """Apply the map: ``T(points)`` as a new ``(n, 3)`` array (the input is not modified)."""
+        pts = as_points(points, "points", allow_empty=True)
+        return pts + self.displacement(pts)
+
+    def jacobian(self, points: Any) -> np.ndarray:
+        """Jacobian matrices ``dT/dx`` at ``points``, ``(n, 3, 3)`` (row: output, column: input)."""
+        pts = as_points(points, "points", allow_empty=True)
+        jac = np.broadcast_to(np.eye(3), (pts.shape[0], 3, 3)).copy()
+        for lat in self.levels:
+            jac += lat.displacement_gradient(pts)
+        return jac
+
+    def jacobian_determinant(self, points: Any) -> np.ndarray:
+        """``det(dT/dx)`` at ``points``: positive where the map preserves orientation."""
+        return np.linalg.det(self.jacobian(points))
+
+    def min_jacobian_determinant(self, samples_per_cell: int = 3) -> float:
+        """Smallest Jacobian determinant over a regular sample of every finest cell.
+
+        ``det`` is a polynomial inside each cell; sampling ``samples_per_cell`` points per axis at
+        cell-interior positions (the corners are included through neighbouring cells) gives an
+        estimate of its minimum. A value ``<= 0`` means the map folds (is not one-to-one).
+        """
+        if not self.levels:
+            return 1.0
+        finest = self._common_shape()
+        origin, size = self.levels[0].origin, self.levels[0].size
+        n = max(int(samples_per_cell), 2)
+        cells = np.asarray(finest)
+        axes = [
+            origin[a] + size[a] * np.linspace(0.0, 1.0, cells[a] * (n - 1) + 1) for a in range(3)
+        ]
+        grid = np.meshgrid(*axes, indexing="ij")
+        pts = np.stack([g.ravel() for g in grid], axis=1)
+        # The corner of a cell is shared; nudge inwards so each sample uses a single cell's formula.
+        centre = origin + size / 2
+        pts = pts + (centre - pts) * 1e-9
+        return float(self.jacobian_determinant(pts).min())
+
+    # -- refinement -----------------------------------------------------------------------------
+    def _common_shape(self) -> tuple[int, int, int]:
+        return tuple(  # type: ignore[return-value]
+            reduce(_lcm, (lat.shape[a] for lat in self.levels)) for a in range(3)
+        )
+
+    def refined(self, shape: Any = None) -> LatticeDeformation:
+        """The same map as a single lattice.
+
+        Parameters
+        ----------
+        shape : int or tuple of 3 int, optional
+            Cells per axis of the result: a common multiple of every level's cells. Default: the
+            least common multiple (the finest level for a 2^k hierarchy).
+
+        Returns
+        -------
+        LatticeDeformation
+            One level whose map equals this one everywhere (to rounding).
+        """
+        if not self.levels:
+            raise ValueError("cannot refine the identity deformation: it has no lattice")
+        common = self._common_shape()
+        if shape is None:
+            shape = common
+        elif isinstance(shape, (int, np.integer)):
+            shape = (int(shape),) * 3
+        shape = tuple(int(s) for s in shape)
+        if len(shape) != 3 or any(s <= 0 or s % c for s, c in zip(shape, common)):
+            raise ValueError(
+                f"`shape` must be 3 positive multiples of {common}, got {shape}"
+            )
+        total = TrilinearLattice.zeros(self.levels[0].origin, self.levels[0].size, shape)
+        nodes = total.node_positions()
+        values = np.zeros_like(nodes)
+        for lat in self.levels:
+            values += lat.displacement(nodes)
+        return LatticeDeformation((total.with_displacements(values),))
+
+    # -- persistence ----------------------------------------------------------------------------
+    def save(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> str:
+        """Write the deformation to a ``.npz`` file (atomically)."""
+        path = os.fspath(path)
+        if not path.endswith(".npz"):
+            raise ValueError(f"`path` must end with .npz, got {path!r}")
+        arrays: dict[str, Any] = {
+            "format": np.array(_FORMAT),
+            "version": np.array(_VERSION),
+            "number_of_levels": np.array(len(self.levels)),
+        }
+        for k, lat in enumerate(self.levels):
+            arrays[f"level{k}_origin"] = lat.origin
+            arrays[f"level{k}_size"] = lat.size
+            arrays[f"level{k}_shape"] = np.asarray(lat.shape)
+            arrays[f"level{k}_displacements"] = lat.displacements
+
+        def write(tmp: str) -> None:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **arrays)
+
+        return atomic_write(path, write, overwrite=overwrite)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> LatticeDeformation:
+        """Read a deformation written by :meth:`save`."""
+        path = os.fspath(path)
+        if not os.path.isfile(path):
+            raise OSError(f"`path`: no such file {path!r}")
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as exc:
+            raise OSError(f"`path`: {path!r} is not a readable .npz file ({exc})") from exc
+        with data:
+            if "format" not in data or str(data["format"]) != _FORMAT:
+                raise ValueError(f"`path`: {path!r} does not hold an o3dreg LatticeDeformation")
+            if int(data["version"]) > _VERSION:
+                raise ValueError(
+                    f"`path`: {path!r} has format version {int(data['version'])}, "
+                    f"this o3dreg reads up to {_VERSION}"
+                )
+            levels = []
+            for k in range(int(data["number_of_levels"])):
+                levels.append(
+                    TrilinearLattice(
+                        data[f"level{k}_origin"].astype(np.float64),
+                        data[f"level{k}_size"].astype(np.float64),
+                        tuple(int(s) for s in data[f"level{k}_shape"]),  # type: ignore[arg-type]
+                        data[f"level{k}_displacements"].astype(np.float64),
+                    )
+                )
+        return cls(tuple(levels))

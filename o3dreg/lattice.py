@@ -1,0 +1,210 @@
+"""Trilinear lattices: the elementary cubes of eq. (1) of Berar et al. (2005).
+
+A lattice covers an axis-aligned box split into ``shape = (nx, ny, nz)`` cells and stores one
+displacement vector per node. Inside a cell the displacement is the trilinear interpolation of its
+8 corner nodes, which is exactly the map ``[1, x, y, z, xy, yz, zx, xyz] -> R^3`` of eq. (1);
+parametrising by node displacements makes the field continuous across cell faces by construction.
+Points outside the box take the displacement of the nearest point of the box (clamping), so the
+field is continuous everywhere.
+
+Nodes are numbered ``(i * (ny + 1) + j) * (nz + 1) + k`` for node ``(i, j, k)`` along ``(x, y, z)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["TrilinearLattice", "corner_offsets"]
+
+
+def corner_offsets() -> np.ndarray:
+    """The 8 cell corners as ``(8, 3)`` bits ``(a, b, c)``, ``a`` along x."""
+    return np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=np.int64)
+
+
+_CORNERS = corner_offsets()
+
+
+@dataclass(frozen=True, eq=False)
+class TrilinearLattice:
+    """A trilinear displacement field on a regular grid of cells.
+
+    Attributes
+    ----------
+    origin : (3,) ndarray
+        World coordinates of the box's minimum corner (node ``(0, 0, 0)``), in the input's units.
+    size : (3,) ndarray
+        Box extent along x, y, z.
+    shape : tuple of 3 int
+        Number of cells along x, y, z.
+    displacements : (nx + 1, ny + 1, nz + 1, 3) ndarray
+        Displacement vector at every node. Zero means the identity map.
+    """
+
+    origin: np.ndarray
+    size: np.ndarray
+    shape: tuple[int, int, int]
+    displacements: np.ndarray = field(repr=False)
+
+    @classmethod
+    def zeros(cls, origin, size, shape) -> TrilinearLattice:
+        """An identity lattice (all displacements zero)."""
+        shape = tuple(int(s) for s in shape)
+        if len(shape) != 3 or min(shape) < 1:
+            raise ValueError(f"`shape` must be 3 positive cell counts, got {shape}")
+        nodes = tuple(s + 1 for s in shape) + (3,)
+        return cls(
+            np.asarray(origin, dtype=np.float64).copy(),
+            np.asarray(size, dtype=np.float64).copy(),
+            shape,  # type: ignore[arg-type]
+            np.zeros(nodes),
+        )
+
+    def __post_init__(self) -> None:
+        expected = tuple(s + 1 for s in self.shape) + (3,)
+        if self.displacements.shape != expected:
+            raise ValueError(
+                f"`displacements` must have shape {expected}, got {self.displacements.shape}"
+            )
+        if np.any(np.asarray(self.size) <= 0):
+            raise ValueError(f"`size` must be positive, got {np.asarray(self.size).tolist()}")
+
+    def __repr__(self) -> str:
+        nx, ny, nz = self.shape
+        return (
+            f"TrilinearLattice(shape=({nx}, {ny}, {nz}), cell_size={np.round(self.cell_size, 4).tolist()}, "
+            f"max_displacement={self.max_displacement:.4g})"
+        )
+
+    # -- geometry -------------------------------------------------------------------------------
+    @property
+    def cell_size(self) -> np.ndarray:
+        """Edge lengths of one cell along x, y, z."""
+        return self.size / np.asarray(self.shape, dtype=np.float64)
+
+    @property
+    def node_shape(self) -> tuple[int, int, int]:
+        nx, ny, nz = self.shape
+        return (nx + 1, ny + 1, nz + 1)
+
+    @property
+    def number_of_nodes(self) -> int:
+        return int(np.prod(self.node_shape))
+
+    @property
+    def max_displacement(self) -> float:
+        d = self.displacements.reshape(-1, 3)
+        return float(np.sqrt((d * d).sum(axis=1)).max()) if d.size else 0.0
+
+    def node_positions(self) -> np.ndarray:
+        """World coordinates of all nodes, ``(number_of_nodes, 3)``, in node order."""
+        axes = [
+            self.origin[a] + self.cell_size[a] * np.arange(self.node_shape[a]) for a in range(3)
+        ]
+        grid = np.meshgrid(*axes, indexing="ij")
+        return np.stack([g.ravel() for g in grid], axis=1)
+
+    def node_index(self, ijk: np.ndarray) -> np.ndarray:
+        """Flat node numbers of integer node coordinates ``(..., 3)``."""
+        _, ny1, nz1 = self.node_shape
+        return (ijk[..., 0] * ny1 + ijk[..., 1]) * nz1 + ijk[..., 2]
+
+    def locate(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cell of each point and its local coordinates.
+
+        Returns
+        -------
+        cells : (n, 3) int ndarray
+            Cell index along x, y, z.
+        local : (n, 3) ndarray
+            Position inside the cell in ``[0, 1]^3`` (after clamping to the box).
+        inside : (n, 3) bool ndarray
+            Whether the point lies within the box along each axis (clamped axes have a zero
+            derivative).
+        """
+        shape = np.asarray(self.shape)
+        s = (points - self.origin) / self.cell_size
+        inside = (s >= 0.0) & (s <= shape)
+        s = np.clip(s, 0.0, shape)
+        cells = np.minimum(np.floor(s).astype(np.int64), shape - 1)
+        return cells, s - cells, inside
+
+    def weights(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The 8 nodes of each point's cell and their trilinear weights.
+
+        Returns
+        -------
+        nodes : (n, 8) int ndarray
+        weights : (n, 8) ndarray
+            Non-negative, summing to one for every point (partition of unity).
+        """
+        cells, t, _ = self.locate(points)
+        f = np.stack([1.0 - t, t], axis=1)  # (n, 2, 3): f[:, bit, axis]
+        w = f[:, _CORNERS[:, 0], 0] * f[:, _CORNERS[:, 1], 1] * f[:, _CORNERS[:, 2], 2]
+        nodes = self.node_index(cells[:, None, :] + _CORNERS[None, :, :])
+        return nodes, w
+
+    def weight_matrix(self, points: np.ndarray) -> sp.csr_matrix:
+        """Sparse ``(n, number_of_nodes)`` matrix ``W`` with ``displacement(points) = W @ D``."""
+        nodes, w = self.weights(points)
+        n = points.shape[0]
+        rows = np.repeat(np.arange(n), 8)
+        return sp.csr_matrix(
+            (w.ravel(), (rows, nodes.ravel())), shape=(n, self.number_of_nodes)
+        )
+
+    # -- the field ------------------------------------------------------------------------------
+    def displacement(self, points: np.ndarray) -> np.ndarray:
+        """Displacement at ``points (n, 3)``."""
+        nodes, w = self.weights(points)
+        d = self.displacements.reshape(-1, 3)
+        return np.einsum("nk,nkc->nc", w, d[nodes])
+
+    def displacement_gradient(self, points: np.ndarray) -> np.ndarray:
+        """Spatial derivative of the displacement, ``(n, 3, 3)`` with ``[p, c, a] = d u_c / d x_a``.
+
+        Exact inside each cell; on a cell face it is the one-sided derivative of the cell the point
+        is assigned to. Zero along axes where the point lies outside the box (clamped field).
+        """
+        cells, t, inside = self.locate(points)
+        f = np.stack([1.0 - t, t], axis=1)  # values
+        df = np.stack([-np.ones_like(t), np.ones_like(t)], axis=1) / self.cell_size  # d/dx
+        df = df * inside[:, None, :]
+        c0, c1, c2 = _CORNERS[:, 0], _CORNERS[:, 1], _CORNERS[:, 2]
+        gx = df[:, c0, 0] * f[:, c1, 1] * f[:, c2, 2]
+        gy = f[:, c0, 0] * df[:, c1, 1] * f[:, c2, 2]
+        gz = f[:, c0, 0] * f[:, c1, 1] * df[:, c2, 2]
+        grads = np.stack([gx, gy, gz], axis=2)  # (n, 8, 3)
+        nodes = self.node_index(cells[:, None, :] + _CORNERS[None, :, :])
+        d = self.displacements.reshape(-1, 3)[nodes]  # (n, 8, 3)
+        return np.einsum("nkc,nka->nca", d, grads)
+
+    def with_displacements(self, displacements: np.ndarray) -> TrilinearLattice:
+        """A copy of this lattice with other node displacements."""
+        return TrilinearLattice(
+            self.origin.copy(),
+            self.size.copy(),
+            self.shape,
+            np.array(displacements, dtype=np.float64).reshape(self.displacements.shape),
+        )
+
+    def refined(self, shape) -> TrilinearLattice:
+        """The same field on a finer grid whose cell counts are multiples of this one's.
+
+        A trilinear function restricted to a sub-cell is trilinear, so sampling the field at the
+        new nodes reproduces it exactly: the map is unchanged.
+        """
+        shape = tuple(int(s) for s in shape)
+        if len(shape) != 3 or any(s % o for s, o in zip(shape, self.shape)):
+            raise ValueError(
+                f"`shape` must be 3 multiples of the lattice shape {self.shape}, got {shape}"
+            )
+        finer = TrilinearLattice.zeros(self.origin, self.size, shape)
+        values = self.displacement(finer.node_positions())
+        return finer.with_displacements(values)
+
+    def same_box(self, other: TrilinearLattice) -> bool:
+        return bool(np.allclose(self.origin, other.origin) and np.allclose(self.size, other.size))

@@ -1,0 +1,183 @@
+"""Result value types of the elastic registration."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+
+from .deformation import LatticeDeformation
+
+__all__ = ["ElasticRegistrationResult", "LevelReport", "SurfaceDistances"]
+
+
+@dataclass(frozen=True)
+class SurfaceDistances:
+    """Point-to-surface distances in both directions, in the input's units.
+
+    Attributes
+    ----------
+    source_to_target_mean, source_to_target_rms, source_to_target_max : float
+        From each (moved) source vertex to the target surface.
+    target_to_source_mean, target_to_source_rms, target_to_source_max : float
+        From each target vertex to the (moved) source surface.
+    """
+
+    source_to_target_mean: float
+    source_to_target_rms: float
+    source_to_target_max: float
+    target_to_source_mean: float
+    target_to_source_rms: float
+    target_to_source_max: float
+
+    @classmethod
+    def from_arrays(cls, source_to_target: np.ndarray, target_to_source: np.ndarray) -> SurfaceDistances:
+        def stats(d: np.ndarray) -> tuple[float, float, float]:
+            return float(d.mean()), float(np.sqrt((d * d).mean())), float(d.max())
+
+        return cls(*stats(source_to_target), *stats(target_to_source))
+
+    def __repr__(self) -> str:
+        return (
+            f"SurfaceDistances(source->target mean={self.source_to_target_mean:.4g} "
+            f"max={self.source_to_target_max:.4g}, target->source "
+            f"mean={self.target_to_source_mean:.4g} max={self.target_to_source_max:.4g})"
+        )
+
+    def table(self, unit: str = "mm") -> str:
+        """The paper's Table 1 layout as text."""
+        head = f"{'distances (' + unit + ')':<18}{'mean':>10}{'rms':>10}{'max':>10}"
+        rows = [
+            ("source -> target", self.source_to_target_mean, self.source_to_target_rms, self.source_to_target_max),
+            ("target -> source", self.target_to_source_mean, self.target_to_source_rms, self.target_to_source_max),
+        ]
+        lines = [head] + [f"{name:<18}{a:>10.4g}{b:>10.4g}{c:>10.4g}" for name, a, b, c in rows]
+        return "\n".join(lines)
+
+    def as_dict(self) -> dict[str, float]:
+        return dict(self.__dict__)
+
+
+@dataclass(frozen=True)
+class LevelReport:
+    """What happened at one level.
+
+    Attributes
+    ----------
+    resolution : int
+        Cells per axis.
+    free_nodes : int
+        Nodes optimised (those whose cells hold refined template vertices).
+    iterations, evaluations : int
+        Accepted steps and cost evaluations.
+    initial_cost, final_cost : float
+        Total cost (sum of squared residuals) at the start and end of the level.
+    mean_distance : float
+        Mean template->target point-to-surface distance at the end of the level.
+    seconds : float
+        Wall time of the level.
+    success : bool
+    message : str
+    """
+
+    resolution: int
+    free_nodes: int
+    iterations: int
+    evaluations: int
+    initial_cost: float
+    final_cost: float
+    mean_distance: float
+    seconds: float
+    success: bool
+    message: str
+
+    def __repr__(self) -> str:
+        return (
+            f"LevelReport(resolution={self.resolution}, free_nodes={self.free_nodes}, "
+            f"iterations={self.iterations}, cost {self.initial_cost:.4g} -> {self.final_cost:.4g}, "
+            f"seconds={self.seconds:.3f}, success={self.success})"
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class ElasticRegistrationResult:
+    """The outcome of :func:`~o3dreg.registration_elastic`.
+
+    ``T(x) = deformation.transform(transformation @ x)`` maps the source (template) onto the
+    target.
+
+    Attributes
+    ----------
+    transformation : (4, 4) ndarray
+        The total rigid (or similarity) part, ``init`` included.
+    deformation : LatticeDeformation
+        The elastic map applied after ``transformation``.
+    vertices : (n, 3) ndarray
+        The source vertices mapped by ``T``.
+    faces : (m, 3) ndarray
+        The source triangles (unchanged: the semilandmark mesh's topology).
+    distances : SurfaceDistances
+        Measured as :func:`~o3dreg.evaluate_elastic` does.
+    history : tuple of LevelReport
+        One report per level, coarse to fine.
+    min_jacobian_determinant : float
+        Smallest ``det(dT/dx)`` at the source vertices (``<= 0`` means the map folds there).
+    success : bool
+        Whether every level met its stopping criteria (``False``: some level hit
+        ``max_iteration``; the result is still usable).
+    message : str
+    """
+
+    transformation: np.ndarray
+    deformation: LatticeDeformation
+    vertices: np.ndarray = field(repr=False)
+    faces: np.ndarray = field(repr=False)
+    distances: SurfaceDistances
+    history: tuple[LevelReport, ...]
+    min_jacobian_determinant: float
+    success: bool
+    message: str
+
+    def __repr__(self) -> str:
+        d = self.distances
+        return (
+            f"ElasticRegistrationResult(levels={len(self.history)}, success={self.success}, "
+            f"source->target mean={d.source_to_target_mean:.4g}, "
+            f"target->source mean={d.target_to_source_mean:.4g}, "
+            f"min_jacobian_determinant={self.min_jacobian_determinant:.3g})"
+        )
+
+    def transform(self, points: Any) -> np.ndarray:
+        """Map any source-space points (landmarks, other meshes' vertices) with ``T``."""
+        from ._validation import as_points
+
+        pts = as_points(points, "points", allow_empty=True)
+        moved = pts @ self.transformation[:3, :3].T + self.transformation[:3, 3]
+        return self.deformation.transform(moved)
+
+    def semilandmark_mesh(self, target: Any = None) -> o3d.geometry.TriangleMesh:
+        """The template's triangles on the registered vertex positions.
+
+        Parameters
+        ----------
+        target : open3d.geometry.TriangleMesh or (vertices, faces), optional
+            When given, every vertex is moved to its closest point on this surface.
+
+        Returns
+        -------
+        open3d.geometry.TriangleMesh
+            Same vertex count and triangles for every patient: the semilandmark mesh.
+        """
+        from ._validation import as_mesh_arrays
+        from .distance import SurfaceDistanceQuery
+        from .meshio import to_open3d
+
+        vertices = self.vertices
+        if target is not None:
+            tv, tf = as_mesh_arrays(target, "target", drop_degenerate=True)
+            vertices = SurfaceDistanceQuery(tv, tf).closest(vertices)[2]
+        mesh = to_open3d(vertices, self.faces)
+        mesh.compute_vertex_normals()
+        return mesh
