@@ -110,7 +110,9 @@ def _components(vertices: np.ndarray, faces: np.ndarray) -> Components:
     return result
 
 
-def _submesh(vertices: np.ndarray, faces: np.ndarray, keep: np.ndarray) -> o3d.geometry.TriangleMesh:
+def _submesh(
+    vertices: np.ndarray, faces: np.ndarray, keep: np.ndarray
+) -> o3d.geometry.TriangleMesh:
     """Mesh of the kept faces, without unreferenced vertices (vertex order preserved)."""
     kept = faces[keep]
     used = np.zeros(vertices.shape[0], dtype=bool)
@@ -182,9 +184,7 @@ def remove_small_components(mesh: Any, min_vertices: int) -> o3d.geometry.Triang
             f"({int(components.vertex_counts[0])} vertices), got {threshold}"
         )
     out = _submesh(vertices, faces, large[components.labels])
-    logger.info(
-        "removed %d component(s) below %d vertices", int((~large).sum()), threshold
-    )
+    logger.info("removed %d component(s) below %d vertices", int((~large).sum()), threshold)
     return out
 
 
@@ -221,14 +221,14 @@ def crop_mesh(mesh: Any, *, box: Any = None, plane: Any = None) -> o3d.geometry.
         if box_arr.shape[0] != 2:
             raise ValueError(f"`box` must have shape (2, 3), got {box_arr.shape}")
         if np.any(box_arr[0] > box_arr[1]):
-            raise ValueError(
-                f"`box` must have min <= max on every axis, got {box_arr.tolist()}"
-            )
+            raise ValueError(f"`box` must have min <= max on every axis, got {box_arr.tolist()}")
     plane_arr = None
     if plane is not None:
         plane_arr = as_points(plane, "plane")
         if plane_arr.shape[0] != 2:
-            raise ValueError(f"`plane` must have shape (2, 3) (point, normal), got {plane_arr.shape}")
+            raise ValueError(
+                f"`plane` must have shape (2, 3) (point, normal), got {plane_arr.shape}"
+            )
         if not np.linalg.norm(plane_arr[1]) > 0:
             raise ValueError(f"`plane` normal must be non-zero, got {plane_arr[1].tolist()}")
     vertices, faces = as_mesh_arrays(mesh, "mesh", drop_degenerate=True)
@@ -254,8 +254,8 @@ def smooth_taubin(
     """Taubin smoothing (low-pass, nearly volume preserving), e.g. for staircases of thick slices.
 
     Each iteration is a Laplacian step of weight ``lambda_filter`` followed by one of weight
-    ``mu`` (negative), with the uniform (umbrella) Laplacian: the mean of the neighbours minus
-    the vertex.
+    ``mu`` (negative): Open3D's ``filter_smooth_taubin`` (Taubin 1995,
+    doi:10.1145/218380.218473), whose Laplacian weights neighbours by inverse distance.
 
     Parameters
     ----------
@@ -265,56 +265,38 @@ def smooth_taubin(
     lambda_filter : float, optional
         Shrinking step, in (0, 1). Default 0.5.
     mu : float, optional
-        Inflating step, negative with ``-mu > lambda_filter``. Default -0.53.
+        Inflating step, negative with ``lambda_filter < -mu < 1``. Default -0.53.
 
     Returns
     -------
     mesh : open3d.geometry.TriangleMesh
         Same connectivity, moved vertices.
-
-    Notes
-    -----
-    Open3D's ``filter_smooth_taubin`` weights neighbours by inverse distance, which is unstable
-    on marching-cubes meshes whose edges can be nearly zero long; the uniform weights used here
-    are Taubin's original choice (Taubin 1995, doi:10.1145/218380.218473).
     """
-    iterations = check_positive(number_of_iterations, "number_of_iterations", integer=True,
-                                allow_zero=True)  # fmt: skip
+    iterations = check_positive(
+        number_of_iterations, "number_of_iterations", integer=True, allow_zero=True
+    )
     lam = check_positive(lambda_filter, "lambda_filter")
     if not lam < 1:
         raise ValueError(f"`lambda_filter` must be in (0, 1), got {lambda_filter!r}")
     if isinstance(mu, bool) or not isinstance(mu, (int, float, np.integer, np.floating)):
         raise TypeError(f"`mu` must be a number, got {type(mu).__name__}")
-    if not (np.isfinite(mu) and mu < 0 and -mu > lam and -mu < 1):
+    if not (np.isfinite(mu) and -1 < mu < -lam):
         raise ValueError(
-            f"`mu` must be negative with lambda_filter < -mu < 1 (got lambda_filter={lam}), "
-            f"got {mu!r}"
+            f"`mu` must be negative with lambda_filter < -mu < 1 (lambda_filter={lam}), got {mu!r}"
         )
     vertices, faces = as_mesh_arrays(mesh, "mesh")
-    return to_open3d(_taubin(vertices, faces, iterations, lam, float(mu)), faces)
-
-
-def _taubin(
-    vertices: np.ndarray, faces: np.ndarray, iterations: int, lam: float, mu: float
-) -> np.ndarray:
-    from scipy import sparse
-
-    n = vertices.shape[0]
-    rows = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2], faces[:, 1], faces[:, 2], faces[:, 0]])
-    cols = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0], faces[:, 0], faces[:, 1], faces[:, 2]])
-    adjacency = sparse.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
-    adjacency.data[:] = 1.0  # each edge once, whatever the number of triangles on it
-    degree = np.asarray(adjacency.sum(axis=1)).ravel()
-    inv_degree = np.divide(1.0, degree, out=np.zeros(n), where=degree > 0)
-    average = sparse.diags(inv_degree) @ adjacency
-    isolated = degree == 0
-    points = vertices.copy()
-    for _ in range(iterations):
-        for weight in (lam, mu):
-            delta = average @ points - points
-            delta[isolated] = 0.0
-            points += weight * delta
-    return points
+    source = to_open3d(vertices, faces)
+    if iterations == 0:
+        return source
+    out = source.filter_smooth_taubin(
+        number_of_iterations=iterations, lambda_filter=lam, mu=float(mu)
+    )
+    if not np.all(np.isfinite(np.asarray(out.vertices))):
+        raise ValueError(
+            "`mesh` gave non-finite vertices when smoothed: it has coincident vertices "
+            "(zero-length edges); merge them first"
+        )
+    return out
 
 
 def decimate(mesh: Any, number_of_vertices: int) -> o3d.geometry.TriangleMesh:

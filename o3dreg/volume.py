@@ -171,7 +171,7 @@ class Volume:
 
     @property
     def affine(self) -> np.ndarray:
-        """``(4, 4)`` map from the voxel index ``(c, r, p, 1)`` (column first) to world (x, y, z, 1).
+        """``(4, 4)`` map from voxel index ``(c, r, p, 1)`` (column first) to ``(x, y, z, 1)``.
 
         The same convention as nibabel's ``img.affine`` and ITK, but in LPS world coordinates.
         """
@@ -338,18 +338,16 @@ def _from_sitk(image: Any, source: str) -> Volume:
         array = sitk.GetArrayFromImage(image)[np.newaxis]
         sx, sy = image.GetSpacing()
         thickness = _slice_thickness(image)
-        spacing = (thickness, sy, sx)
         ox, oy = image.GetOrigin()
-        origin = (ox, oy, 0.0)
-        d = np.asarray(image.GetDirection(), dtype=np.float64).reshape(2, 2)
         direction = np.eye(3)
-        direction[:2, :2] = d
-        return Volume(array, spacing, origin, direction)
+        direction[:2, :2] = np.asarray(image.GetDirection(), dtype=np.float64).reshape(2, 2)
+        return Volume(array, np.array([thickness, sy, sx]), np.array([ox, oy, 0.0]), direction)
     if dim != 3:
         raise ValueError(f"`path`: {source!r} is a {dim}D image; a volume needs 3 dimensions")
     array = sitk.GetArrayFromImage(image)
     spacing = np.asarray(image.GetSpacing(), dtype=np.float64)[::-1]
-    return Volume(array, spacing, image.GetOrigin(), image.GetDirection())
+    origin = np.asarray(image.GetOrigin(), dtype=np.float64)
+    return Volume(array, spacing, origin, np.asarray(image.GetDirection(), dtype=np.float64))
 
 
 def _slice_thickness(image: Any) -> float:
@@ -387,8 +385,7 @@ def _read_dicom_series(folder: str, series_uid: str | None) -> Volume:
     if series_uid is None:
         if len(series) > 1:
             listing = "; ".join(
-                f"{uid} ({len(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(folder, uid))} "
-                "files)"
+                f"{uid} ({len(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(folder, uid))} files)"
                 for uid in sorted(series)
             )
             raise ValueError(
@@ -414,19 +411,23 @@ def _read_dicom_series(folder: str, series_uid: str | None) -> Volume:
     try:
         image = reader.Execute()
     except RuntimeError as exc:
-        raise OSError(f"`path`: could not read DICOM series in {folder!r}: {_sitk_error(exc)}") from exc
+        raise OSError(
+            f"`path`: could not read DICOM series in {folder!r}: {_sitk_error(exc)}"
+        ) from exc
     if len(files) == 1:
         volume = _from_sitk(image, folder)
         # One slice: keep the slice thickness as plane spacing.
         volume = Volume(
             volume.array,
-            (headers[0]["thickness"], *volume.spacing[1:]),
+            np.array([headers[0]["thickness"], *volume.spacing[1:]]),
             volume.origin,
             volume.direction,
         )
     else:
         volume = _from_sitk(image, folder)
-    logger.info("read DICOM series %s (%d slices) from %s: %r", series_uid, len(files), folder, volume)
+    logger.info(
+        "read DICOM series %s (%d slices) from %s: %r", series_uid, len(files), folder, volume
+    )
     return volume
 
 
@@ -486,9 +487,7 @@ def _check_slice_positions(files: list[str], headers: list[dict[str, Any]], uid:
     typical = float(np.median(gaps))
     bad = np.flatnonzero(np.abs(gaps - typical) > _SLICE_GAP_RTOL * typical)
     if bad.size:
-        details = ", ".join(
-            f"{gaps[i]:.4g} mm after {os.path.basename(files[i])}" for i in bad[:5]
-        )
+        details = ", ".join(f"{gaps[i]:.4g} mm after {os.path.basename(files[i])}" for i in bad[:5])
         raise ValueError(
             f"DICOM series {uid}: non-uniform slice spacing (typical {typical:.4g} mm, "
             f"{order}; {bad.size} irregular gap(s): {details}); missing slices?"
@@ -601,9 +600,7 @@ def _nrrd_geometry(header: dict[str, Any], path: str) -> tuple[np.ndarray, np.nd
         direction = matrix / spacing
     else:
         spacings = header.get("spacings")
-        spacing = (
-            np.asarray(spacings, dtype=np.float64)[:3] if spacings is not None else np.ones(3)
-        )
+        spacing = np.asarray(spacings, dtype=np.float64)[:3] if spacings is not None else np.ones(3)
         if spacing.size == 2:
             spacing = np.append(spacing, 1.0)
         spacing = np.where(np.isfinite(spacing) & (spacing > 0), np.abs(spacing), 1.0)
@@ -654,9 +651,9 @@ def read_raw_slices(
     *,
     shape: Sequence[int],
     dtype: Any,
-    spacing: Sequence[float],
+    spacing: Any,
     byte_order: str = "little",
-    origin: Sequence[float] = (0.0, 0.0, 0.0),
+    origin: Any = (0.0, 0.0, 0.0),
     direction: Any = None,
     header_bytes: int = 0,
 ) -> Volume:
@@ -695,7 +692,9 @@ def read_raw_slices(
     """
     files = _raw_file_list(paths)
     if not isinstance(shape, (list, tuple, np.ndarray)) or len(shape) not in (2, 3):
-        raise ValueError(f"`shape` must be (rows, columns) or (planes, rows, columns), got {shape!r}")
+        raise ValueError(
+            f"`shape` must be (rows, columns) or (planes, rows, columns), got {shape!r}"
+        )
     if any(isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 1 for s in shape):
         raise ValueError(f"`shape` must hold positive integers, got {tuple(shape)!r}")
     if byte_order not in _BYTE_ORDERS:
