@@ -43,3 +43,30 @@ __all__ += [
     "registration_elastic",
     "registration_rigid",
 ]
+
+# --- CT reconstruction (volume, isosurface, cleaning) ---
+from .cleaning import (  # noqa: E402
+    Components,
+    connected_components,
+    crop_mesh,
+    decimate,
+    keep_largest_components,
+    remove_small_components,
+    smooth_taubin,
+)
+from .isosurface import isosurface  # noqa: E402
+from .volume import Volume, read_raw_slices, read_volume  # noqa: E402
+
+__all__ += [
+    "Components",
+    "Volume",
+    "connected_components",
+    "crop_mesh",
+    "decimate",
+    "isosurface",
+    "keep_largest_components",
+    "read_raw_slices",
+    "read_volume",
+    "remove_small_components",
+    "smooth_taubin",
+]
