@@ -175,8 +175,10 @@ class LevelProblem:
             # (b) barycentre of the target vertices whose nearest template vertex is i.
             _, nearest = cKDTree(y).query(self.target_points, workers=-1)
             counts = np.bincount(nearest, minlength=n)
-            sums = np.zeros((n, 3))
-            np.add.at(sums, nearest, self.target_points)
+            sums = np.stack(
+                [np.bincount(nearest, self.target_points[:, c], minlength=n) for c in range(3)],
+                axis=1,
+            )
             assigned = np.nonzero(counts)[0]
             bary = sums[assigned] / counts[assigned, None]
             rb = self.sqrt_ws * (y[assigned] - bary).ravel()

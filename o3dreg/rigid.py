@@ -179,18 +179,29 @@ def registration_rigid(
             f"got {type(criteria).__name__}"
         )
     src, tgt = _cloud(vs, fs), _cloud(vt, ft)
-    tree_t = cKDTree(vt)
-    best, best_score = None, np.inf
+    # Rank the candidates on a coarse copy of the target (about as many points as the source):
+    # the ranking needs the shape, not the detail. Only the winner is refined on all points.
+    coarse_tgt = tgt.voxel_down_sample(_voxel_for(vt, max(vs.shape[0], 1000)))
+    coarse_pts = np.asarray(coarse_tgt.points)
+    tree_t = cKDTree(coarse_pts)
+    best, best_score = np.eye(4), np.inf
     for guess in candidates:
         coarse = reg.registration_icp(
-            src, tgt, 4.0 * max_correspondence_distance, guess, estimation_method, criteria
+            src, coarse_tgt, 4.0 * max_correspondence_distance, guess, estimation_method, criteria
         )
-        fine = reg.registration_icp(
-            src, tgt, max_correspondence_distance, coarse.transformation, estimation_method, criteria
-        )
-        t = np.asarray(fine.transformation)
-        score = _chamfer(vs @ t[:3, :3].T + t[:3, 3], vt, tree_t)
-        logger.debug("rigid candidate: fitness %.3f, score %.4g", fine.fitness, score)
+        t = np.asarray(coarse.transformation)
+        score = _chamfer(vs @ t[:3, :3].T + t[:3, 3], coarse_pts, tree_t)
+        logger.debug("rigid candidate: fitness %.3f, score %.4g", coarse.fitness, score)
         if score < best_score:
-            best, best_score = fine, score
-    return best
+            best, best_score = t, score
+    return reg.registration_icp(
+        src, tgt, max_correspondence_distance, best, estimation_method, criteria
+    )
+
+
+def _voxel_for(points: np.ndarray, count: int) -> float:
+    """A voxel size that leaves roughly ``count`` points of a surface sampled by ``points``."""
+    extent = np.ptp(points, axis=0)
+    # A surface of extent L holds about (L / voxel)^2 * 3 occupied voxels (three faces' worth).
+    area_scale = float(np.sort(extent)[1:].prod() + np.sort(extent)[:2].prod() + extent[0] * extent[2])
+    return max(float(np.sqrt(2.0 * area_scale / count)), 1e-12)
