@@ -14,7 +14,7 @@ from .. import __version__
 
 # Each sub-command module defines ``add_parser(subparsers)`` which registers itself with a
 # ``func(args) -> int`` default. New sub-commands are added to this tuple.
-_COMMANDS = ("_register", "_reconstruct", "_demo")
+_COMMANDS = ("_register", "_reconstruct", "_model", "_demo", "_view")
 
 
 def build_parser() -> argparse.ArgumentParser:
