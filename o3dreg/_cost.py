@@ -179,11 +179,13 @@ class LevelProblem:
                 [np.bincount(nearest, self.target_points[:, c], minlength=n) for c in range(3)],
                 axis=1,
             )
-            assigned = np.nonzero(counts)[0]
-            bary = sums[assigned] / counts[assigned, None]
-            rb = self.sqrt_ws * (y[assigned] - bary).ravel()
-            rows3 = (3 * assigned[:, None] + np.arange(3)).ravel()
-            blocks.append(self._Wx[rows3] * self.sqrt_ws)
+            # Every template vertex has a row (zero when nothing is assigned to it), so the
+            # residual vector keeps its length from one evaluation to the next.
+            assigned = (counts > 0).astype(np.float64)
+            bary = sums / np.maximum(counts, 1)[:, None]
+            scale = self.sqrt_ws * np.repeat(assigned, 3)
+            rb = scale * (y - bary).ravel()
+            blocks.append(sp.diags(scale, format="csr") @ self._Wx)
             residuals.append(rb)
             cost_sym = float(rb @ rb)
         rc = self._Jreg @ u

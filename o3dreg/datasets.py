@@ -1,0 +1,28 @@
+"""Small meshes that ship with o3dreg, for examples, tests and the demo."""
+
+from __future__ import annotations
+
+from importlib import resources
+
+import open3d as o3d
+
+__all__ = ["load_bunny"]
+
+
+def load_bunny() -> o3d.geometry.TriangleMesh:
+    """The Stanford bunny (35,947 vertices, open at the base), scaled to millimetres.
+
+    Returns
+    -------
+    open3d.geometry.TriangleMesh
+        A new mesh each call, about 155 x 153 x 120 mm (bounding-box diagonal 250 mm).
+
+    Notes
+    -----
+    Stanford 3D Scanning Repository; see ``o3dreg/data/ATTRIBUTION.md``.
+    """
+    path = resources.files("o3dreg") / "data" / "bunny.ply"
+    with resources.as_file(path) as p:
+        mesh = o3d.io.read_triangle_mesh(str(p))
+    mesh.scale(1000.0, center=(0.0, 0.0, 0.0))
+    return mesh

@@ -1,0 +1,124 @@
+"""The deformation object: a true map of space that can be applied, refined, saved and inspected."""
+
+import numpy as np
+import pytest
+
+from o3dreg import LatticeDeformation, TrilinearLattice
+
+
+def hierarchy(seed=0, scale=0.05):
+    rng = np.random.default_rng(seed)
+    levels = []
+    for r in (2, 4, 8):
+        lat = TrilinearLattice.zeros((-10, -10, -10), (20, 20, 20), (r, r, r))
+        levels.append(lat.with_displacements(scale * rng.normal(size=lat.displacements.shape)))
+    return LatticeDeformation(tuple(levels))
+
+
+def sample(n=300, seed=2, lo=-12.0, hi=12.0):
+    return np.random.default_rng(seed).uniform(lo, hi, size=(n, 3))
+
+
+def test_empty_deformation_is_identity():
+    pts = sample()
+    np.testing.assert_array_equal(LatticeDeformation().transform(pts), pts)
+    assert LatticeDeformation().min_jacobian_determinant() == 1.0
+
+
+def test_map_is_the_sum_of_level_displacements():
+    d = hierarchy()
+    pts = sample()
+    expected = pts + sum(lat.displacement(pts) for lat in d.levels)
+    np.testing.assert_allclose(d.transform(pts), expected)
+
+
+def test_refined_single_lattice_is_the_same_map():
+    d = hierarchy()
+    pts = sample()
+    for shape in (None, 16):
+        r = d.refined(shape)
+        assert len(r.levels) == 1
+        np.testing.assert_allclose(r.transform(pts), d.transform(pts), atol=1e-12)
+    with pytest.raises(ValueError, match="multiples"):
+        d.refined(12)
+
+
+def test_jacobian_matches_finite_differences():
+    d = hierarchy(scale=0.5)
+    # Keep away from cell faces, where the one-sided derivatives differ.
+    pts = sample(lo=-9.0, hi=9.0)
+    h = 1e-6
+    fd = np.stack([(d.transform(pts + h * e) - d.transform(pts - h * e)) / (2 * h) for e in np.eye(3)], axis=2)
+    np.testing.assert_allclose(d.jacobian(pts), fd, atol=1e-6)
+    np.testing.assert_allclose(d.jacobian_determinant(pts), np.linalg.det(fd), atol=1e-5)
+
+
+def test_fold_is_detected():
+    lat = TrilinearLattice.zeros((0, 0, 0), (2, 2, 2), (2, 2, 2))
+    disp = np.zeros(lat.displacements.shape)
+    # Push the centre node 1.5 cells along +x: beyond the next node, the map folds.
+    disp[1, 1, 1, 0] = 1.5
+    folded = LatticeDeformation((lat.with_displacements(disp),))
+    assert folded.min_jacobian_determinant() < 0
+    disp[1, 1, 1, 0] = 0.3
+    assert LatticeDeformation((lat.with_displacements(disp),)).min_jacobian_determinant() > 0
+
+
+def test_applies_to_any_points_without_mutating_them():
+    d = hierarchy()
+    pts = sample()
+    before = pts.copy()
+    d.transform(pts)
+    np.testing.assert_array_equal(pts, before)
+    assert d.transform(np.zeros((0, 3))).shape == (0, 3)
+
+
+def test_save_load_roundtrip(tmp_path):
+    d = hierarchy()
+    path = tmp_path / "def.npz"
+    d.save(path)
+    back = LatticeDeformation.load(path)
+    pts = sample()
+    np.testing.assert_array_equal(back.transform(pts), d.transform(pts))
+    assert repr(back) == repr(d)
+
+
+def test_save_refuses_to_overwrite_and_leaves_nothing_partial(tmp_path):
+    d = hierarchy()
+    path = tmp_path / "def.npz"
+    d.save(path)
+    with pytest.raises(OSError, match="exists"):
+        d.save(path)
+    d.save(path, overwrite=True)
+    with pytest.raises(ValueError, match=r"\.npz"):
+        d.save(tmp_path / "def.txt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["def.npz"]
+
+
+def test_load_bad_files(tmp_path):
+    with pytest.raises(OSError, match="no such file"):
+        LatticeDeformation.load(tmp_path / "missing.npz")
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(OSError, match="not a readable"):
+        LatticeDeformation.load(bad)
+    other = tmp_path / "other.npz"
+    np.savez(other, a=np.zeros(3))
+    with pytest.raises(ValueError, match="does not hold"):
+        LatticeDeformation.load(other)
+
+
+def test_levels_must_share_the_box():
+    a = TrilinearLattice.zeros((0, 0, 0), (1, 1, 1), (2, 2, 2))
+    b = TrilinearLattice.zeros((0, 0, 0), (2, 2, 2), (4, 4, 4))
+    with pytest.raises(ValueError, match="same box"):
+        LatticeDeformation((a, b))
+    with pytest.raises(TypeError, match="TrilinearLattice"):
+        LatticeDeformation(("x",))  # type: ignore[arg-type]
+
+
+def test_points_are_validated():
+    with pytest.raises(ValueError, match=r"`points` must have shape \(n, 3\)"):
+        hierarchy().transform(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="finite"):
+        hierarchy().transform(np.array([[np.nan, 0.0, 0.0]]))

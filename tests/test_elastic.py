@@ -1,0 +1,198 @@
+"""The elastic registration step: known deformations recovered, the paper's Table 1 effect, bad input."""
+
+import numpy as np
+import open3d as o3d
+import pytest
+from _helpers import assert_untouched, mesh_of, snapshot
+
+from o3dreg import (
+    DistanceEstimation,
+    ElasticCriteria,
+    ElasticLevel,
+    ElasticRegistrationResult,
+    LatticeDeformation,
+    evaluate_elastic,
+    registration_elastic,
+)
+from o3dreg.synthetic import SmoothWarp, synthetic_form
+
+FAST = [ElasticLevel(2, 0.1), ElasticLevel(4, 0.1), ElasticLevel(8, 0.1)]
+
+
+def warped(mesh, warp):
+    out = o3d.geometry.TriangleMesh(mesh)
+    out.vertices = o3d.utility.Vector3dVector(warp(np.asarray(mesh.vertices)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def bunny_case(bunny_template, bunny_target):
+    warp = SmoothWarp.random(np.asarray(bunny_target.vertices), magnitude=0.05, seed=1)
+    return bunny_template, warped(bunny_target, warp), warp
+
+
+def test_recovers_a_known_smooth_warp(bunny_case):
+    template, target, warp = bunny_case
+    snap_s, snap_t = snapshot(template), snapshot(target)
+    result = registration_elastic(template, target, init=np.eye(4))
+    truth = warp(np.asarray(template.vertices))
+    diagonal = np.linalg.norm(np.ptp(np.asarray(target.vertices), axis=0))
+    before = np.linalg.norm(np.asarray(template.vertices) - truth, axis=1).mean()
+    err = np.linalg.norm(result.vertices - truth, axis=1)
+    # Ground truth is exact per template vertex. The template is a 10x decimation, so its vertices
+    # sit ~0.1 mm off the dense surface and may slide tangentially within a triangle of the
+    # target (~1 mm edges): the issue's bound is 1% of the diagonal (2.5 mm); measured 0.2%.
+    assert err.mean() < 0.01 * diagonal
+    assert err.mean() < 0.1 * before
+    assert result.distances.source_to_target_mean < 0.2
+    assert result.min_jacobian_determinant > 0.2  # no folding
+    assert isinstance(result, ElasticRegistrationResult)
+    assert len(result.history) == 4
+    assert_untouched(template, snap_s)
+    assert_untouched(target, snap_t)
+
+
+def test_with_rigid_pre_alignment(bunny_case):
+    template, target, warp = bunny_case
+    shift = np.eye(4)
+    shift[:3, 3] = (8.0, -5.0, 3.0)
+    moved_target = o3d.geometry.TriangleMesh(target).transform(shift)
+    result = registration_elastic(template, moved_target, levels=FAST)
+    truth = warp(np.asarray(template.vertices)) + shift[:3, 3]
+    # Three levels only (fast): a looser bound than the full default hierarchy. The rigid part
+    # need not equal the shift: it also absorbs the warp's mean motion, which the lattice then
+    # does not have to make; only the composed map is determined.
+    assert np.linalg.norm(result.vertices - truth, axis=1).mean() < 2.0
+
+
+def test_the_symmetric_distance_fixes_the_cone_to_sphere_mismatch():
+    # Paper, Table 1: single distance leaves the sphere->cone distance large (18 mm mean) while
+    # the symmetric one brings it near the cone->sphere distance (0.72 mm).
+    cone, sphere = synthetic_form("cone", 1000), synthetic_form("sphere", 5000)
+    single = registration_elastic(cone, sphere, init=np.eye(4), estimation_method=DistanceEstimation(symmetric=False))
+    symmetric = registration_elastic(cone, sphere, init=np.eye(4))
+    assert single.distances.source_to_target_mean < 0.1  # the cone lies on the sphere...
+    assert single.distances.target_to_source_mean > 10.0  # ...but covers a small part of it
+    assert symmetric.distances.target_to_source_mean < 0.1 * single.distances.target_to_source_mean
+    assert symmetric.distances.target_to_source_mean < 1.5
+
+
+def test_identical_meshes_stay_put():
+    sphere = synthetic_form("sphere", 800)
+    d = evaluate_elastic(sphere, sphere)
+    assert d.source_to_target_max == 0.0 and d.target_to_source_max == 0.0
+    result = registration_elastic(sphere, sphere, init=np.eye(4), levels=FAST)
+    np.testing.assert_allclose(result.vertices, np.asarray(sphere.vertices), atol=1e-9)
+    assert result.distances.target_to_source_max < 1e-9
+
+
+def test_result_maps_any_points_and_exports_semilandmarks(bunny_case, tmp_path):
+    template, target, _ = bunny_case
+    result = registration_elastic(template, target, init=np.eye(4), levels=FAST)
+    np.testing.assert_allclose(result.transform(np.asarray(template.vertices)), result.vertices, atol=1e-9)
+    mesh = result.semilandmark_mesh()
+    np.testing.assert_array_equal(np.asarray(mesh.triangles), np.asarray(template.triangles))
+    projected = result.semilandmark_mesh(target)
+    d = evaluate_elastic(projected, target)
+    assert d.source_to_target_max < 1e-9
+    assert len(projected.vertices) == len(template.vertices)
+    # The deformation alone, saved and loaded, reproduces the result.
+    path = tmp_path / "deformation.npz"
+    result.deformation.save(path)
+    again = LatticeDeformation.load(path).transform(np.asarray(template.vertices))
+    np.testing.assert_allclose(again, result.vertices, atol=1e-9)
+
+
+def test_evaluate_twin_measures_the_result(bunny_case):
+    template, target, _ = bunny_case
+    result = registration_elastic(template, target, init=np.eye(4), levels=FAST)
+    again = evaluate_elastic(template, target, result.transformation, result.deformation)
+    # Same metric; the moved vertices are summed level by level in the registration and
+    # through the deformation object here, so they agree to rounding.
+    for name, value in result.distances.as_dict().items():
+        assert getattr(again, name) == pytest.approx(value, rel=1e-9, abs=1e-12)
+
+
+@pytest.mark.parametrize("solver", ["trf", "lm-dense"])
+def test_solvers_agree(solver):
+    cube, sphere = synthetic_form("cube", 200), synthetic_form("sphere", 1500)
+    levels = [ElasticLevel(2, 0.1), ElasticLevel(4, 0.1)]
+    ours = registration_elastic(cube, sphere, init=np.eye(4), levels=levels)
+    theirs = registration_elastic(
+        cube, sphere, init=np.eye(4), levels=[ElasticLevel(lev.resolution, 0.1, solver=solver) for lev in levels]
+    )
+    # Same cost, different algorithms: final costs agree to a few percent (the symmetric
+    # assignments make the cost piecewise smooth, so local minima differ slightly).
+    assert theirs.history[-1].final_cost == pytest.approx(ours.history[-1].final_cost, rel=0.15)
+    assert theirs.distances.source_to_target_mean < 2.0 * ours.distances.source_to_target_mean
+
+
+def test_adaptive_levels_free_fewer_nodes(bunny_case):
+    template, target, warp = bunny_case
+    uniform = registration_elastic(template, target, init=np.eye(4), levels=FAST)
+    adaptive = registration_elastic(
+        template,
+        target,
+        init=np.eye(4),
+        levels=[ElasticLevel(2, 0.1), ElasticLevel(4, 0.1, adaptive_quantile=0.5), ElasticLevel(8, 0.1, adaptive_quantile=0.5)],
+    )
+    assert adaptive.history[-1].free_nodes < uniform.history[-1].free_nodes
+    truth = warp(np.asarray(template.vertices))
+    err_u = np.linalg.norm(uniform.vertices - truth, axis=1).mean()
+    err_a = np.linalg.norm(adaptive.vertices - truth, axis=1).mean()
+    # Refining only where residuals remain large costs little accuracy.
+    assert err_a < 1.5 * err_u
+
+
+def test_callback_and_non_convergence_flag():
+    cube, sphere = synthetic_form("cube", 200), synthetic_form("sphere", 1500)
+    seen = []
+    result = registration_elastic(
+        cube, sphere, init=np.eye(4), levels=FAST, criteria=ElasticCriteria(max_iteration=1), callback=seen.append
+    )
+    assert [r.resolution for r in seen] == [2, 4, 8]
+    assert result.success is False
+    assert "max_iteration" in result.message
+    assert "ElasticRegistrationResult(" in repr(result) and "\n" not in repr(result)
+
+
+def test_bad_input():
+    sphere = synthetic_form("sphere", 300)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    with pytest.raises(ValueError, match="`source.vertices` must hold at least one point"):
+        registration_elastic(o3d.geometry.TriangleMesh(), sphere)
+    with pytest.raises(ValueError, match="`target` must have at least 1 triangle"):
+        registration_elastic(sphere, (v, np.zeros((0, 3), int)))
+    bad = v.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="`source.vertices` must hold finite"):
+        registration_elastic((bad, f), sphere)
+    with pytest.raises(ValueError, match=r"`target.faces` must index vertices in \[0, "):
+        registration_elastic(sphere, (v, f + 1))
+    degenerate = np.vstack([f, [[0, 0, 1]]])
+    with pytest.raises(ValueError, match="degenerate"):
+        registration_elastic((v, degenerate), sphere)
+    with pytest.raises(ValueError, match=r"`source.faces` must have shape \(m, 3\)"):
+        registration_elastic((v, f[:, :2]), sphere)
+    with pytest.raises(TypeError, match="`source.vertices` must hold real numbers"):
+        registration_elastic((v.astype(str), f), sphere)
+    with pytest.raises(ValueError, match=r"`init` must have shape \(4, 4\), got \(3, 3\)"):
+        registration_elastic(sphere, sphere, init=np.eye(3))
+    with pytest.raises(TypeError, match=r"`levels\[1\]` must be an ElasticLevel"):
+        registration_elastic(sphere, sphere, init=np.eye(4), levels=[ElasticLevel(2), 4])
+    with pytest.raises(TypeError, match="estimation_method"):
+        registration_elastic(sphere, sphere, estimation_method="symmetric")
+    with pytest.raises(ValueError, match="`resolution` must be a finite integer > 0, got 0"):
+        ElasticLevel(0)
+    with pytest.raises(ValueError, match="`solver` must be one of"):
+        ElasticLevel(2, solver="newton")
+    with pytest.raises(ValueError, match="`adaptive_quantile` must be in"):
+        ElasticLevel(2, adaptive_quantile=1.0)
+
+
+def test_degenerate_target_triangles_are_dropped():
+    sphere = synthetic_form("sphere", 500)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    target = mesh_of(v, np.vstack([f, [[0, 0, 1]]]))
+    result = registration_elastic(sphere, target, init=np.eye(4), levels=[ElasticLevel(2)])
+    assert result.distances.source_to_target_max < 1e-6

@@ -1,0 +1,73 @@
+"""Mesh IO: clear errors, atomic writes, nothing overwritten by accident."""
+
+import numpy as np
+import open3d as o3d
+import pytest
+from _helpers import assert_untouched, mesh_of, snapshot
+
+from o3dreg import read_triangle_mesh, write_triangle_mesh
+from o3dreg.meshio import atomic_write
+from o3dreg.synthetic import synthetic_form
+
+
+def test_roundtrip_and_inputs_untouched(tmp_path):
+    cube = synthetic_form("cube", 200)
+    mesh = mesh_of(np.asarray(cube.vertices), np.asarray(cube.triangles))
+    snap = snapshot(mesh)
+    path = write_triangle_mesh(tmp_path / "cube.ply", mesh)
+    back = read_triangle_mesh(path)
+    np.testing.assert_allclose(np.asarray(back.vertices), snap[0])
+    np.testing.assert_array_equal(np.asarray(back.triangles), snap[1])
+    assert_untouched(mesh, snap)
+    assert not mesh.has_vertex_normals()  # the copy got normals, not the caller's mesh
+
+
+def test_arrays_are_accepted(tmp_path):
+    v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    write_triangle_mesh(tmp_path / "tri.obj", (v, np.array([[0, 1, 2]])))
+    assert len(read_triangle_mesh(tmp_path / "tri.obj").triangles) == 1
+
+
+def test_no_overwrite_without_permission(tmp_path):
+    mesh = synthetic_form("cube", 200)
+    path = tmp_path / "m.ply"
+    write_triangle_mesh(path, mesh)
+    with pytest.raises(OSError, match="exists; pass overwrite=True"):
+        write_triangle_mesh(path, mesh)
+    write_triangle_mesh(path, mesh, overwrite=True)
+
+
+def test_failed_write_leaves_nothing(tmp_path):
+    def failing(tmp):
+        with open(tmp, "w") as fh:
+            fh.write("half")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError, match="disk full"):
+        atomic_write(tmp_path / "out.ply", failing)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_read_errors(tmp_path):
+    with pytest.raises(OSError, match="no such file"):
+        read_triangle_mesh(tmp_path / "missing.ply")
+    with pytest.raises(ValueError, match="must end with one of"):
+        read_triangle_mesh(tmp_path / "mesh.vtk")
+    empty = tmp_path / "empty.ply"
+    empty.write_text("ply\nformat ascii 1.0\nend_header\n")
+    with pytest.raises(OSError, match="could not be read as a triangle mesh"):
+        read_triangle_mesh(empty)
+    points_only = tmp_path / "points.ply"
+    o3d.io.write_point_cloud(str(points_only), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.eye(3))))
+    with pytest.raises(OSError, match="0 triangles"):
+        read_triangle_mesh(points_only)
+    with pytest.raises(TypeError, match="must be a path"):
+        read_triangle_mesh(3)
+
+
+def test_write_errors(tmp_path):
+    mesh = synthetic_form("cube", 200)
+    with pytest.raises(OSError, match="does not exist"):
+        write_triangle_mesh(tmp_path / "no" / "m.ply", mesh)
+    with pytest.raises(ValueError, match="must end with one of"):
+        write_triangle_mesh(tmp_path / "m.txt", mesh)
