@@ -26,10 +26,13 @@ from scipy.spatial import cKDTree
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
 
+
 def _stencils() -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
     eye = np.eye(3, dtype=np.int64)
     membrane = [(np.array([np.zeros(3, np.int64), e]), np.array([-1.0, 1.0])) for e in eye]
-    bending = [(np.array([np.zeros(3, np.int64), e, 2 * e]), np.array([1.0, -2.0, 1.0])) for e in eye]
+    bending = [
+        (np.array([np.zeros(3, np.int64), e, 2 * e]), np.array([1.0, -2.0, 1.0])) for e in eye
+    ]
     for a, b in ((0, 1), (1, 2), (0, 2)):
         offsets = np.array([np.zeros(3, np.int64), eye[a], eye[b], eye[a] + eye[b]])
         bending.append((offsets, np.sqrt(2.0) * np.array([1.0, -1.0, -1.0, 1.0])))
@@ -101,9 +104,7 @@ class LevelProblem:
         keep = local >= 0
         rows = np.broadcast_to(np.arange(n)[:, None], local.shape)[keep]
         # W restricted to free nodes, (n, m).
-        self.W = sp.csr_matrix(
-            (weights[keep], (rows, local[keep])), shape=(n, free_nodes.size)
-        )
+        self.W = sp.csr_matrix((weights[keep], (rows, local[keep])), shape=(n, free_nodes.size))
         self.number_of_unknowns = 3 * free_nodes.size
         self._G = self._stencil_matrix(lookup, energy)
         edges = max(self._G.shape[0], 1)
@@ -162,7 +163,9 @@ class LevelProblem:
         # (a) point-to-surface distances: row i has grad_i (x) W_i.
         Ja = sp.csr_matrix(
             (
-                (self.W.data[:, None] * grad[np.repeat(np.arange(n), np.diff(self.W.indptr))]).ravel(),
+                (
+                    self.W.data[:, None] * grad[np.repeat(np.arange(n), np.diff(self.W.indptr))]
+                ).ravel(),
                 (3 * self.W.indices[:, None] + np.arange(3)).ravel(),
                 self.W.indptr * 3,
             ),

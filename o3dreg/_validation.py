@@ -15,9 +15,9 @@ __all__ = [
     "as_mesh_arrays",
     "as_points",
     "as_transformation",
+    "check_output_path",
     "check_positive",
     "check_probability",
-    "check_output_path",
 ]
 
 
@@ -82,9 +82,7 @@ def as_mesh_arrays(
     if faces_arr.size == 0:
         faces_arr = faces_arr.reshape(0, 3)
     if not np.issubdtype(faces_arr.dtype, np.integer):
-        if np.issubdtype(faces_arr.dtype, np.floating) and np.all(
-            np.mod(faces_arr, 1) == 0
-        ):
+        if np.issubdtype(faces_arr.dtype, np.floating) and np.all(np.mod(faces_arr, 1) == 0):
             faces_arr = faces_arr.astype(np.int64)
         else:
             raise TypeError(f"`{name}.faces` must hold integers, got dtype {faces_arr.dtype}")
@@ -144,11 +142,15 @@ def as_transformation(value: Any, name: str = "init") -> np.ndarray:
     return arr
 
 
-def check_positive(value: Any, name: str, *, integer: bool = False, allow_zero: bool = False) -> Any:
+def check_positive(
+    value: Any, name: str, *, integer: bool = False, allow_zero: bool = False
+) -> Any:
     """Check that ``value`` is a finite positive number (or integer) and return it."""
     kind = "integer" if integer else "number"
-    ok_type = isinstance(value, (int, np.integer)) if integer else isinstance(
-        value, (int, float, np.integer, np.floating)
+    ok_type = (
+        isinstance(value, (int, np.integer))
+        if integer
+        else isinstance(value, (int, float, np.integer, np.floating))
     )
     if isinstance(value, bool) or not ok_type:
         raise TypeError(f"`{name}` must be a {kind}, got {_describe(value)}")

@@ -23,6 +23,6 @@ def load_bunny() -> o3d.geometry.TriangleMesh:
     """
     path = resources.files("o3dreg") / "data" / "bunny.ply"
     with resources.as_file(path) as p:
-        mesh = o3d.io.read_triangle_mesh(str(p))
+        mesh = o3d.io.read_triangle_mesh(str(p))  # type: ignore[arg-type]  # stubs say PathLike only
     mesh.scale(1000.0, center=(0.0, 0.0, 0.0))
     return mesh

@@ -61,10 +61,7 @@ class LatticeDeformation:
 
     def __repr__(self) -> str:
         shapes = [lat.shape[0] if len(set(lat.shape)) == 1 else lat.shape for lat in self.levels]
-        return (
-            f"LatticeDeformation(levels={shapes}, "
-            f"max_displacement={self.max_displacement:.4g})"
-        )
+        return f"LatticeDeformation(levels={shapes}, max_displacement={self.max_displacement:.4g})"
 
     @property
     def max_displacement(self) -> float:
@@ -153,9 +150,7 @@ class LatticeDeformation:
             shape = (int(shape),) * 3
         shape = tuple(int(s) for s in shape)
         if len(shape) != 3 or any(s <= 0 or s % c for s, c in zip(shape, common)):
-            raise ValueError(
-                f"`shape` must be 3 positive multiples of {common}, got {shape}"
-            )
+            raise ValueError(f"`shape` must be 3 positive multiples of {common}, got {shape}")
         total = TrilinearLattice.zeros(self.levels[0].origin, self.levels[0].size, shape)
         nodes = total.node_positions()
         values = np.zeros_like(nodes)

@@ -33,8 +33,7 @@ class SurfaceDistanceQuery:
 
     def __repr__(self) -> str:
         return (
-            f"SurfaceDistanceQuery(vertices={self.vertices.shape[0]}, "
-            f"faces={self.faces.shape[0]})"
+            f"SurfaceDistanceQuery(vertices={self.vertices.shape[0]}, faces={self.faces.shape[0]})"
         )
 
     def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

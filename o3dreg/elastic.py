@@ -34,7 +34,9 @@ def _apply(transformation: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ transformation[:3, :3].T + transformation[:3, 3]
 
 
-def lattice_box(points: Sequence[np.ndarray], padding: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+def lattice_box(
+    points: Sequence[np.ndarray], padding: float = 0.1
+) -> tuple[np.ndarray, np.ndarray]:
     """A cube enclosing all ``points`` with ``padding`` times its side added on every face.
 
     Returns

@@ -152,9 +152,7 @@ class TrilinearLattice:
         nodes, w = self.weights(points)
         n = points.shape[0]
         rows = np.repeat(np.arange(n), 8)
-        return sp.csr_matrix(
-            (w.ravel(), (rows, nodes.ravel())), shape=(n, self.number_of_nodes)
-        )
+        return sp.csr_matrix((w.ravel(), (rows, nodes.ravel())), shape=(n, self.number_of_nodes))
 
     # -- the field ------------------------------------------------------------------------------
     def displacement(self, points: np.ndarray) -> np.ndarray:

@@ -12,7 +12,13 @@ import open3d as o3d
 
 from ._validation import as_mesh_arrays, check_output_path
 
-__all__ = ["MESH_SUFFIXES", "atomic_write", "read_triangle_mesh", "to_open3d", "write_triangle_mesh"]
+__all__ = [
+    "MESH_SUFFIXES",
+    "atomic_write",
+    "read_triangle_mesh",
+    "to_open3d",
+    "write_triangle_mesh",
+]
 
 #: File suffixes Open3D reads and writes as triangle meshes.
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")
@@ -21,13 +27,13 @@ MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")
 def _suffix(path: str, name: str) -> str:
     suffix = os.path.splitext(path)[1].lower()
     if suffix not in MESH_SUFFIXES:
-        raise ValueError(
-            f"`{name}` must end with one of {', '.join(MESH_SUFFIXES)}, got {path!r}"
-        )
+        raise ValueError(f"`{name}` must end with one of {', '.join(MESH_SUFFIXES)}, got {path!r}")
     return suffix
 
 
-def read_triangle_mesh(path: str | os.PathLike[str], *, name: str = "path") -> o3d.geometry.TriangleMesh:
+def read_triangle_mesh(
+    path: str | os.PathLike[str], *, name: str = "path"
+) -> o3d.geometry.TriangleMesh:
     """Read a triangle mesh and check that it has vertices and triangles.
 
     Parameters
@@ -56,7 +62,7 @@ def read_triangle_mesh(path: str | os.PathLike[str], *, name: str = "path") -> o
         raise OSError(f"`{name}`: no such file {path!r}")
     if not os.access(path, os.R_OK):
         raise OSError(f"`{name}`: file {path!r} is not readable")
-    mesh = o3d.io.read_triangle_mesh(path)
+    mesh = o3d.io.read_triangle_mesh(path)  # type: ignore[arg-type]  # stubs say PathLike only
     if len(mesh.vertices) == 0 or len(mesh.triangles) == 0:
         raise OSError(
             f"`{name}`: {path!r} could not be read as a triangle mesh "
@@ -75,7 +81,11 @@ def to_open3d(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.TriangleM
 
 
 def atomic_write(
-    path: str | os.PathLike[str], writer: Callable[[str], Any], *, overwrite: bool = False, name: str = "path"
+    path: str | os.PathLike[str],
+    writer: Callable[[str], Any],
+    *,
+    overwrite: bool = False,
+    name: str = "path",
 ) -> str:
     """Call ``writer(tmp)`` on a temporary file beside ``path``, then move it into place.
 
@@ -134,7 +144,7 @@ def write_triangle_mesh(
         out.compute_vertex_normals()
     return atomic_write(
         path,
-        lambda tmp: o3d.io.write_triangle_mesh(tmp, out, write_ascii=write_ascii),
+        lambda tmp: o3d.io.write_triangle_mesh(tmp, out, write_ascii=write_ascii),  # type: ignore[arg-type]
         overwrite=overwrite,
         name=name,
     )

@@ -33,7 +33,9 @@ class SurfaceDistances:
     target_to_source_max: float
 
     @classmethod
-    def from_arrays(cls, source_to_target: np.ndarray, target_to_source: np.ndarray) -> SurfaceDistances:
+    def from_arrays(
+        cls, source_to_target: np.ndarray, target_to_source: np.ndarray
+    ) -> SurfaceDistances:
         def stats(d: np.ndarray) -> tuple[float, float, float]:
             return float(d.mean()), float(np.sqrt((d * d).mean())), float(d.max())
 
@@ -50,8 +52,18 @@ class SurfaceDistances:
         """The paper's Table 1 layout as text."""
         head = f"{'distances (' + unit + ')':<18}{'mean':>10}{'rms':>10}{'max':>10}"
         rows = [
-            ("source -> target", self.source_to_target_mean, self.source_to_target_rms, self.source_to_target_max),
-            ("target -> source", self.target_to_source_mean, self.target_to_source_rms, self.target_to_source_max),
+            (
+                "source -> target",
+                self.source_to_target_mean,
+                self.source_to_target_rms,
+                self.source_to_target_max,
+            ),
+            (
+                "target -> source",
+                self.target_to_source_mean,
+                self.target_to_source_rms,
+                self.target_to_source_max,
+            ),
         ]
         lines = [head] + [f"{name:<18}{a:>10.4g}{b:>10.4g}{c:>10.4g}" for name, a, b, c in rows]
         return "\n".join(lines)

@@ -21,7 +21,9 @@ logger = logging.getLogger("o3dreg")
 reg = o3d.pipelines.registration
 
 
-def surface_moments(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+def surface_moments(
+    vertices: np.ndarray, faces: np.ndarray
+) -> tuple[float, np.ndarray, np.ndarray]:
     """Area, centroid and covariance of a triangulated surface (exact integrals).
 
     Uses ``int_T x x^T dA = A / 12 (sum_i v_i v_i^T + s s^T)`` with ``s = v_0 + v_1 + v_2``, so
@@ -203,5 +205,7 @@ def _voxel_for(points: np.ndarray, count: int) -> float:
     """A voxel size that leaves roughly ``count`` points of a surface sampled by ``points``."""
     extent = np.ptp(points, axis=0)
     # A surface of extent L holds about (L / voxel)^2 * 3 occupied voxels (three faces' worth).
-    area_scale = float(np.sort(extent)[1:].prod() + np.sort(extent)[:2].prod() + extent[0] * extent[2])
+    area_scale = float(
+        np.sort(extent)[1:].prod() + np.sort(extent)[:2].prod() + extent[0] * extent[2]
+    )
     return max(float(np.sqrt(2.0 * area_scale / count)), 1e-12)

@@ -20,7 +20,9 @@ def meshes():
     )
 
 
-def make_problem(source, target, symmetric_weight=1.0, regularization=0.3, energy="bending", resolution=4):
+def make_problem(
+    source, target, symmetric_weight=1.0, regularization=0.3, energy="bending", resolution=4
+):
     points = source[0] * 0.9
     origin, size = lattice_box([points, target[0]])
     lattice = TrilinearLattice.zeros(origin, size, (resolution,) * 3)
@@ -106,7 +108,14 @@ def test_bending_energy_is_free_for_affine_motion(meshes):
     assert ev.cost_regularization < 1e-20
     # ... while the membrane energy charges the same stretch.
     membrane = LevelProblem(
-        nodes, np.zeros_like(nodes), lattice, np.ones(lattice.number_of_nodes, dtype=bool),
-        SurfaceDistanceQuery(*meshes[1]), None, 0.0, 1.0, "membrane",
+        nodes,
+        np.zeros_like(nodes),
+        lattice,
+        np.ones(lattice.number_of_nodes, dtype=bool),
+        SurfaceDistanceQuery(*meshes[1]),
+        None,
+        0.0,
+        1.0,
+        "membrane",
     )
     assert membrane.evaluate((nodes @ a.T + 2.0).ravel()).cost_regularization > 1.0

@@ -48,7 +48,9 @@ def test_jacobian_matches_finite_differences():
     # Keep away from cell faces, where the one-sided derivatives differ.
     pts = sample(lo=-9.0, hi=9.0)
     h = 1e-6
-    fd = np.stack([(d.transform(pts + h * e) - d.transform(pts - h * e)) / (2 * h) for e in np.eye(3)], axis=2)
+    fd = np.stack(
+        [(d.transform(pts + h * e) - d.transform(pts - h * e)) / (2 * h) for e in np.eye(3)], axis=2
+    )
     np.testing.assert_allclose(d.jacobian(pts), fd, atol=1e-6)
     np.testing.assert_allclose(d.jacobian_determinant(pts), np.linalg.det(fd), atol=1e-5)
 

@@ -69,7 +69,9 @@ def test_the_symmetric_distance_fixes_the_cone_to_sphere_mismatch():
     # Paper, Table 1: single distance leaves the sphere->cone distance large (18 mm mean) while
     # the symmetric one brings it near the cone->sphere distance (0.72 mm).
     cone, sphere = synthetic_form("cone", 1000), synthetic_form("sphere", 5000)
-    single = registration_elastic(cone, sphere, init=np.eye(4), estimation_method=DistanceEstimation(symmetric=False))
+    single = registration_elastic(
+        cone, sphere, init=np.eye(4), estimation_method=DistanceEstimation(symmetric=False)
+    )
     symmetric = registration_elastic(cone, sphere, init=np.eye(4))
     assert single.distances.source_to_target_mean < 0.1  # the cone lies on the sphere...
     assert single.distances.target_to_source_mean > 10.0  # ...but covers a small part of it
@@ -89,7 +91,9 @@ def test_identical_meshes_stay_put():
 def test_result_maps_any_points_and_exports_semilandmarks(bunny_case, tmp_path):
     template, target, _ = bunny_case
     result = registration_elastic(template, target, init=np.eye(4), levels=FAST)
-    np.testing.assert_allclose(result.transform(np.asarray(template.vertices)), result.vertices, atol=1e-9)
+    np.testing.assert_allclose(
+        result.transform(np.asarray(template.vertices)), result.vertices, atol=1e-9
+    )
     mesh = result.semilandmark_mesh()
     np.testing.assert_array_equal(np.asarray(mesh.triangles), np.asarray(template.triangles))
     projected = result.semilandmark_mesh(target)
@@ -119,7 +123,10 @@ def test_solvers_agree(solver):
     levels = [ElasticLevel(2, 0.1), ElasticLevel(4, 0.1)]
     ours = registration_elastic(cube, sphere, init=np.eye(4), levels=levels)
     theirs = registration_elastic(
-        cube, sphere, init=np.eye(4), levels=[ElasticLevel(lev.resolution, 0.1, solver=solver) for lev in levels]
+        cube,
+        sphere,
+        init=np.eye(4),
+        levels=[ElasticLevel(lev.resolution, 0.1, solver=solver) for lev in levels],
     )
     # Same cost, different algorithms: final costs agree to a few percent (the symmetric
     # assignments make the cost piecewise smooth, so local minima differ slightly).
@@ -134,7 +141,11 @@ def test_adaptive_levels_free_fewer_nodes(bunny_case):
         template,
         target,
         init=np.eye(4),
-        levels=[ElasticLevel(2, 0.1), ElasticLevel(4, 0.1, adaptive_quantile=0.5), ElasticLevel(8, 0.1, adaptive_quantile=0.5)],
+        levels=[
+            ElasticLevel(2, 0.1),
+            ElasticLevel(4, 0.1, adaptive_quantile=0.5),
+            ElasticLevel(8, 0.1, adaptive_quantile=0.5),
+        ],
     )
     assert adaptive.history[-1].free_nodes < uniform.history[-1].free_nodes
     truth = warp(np.asarray(template.vertices))
@@ -148,7 +159,12 @@ def test_callback_and_non_convergence_flag():
     cube, sphere = synthetic_form("cube", 200), synthetic_form("sphere", 1500)
     seen = []
     result = registration_elastic(
-        cube, sphere, init=np.eye(4), levels=FAST, criteria=ElasticCriteria(max_iteration=1), callback=seen.append
+        cube,
+        sphere,
+        init=np.eye(4),
+        levels=FAST,
+        criteria=ElasticCriteria(max_iteration=1),
+        callback=seen.append,
     )
     assert [r.resolution for r in seen] == [2, 4, 8]
     assert result.success is False

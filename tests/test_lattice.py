@@ -82,7 +82,10 @@ def test_displacement_gradient_matches_finite_differences():
     pts = points_in(lat, n=100)
     h = 1e-6
     fd = np.stack(
-        [(lat.displacement(pts + h * e) - lat.displacement(pts - h * e)) / (2 * h) for e in np.eye(3)],
+        [
+            (lat.displacement(pts + h * e) - lat.displacement(pts - h * e)) / (2 * h)
+            for e in np.eye(3)
+        ],
         axis=2,
     )
     # Central differences of a polynomial of degree 1 per axis are exact up to rounding.

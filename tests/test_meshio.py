@@ -58,7 +58,9 @@ def test_read_errors(tmp_path):
     with pytest.raises(OSError, match="could not be read as a triangle mesh"):
         read_triangle_mesh(empty)
     points_only = tmp_path / "points.ply"
-    o3d.io.write_point_cloud(str(points_only), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.eye(3))))
+    o3d.io.write_point_cloud(
+        str(points_only), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.eye(3)))
+    )
     with pytest.raises(OSError, match="0 triangles"):
         read_triangle_mesh(points_only)
     with pytest.raises(TypeError, match="must be a path"):

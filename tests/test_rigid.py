@@ -3,18 +3,22 @@
 import numpy as np
 import open3d as o3d
 import pytest
+from _helpers import assert_untouched, snapshot
 from scipy.spatial.transform import Rotation
 
 from o3dreg import registration_rigid
 from o3dreg.rigid import moment_alignments, surface_moments
 from o3dreg.synthetic import synthetic_form
 
-from _helpers import assert_untouched, snapshot
-
 
 def known_transform(angle_deg=35.0, axis=(1.0, 2.0, 0.5), shift=(12.0, -7.0, 4.0), scale=1.0):
     t = np.eye(4)
-    t[:3, :3] = scale * Rotation.from_rotvec(np.radians(angle_deg) * np.asarray(axis) / np.linalg.norm(axis)).as_matrix()
+    t[:3, :3] = (
+        scale
+        * Rotation.from_rotvec(
+            np.radians(angle_deg) * np.asarray(axis) / np.linalg.norm(axis)
+        ).as_matrix()
+    )
     t[:3, 3] = shift
     return t
 
@@ -51,7 +55,9 @@ def test_recovers_a_known_rigid_transform(bunny_template, bunny_target):
     assert isinstance(result, o3d.pipelines.registration.RegistrationResult)
     pts = np.asarray(bunny_template.vertices)
     err = np.linalg.norm(
-        pts @ result.transformation[:3, :3].T + result.transformation[:3, 3] - (pts @ truth[:3, :3].T + truth[:3, 3]),
+        pts @ result.transformation[:3, :3].T
+        + result.transformation[:3, 3]
+        - (pts @ truth[:3, :3].T + truth[:3, 3]),
         axis=1,
     )
     # The template is a decimation of the target: vertices lie ~0.1 mm off the dense surface,

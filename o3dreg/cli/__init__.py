@@ -1,6 +1,7 @@
 """The ``o3dreg`` command line: one sub-command per module in this package.
 
-Exit codes: 0 success, 1 the job ran but did not converge / found nothing, 2 bad input.
+Exit codes: 0 success; 1 the job ran and wrote its outputs but did not converge; 2 bad input or
+a failure before any output was written; 130 interrupted.
 """
 
 from __future__ import annotations
@@ -25,7 +26,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"o3dreg {__version__}")
     verbosity = parser.add_mutually_exclusive_group()
     verbosity.add_argument("-q", "--quiet", action="store_true", help="print only errors")
-    verbosity.add_argument("-v", "--verbose", action="store_true", help="print debug logging")
+    verbosity.add_argument(
+        "-v", "--verbose", action="count", default=0, help="log progress (-vv: debug details)"
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     import importlib
 
@@ -43,7 +46,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    level = logging.ERROR if args.quiet else logging.DEBUG if args.verbose else logging.INFO
+    level = (
+        logging.ERROR
+        if args.quiet
+        else {0: logging.WARNING, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
+    )
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):
         parser.print_help()
@@ -53,6 +60,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (TypeError, ValueError, OSError, RuntimeError) as exc:
         print(f"o3dreg {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # e.g. piped into `head`: not an error of ours
+        sys.stderr.close()
+        return 0
     except KeyboardInterrupt:
         print(f"o3dreg {args.command}: interrupted", file=sys.stderr)
         return 130
