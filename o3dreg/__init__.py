@@ -70,3 +70,55 @@ __all__ += [
     "remove_small_components",
     "smooth_taubin",
 ]
+
+# --- shape models ---
+from .batch import BatchResult, PatientRecord, register_batch  # noqa: E402
+from .landmarks import (  # noqa: E402
+    LandmarkPrediction,
+    TemplateLandmarks,
+    landmark_errors,
+    load_template_landmarks,
+    predict_landmarks,
+    read_landmarks,
+    write_landmarks,
+)
+from .procrustes import ProcrustesResult, generalized_procrustes, procrustes_transform  # noqa: E402
+from .quality import QualityCurve, compactness, generalization, specificity  # noqa: E402
+from .shapemodel import (  # noqa: E402
+    ModelFit,
+    ShapeModel,
+    ShapeProjection,
+    build_shape_model,
+    fit_shape_model,
+)
+from .sliding import SlidingResult, slide_semilandmarks  # noqa: E402
+from .statismo import read_statismo, write_statismo  # noqa: E402
+
+__all__ += [
+    "BatchResult",
+    "LandmarkPrediction",
+    "ModelFit",
+    "PatientRecord",
+    "ProcrustesResult",
+    "QualityCurve",
+    "ShapeModel",
+    "ShapeProjection",
+    "SlidingResult",
+    "TemplateLandmarks",
+    "build_shape_model",
+    "compactness",
+    "fit_shape_model",
+    "generalization",
+    "generalized_procrustes",
+    "landmark_errors",
+    "load_template_landmarks",
+    "predict_landmarks",
+    "procrustes_transform",
+    "read_landmarks",
+    "read_statismo",
+    "register_batch",
+    "slide_semilandmarks",
+    "specificity",
+    "write_landmarks",
+    "write_statismo",
+]

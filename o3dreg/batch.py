@@ -1,0 +1,438 @@
+"""Registration of one template onto many patients: parallel, resumable, failure-tolerant.
+
+Each finished patient is written to the output folder as soon as it completes (atomic writes):
+
+* ``NAME.ply``: the semilandmark mesh (template triangles on the registered vertices);
+* ``NAME.npz``: the elastic deformation (:meth:`~o3dreg.LatticeDeformation.save`);
+* ``NAME.json``: the record (status, distances both ways, convergence, time, rigid
+  transformation), written last, so its presence with ``"status": "registered"`` marks the
+  patient as done.
+
+Interrupting a batch (Ctrl-C) loses only the patients in progress; running it again skips the
+finished ones (unless ``force``). A patient that fails to load or to register is recorded with
+its error (``"status": "failed"``) and the batch goes on; a rerun retries it.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import json
+import logging
+import os
+import re
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ._validation import as_mesh_arrays
+from .meshio import atomic_write, read_triangle_mesh, write_triangle_mesh
+
+__all__ = ["BatchResult", "PatientRecord", "register_batch"]
+
+logger = logging.getLogger("o3dreg")
+
+_STATUS = ("registered", "failed")
+
+
+@dataclass(frozen=True)
+class PatientRecord:
+    """What happened to one patient of a batch.
+
+    Attributes
+    ----------
+    name : str
+    status : {'registered', 'failed'}
+    success : bool
+        Registration converged at every level (``False`` for a usable but unconverged result
+        and for failures).
+    message : str
+        The registration message, or the error for a failure.
+    seconds : float
+        Wall time of the registration.
+    distances : dict of str to float
+        ``SurfaceDistances.as_dict()`` (empty for a failure).
+    min_jacobian_determinant : float
+    transformation : tuple of 16 float
+        The rigid pre-alignment, row-major (empty for a failure).
+    source : str
+        The target file, or ``"<array>"``.
+    skipped : bool
+        ``True`` when the record was read back from an earlier run.
+    """
+
+    name: str
+    status: str
+    success: bool
+    message: str
+    seconds: float = 0.0
+    distances: dict[str, float] = field(default_factory=dict)
+    min_jacobian_determinant: float = float("nan")
+    transformation: tuple[float, ...] = ()
+    source: str = ""
+    skipped: bool = False
+
+    def __repr__(self) -> str:
+        d = self.distances
+        extra = (
+            f", source->target mean={d['source_to_target_mean']:.4g}"
+            f", target->source mean={d['target_to_source_mean']:.4g}"
+            if d
+            else ""
+        )
+        return (
+            f"PatientRecord({self.name!r}, {self.status}, success={self.success}{extra}, "
+            f"seconds={self.seconds:.2f})"
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        out = dict(self.__dict__)
+        out["transformation"] = list(self.transformation)
+        out.pop("skipped")
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class BatchResult:
+    """The outcome of :func:`register_batch`.
+
+    Attributes
+    ----------
+    records : tuple of PatientRecord
+        In the order of the targets.
+    output_dir : str
+    faces : (m, 3) ndarray
+        The template triangles (shared by every semilandmark mesh).
+    """
+
+    records: tuple[PatientRecord, ...]
+    output_dir: str
+    faces: np.ndarray = field(repr=False)
+
+    def __repr__(self) -> str:
+        ok = sum(r.status == "registered" for r in self.records)
+        return (
+            f"BatchResult({len(self.records)} patients: {ok} registered, "
+            f"{len(self.records) - ok} failed, output_dir={self.output_dir!r})"
+        )
+
+    @property
+    def registered(self) -> tuple[PatientRecord, ...]:
+        return tuple(r for r in self.records if r.status == "registered")
+
+    @property
+    def failed(self) -> tuple[PatientRecord, ...]:
+        return tuple(r for r in self.records if r.status == "failed")
+
+    def mesh_path(self, name: str) -> str:
+        return os.path.join(self.output_dir, f"{name}.ply")
+
+    def deformation_path(self, name: str) -> str:
+        return os.path.join(self.output_dir, f"{name}.npz")
+
+    def shapes(self) -> tuple[tuple[str, ...], np.ndarray]:
+        """Names and semilandmark vertices ``(s, n, 3)`` of the registered patients."""
+        names = tuple(r.name for r in self.registered)
+        shapes = [np.asarray(read_triangle_mesh(self.mesh_path(n)).vertices) for n in names]
+        return names, (np.stack(shapes) if shapes else np.zeros((0, 0, 3)))
+
+    def table(self, unit: str = "mm") -> str:
+        """Summary: distances both ways (mean / max), convergence and time per patient."""
+        head = (
+            f"{'patient':<24}{'status':<12}{'s->t mean':>10}{'s->t max':>10}"
+            f"{'t->s mean':>10}{'t->s max':>10}{'converged':>11}{'seconds':>9}"
+        )
+        lines = [f"distances in {unit}", head]
+        for r in self.records:
+            d = r.distances
+            if d:
+                nums = "".join(
+                    f"{d[k]:>10.3g}"
+                    for k in (
+                        "source_to_target_mean",
+                        "source_to_target_max",
+                        "target_to_source_mean",
+                        "target_to_source_max",
+                    )
+                )
+            else:
+                nums = f"{'-':>10}" * 4
+            lines.append(
+                f"{r.name[:23]:<24}{r.status:<12}{nums}{('yes' if r.success else 'no'):>11}"
+                f"{r.seconds:>9.1f}"
+            )
+            if r.status == "failed":
+                lines.append(f"{'':<24}error: {r.message}")
+        return "\n".join(lines)
+
+    def as_dicts(self) -> list[dict[str, Any]]:
+        return [r.as_dict() for r in self.records]
+
+
+def _safe_name(name: str) -> str:
+    cleaned = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")
+    return cleaned or "patient"
+
+
+def _default_name(target: Any, index: int) -> str:
+    if isinstance(target, (str, os.PathLike)):
+        base = os.path.basename(os.fspath(target))
+        for suffix in (".nii.gz",):
+            if base.lower().endswith(suffix):
+                return base[: -len(suffix)]
+        return os.path.splitext(base)[0]
+    return f"patient{index:03d}"
+
+
+def _register_one(
+    template: tuple[np.ndarray, np.ndarray], target: Any, options: dict[str, Any]
+) -> tuple[Any, float]:
+    """Worker: load (when a path) and register; returns (result, seconds). Runs anywhere."""
+    from .elastic import registration_elastic
+
+    start = time.perf_counter()
+    if isinstance(target, (str, os.PathLike)):
+        target = read_triangle_mesh(target, name="target")
+    result = registration_elastic(template, target, **options)
+    return result, time.perf_counter() - start
+
+
+def _read_record(path: str) -> PatientRecord | None:
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+        data["transformation"] = tuple(data.get("transformation", ()))
+        return PatientRecord(**data, skipped=True)
+    except (OSError, ValueError, TypeError):
+        return None
+
+
+def _write_json(path: str, data: Any) -> None:
+    text = json.dumps(data, indent=2) + "\n"
+
+    def write(tmp: str) -> None:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text)
+
+    atomic_write(path, write, overwrite=True)
+
+
+def register_batch(
+    template: Any,
+    targets: Sequence[Any],
+    output_dir: str | os.PathLike[str],
+    *,
+    names: Sequence[str] | None = None,
+    executor: cf.Executor | None = None,
+    force: bool = False,
+    progress: bool = False,
+    callback: Callable[[PatientRecord], Any] | None = None,
+    **options: Any,
+) -> BatchResult:
+    """Register ``template`` elastically onto every target; save each patient as it finishes.
+
+    Parameters
+    ----------
+    template : open3d.geometry.TriangleMesh or (vertices, faces)
+        The template (source). Not modified.
+    targets : sequence of path or mesh
+        Patient surfaces: mesh files (read by the worker, so a file that fails to load is a
+        failed patient, not a failed batch) or meshes / ``(vertices, faces)`` pairs.
+    output_dir : str or path-like
+        Created if missing. Holds ``NAME.ply``, ``NAME.npz``, ``NAME.json`` per patient and
+        ``summary.json``.
+    names : sequence of str, optional
+        Patient names (file stems). Default: the target file stems, or ``patient000``, ...
+    executor : concurrent.futures.Executor, optional
+        Runs the registrations, e.g. ``ProcessPoolExecutor(2)`` or a Dask client's
+        ``client.get_executor()``. Workers receive arrays and paths and return the result; all
+        files are written by this process, so workers need not share its disk (but file targets
+        must be readable by the workers). Default: one after the other in this process.
+    force : bool, optional
+        Register again patients already finished in ``output_dir``. Default ``False``.
+    progress : bool, optional
+        Show a tqdm progress bar (patients done, current patient, elapsed and remaining time) on
+        stderr. Default ``False``.
+    callback : callable, optional
+        Called with each :class:`PatientRecord` as it is saved (also for skipped ones).
+    **options
+        Passed to :func:`~o3dreg.registration_elastic` (``init``, ``levels``,
+        ``estimation_method``, ``criteria``, ``padding``).
+
+    Returns
+    -------
+    BatchResult
+        Failures are records with ``status='failed'`` and the error message; nothing is raised
+        for a failing patient. ``KeyboardInterrupt`` cancels pending work and propagates, after
+        which every finished patient is on disk.
+    """
+    tv, tf = as_mesh_arrays(template, "template")
+    if isinstance(targets, (str, os.PathLike)) or not isinstance(targets, Sequence):
+        raise TypeError(
+            f"`targets` must be a sequence of paths or meshes, got {type(targets).__name__}"
+        )
+    if len(targets) == 0:
+        raise ValueError("`targets` must hold at least one patient, got 0")
+    if not isinstance(output_dir, (str, os.PathLike)):
+        raise TypeError(f"`output_dir` must be a path, got {type(output_dir).__name__}")
+    output_dir = os.fspath(output_dir)
+    if (
+        executor is not None
+        and not isinstance(executor, cf.Executor)
+        and not hasattr(executor, "submit")
+    ):
+        raise TypeError(
+            f"`executor` must be a concurrent.futures.Executor, got {type(executor).__name__}"
+        )
+    if callback is not None and not callable(callback):
+        raise TypeError(f"`callback` must be callable, got {type(callback).__name__}")
+    allowed = {"init", "levels", "estimation_method", "criteria", "padding"}
+    unknown = set(options) - allowed
+    if unknown:
+        raise TypeError(
+            f"unexpected registration option(s) {sorted(unknown)}; allowed: {sorted(allowed)}"
+        )
+    if names is None:
+        names_ = [_default_name(t, i) for i, t in enumerate(targets)]
+    else:
+        names_ = [str(n) for n in names]
+        if len(names_) != len(targets):
+            raise ValueError(f"`names` must hold {len(targets)} names, got {len(names_)}")
+    names_ = [_safe_name(n) for n in names_]
+    seen: dict[str, int] = {}
+    for i, n in enumerate(names_):
+        if n in seen:
+            raise ValueError(f"`names` must be unique, got {n!r} for targets {seen[n]} and {i}")
+        seen[n] = i
+    prepared: list[Any] = []
+    for i, t in enumerate(targets):
+        if isinstance(t, (str, os.PathLike)):
+            prepared.append(os.fspath(t))
+        else:
+            prepared.append(as_mesh_arrays(t, f"targets[{i}]", drop_degenerate=True))
+    os.makedirs(output_dir, exist_ok=True)
+    return _run_batch(
+        (tv, tf), prepared, names_, output_dir, executor, force, progress, callback, options
+    )
+
+
+def _run_batch(
+    template: tuple[np.ndarray, np.ndarray],
+    targets: list[Any],
+    names: list[str],
+    output_dir: str,
+    executor: cf.Executor | None,
+    force: bool,
+    progress: bool,
+    callback: Callable[[PatientRecord], Any] | None,
+    options: dict[str, Any],
+) -> BatchResult:
+    from tqdm.auto import tqdm
+
+    records: dict[str, PatientRecord] = {}
+    todo: list[int] = []
+    for i, name in enumerate(names):
+        record = None if force else _read_record(os.path.join(output_dir, f"{name}.json"))
+        if (
+            record is not None
+            and record.status == "registered"
+            and os.path.isfile(os.path.join(output_dir, f"{name}.ply"))
+        ):
+            records[name] = record
+            logger.info("batch: %s already registered, skipped", name)
+            if callback is not None:
+                callback(record)
+        else:
+            todo.append(i)
+
+    bar = tqdm(
+        total=len(names),
+        initial=len(names) - len(todo),
+        desc="patients",
+        unit="patient",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
+
+    def source_of(i: int) -> str:
+        return targets[i] if isinstance(targets[i], str) else "<array>"
+
+    def finish(i: int, outcome: tuple[Any, float] | None, error: BaseException | None) -> None:
+        name = names[i]
+        if error is not None:
+            msg = f"{type(error).__name__}: {error}"
+            logger.warning("batch: %s failed: %s", name, msg)
+            logger.debug("".join(traceback.format_exception(error)))
+            record = PatientRecord(name, "failed", False, msg, source=source_of(i))
+        else:
+            assert outcome is not None
+            result, seconds = outcome
+            write_triangle_mesh(
+                os.path.join(output_dir, f"{name}.ply"), result.semilandmark_mesh(), overwrite=True
+            )
+            result.deformation.save(os.path.join(output_dir, f"{name}.npz"), overwrite=True)
+            record = PatientRecord(
+                name=name,
+                status="registered",
+                success=bool(result.success),
+                message=str(result.message),
+                seconds=float(seconds),
+                distances=result.distances.as_dict(),
+                min_jacobian_determinant=float(result.min_jacobian_determinant),
+                transformation=tuple(float(v) for v in np.asarray(result.transformation).ravel()),
+                source=source_of(i),
+            )
+            logger.info(
+                "batch: %s registered in %.1f s (mean distances %.3g / %.3g)",
+                name,
+                seconds,
+                record.distances["source_to_target_mean"],
+                record.distances["target_to_source_mean"],
+            )
+        _write_json(os.path.join(output_dir, f"{name}.json"), record.as_dict())
+        records[name] = record
+        bar.set_postfix_str(f"last: {name} ({record.status})")
+        bar.update(1)
+        if callback is not None:
+            callback(record)
+
+    try:
+        if executor is None:
+            for i in todo:
+                bar.set_postfix_str(f"current: {names[i]}")
+                try:
+                    outcome = _register_one(template, targets[i], options)
+                except KeyboardInterrupt:
+                    raise
+                except Exception as exc:
+                    finish(i, None, exc)
+                else:
+                    finish(i, outcome, None)
+        else:
+            futures = {
+                executor.submit(_register_one, template, targets[i], options): i for i in todo
+            }
+            try:
+                for future in cf.as_completed(futures):
+                    i = futures[future]
+                    try:
+                        outcome = future.result()
+                    except KeyboardInterrupt:
+                        raise
+                    except Exception as exc:
+                        finish(i, None, exc)
+                    else:
+                        finish(i, outcome, None)
+            except BaseException:
+                for future in futures:
+                    future.cancel()
+                raise
+    finally:
+        bar.close()
+        done = [records[n].as_dict() for n in names if n in records]
+        if done:
+            _write_json(os.path.join(output_dir, "summary.json"), done)
+    return BatchResult(tuple(records[n] for n in names), output_dir, template[1])
