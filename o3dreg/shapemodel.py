@@ -266,7 +266,7 @@ class ShapeModel:
             if coefficients is None
             else self.synthesize(coefficients, standardized=standardized)
         )
-        mesh = to_open3d(vertices, self.faces)
+        mesh = to_open3d(np.array(vertices), np.array(self.faces))
         mesh.compute_vertex_normals()
         return mesh
 
@@ -295,7 +295,7 @@ class ShapeModel:
         out = {}
         for m in modes_:
             for c in standard_deviations:
-                mesh = to_open3d(self.mode_shape(int(m), float(c)), self.faces)
+                mesh = to_open3d(self.mode_shape(int(m), float(c)), np.array(self.faces))
                 mesh.compute_vertex_normals()
                 out[(int(m), float(c))] = mesh
         return out
@@ -616,7 +616,7 @@ class ModelFit:
         )
 
     def mesh(self) -> o3d.geometry.TriangleMesh:
-        mesh = to_open3d(self.vertices, self.faces)
+        mesh = to_open3d(np.array(self.vertices), np.array(self.faces))
         mesh.compute_vertex_normals()
         return mesh
 
@@ -628,16 +628,19 @@ def fit_shape_model(
     init: Any = None,
     number_of_modes: int | None = None,
     regularization: float | None = None,
-    max_iteration: int = 50,
+    max_iteration: int = 300,
     tolerance: float = 1e-4,
 ) -> ModelFit:
     """Fit pose and shape coefficients of ``model`` to a patient surface (iterated closest points).
 
     Each iteration: (1) closest points ``y_i`` on the patient surface to the current instance;
-    (2) pose by Procrustes of the model instance onto ``y``; (3) coefficients minimising
-    ``|M + A alpha - T^-1 y|^2 + regularization * sum_j alpha_j^2 / variance_j`` (Tikhonov with
-    1/variance: ``alpha_j = variance_j / (variance_j + regularization) * A_j^T (T^-1 y - M)``,
-    the posterior mean of a probabilistic PCA model with noise variance ``regularization``).
+    and, as in the symmetric distance of eq. (3), closest points of the instance surface to
+    samples of the patient surface; (2) pose by weighted Procrustes of all these pairs; (3)
+    coefficients minimising ``|S (M + A alpha) - T^-1 y|^2 + regularization * sum_j alpha_j^2 /
+    variance_j`` (``S`` selects vertices and barycentric surface points; Tikhonov with
+    1/variance: with ``S = I`` this is ``alpha_j = variance_j / (variance_j + regularization)
+    A_j^T (T^-1 y - M)``, the posterior mean of probabilistic PCA with noise variance
+    ``regularization``). Both directions are weighted to count as ``n`` points.
     Stops when the instance moves by less than ``tolerance`` times the model's size.
 
     Parameters
@@ -651,10 +654,12 @@ def fit_shape_model(
     number_of_modes : int, optional
         Modes used. Default all.
     regularization : float, optional
-        Noise variance in squared input units (mm^2). Default: the model's ``noise_variance``,
-        or 1 % of the smallest mode variance when that is 0.
+        Noise variance per coordinate in squared input units (mm^2). Default: the model's
+        ``noise_variance``; when that is 0, estimated at each iteration as the mean squared
+        closest-point residual per coordinate (the EM update of probabilistic PCA), so modes
+        with less variance than the current misfit are damped.
     max_iteration : int, optional
-        Default 50.
+        Default 300 (alternating pose and shape updates converge linearly, like ICP).
     tolerance : float, optional
         Default 1e-4.
 
@@ -674,9 +679,7 @@ def fit_shape_model(
     vt, ft = as_mesh_arrays(target, "target", drop_degenerate=True)
     k = model._check_modes(number_of_modes)
     if regularization is None:
-        reg = model.noise_variance
-        if reg <= 0:
-            reg = 0.01 * float(model.variances[:k].min()) if k else 1.0
+        reg = None if model.noise_variance <= 0 else model.noise_variance
     else:
         reg = check_positive(regularization, "regularization", allow_zero=True)
     max_iteration = check_positive(max_iteration, "max_iteration", integer=True)
@@ -690,13 +693,33 @@ def fit_shape_model(
     return _fit_model(model, vt, ft, pose, k, reg, max_iteration, tolerance)
 
 
+def _weighted_fit(
+    source: np.ndarray, target: np.ndarray, weights: np.ndarray, scaling: bool
+) -> np.ndarray:
+    """Weighted Procrustes (rigid or similarity, no reflection) of ``source`` onto ``target``."""
+    w = weights / weights.sum()
+    mu_s, mu_t = w @ source, w @ target
+    a, b = source - mu_s, target - mu_t
+    u, _, vt = np.linalg.svd((a * w[:, None]).T @ b)
+    d = 1.0 if np.linalg.det(vt.T @ u.T) >= 0 else -1.0
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    s = 1.0
+    if scaling:
+        denom = float((w[:, None] * a * a).sum())
+        s = float((w[:, None] * (a @ r.T) * b).sum()) / denom if denom > 0 else 1.0
+    t = np.eye(4)
+    t[:3, :3] = s * r
+    t[:3, 3] = mu_t - s * r @ mu_s
+    return t
+
+
 def _fit_model(
     model: ShapeModel,
     vt: np.ndarray,
     ft: np.ndarray,
     pose: np.ndarray,
     k: int,
-    reg: float,
+    reg: float | None,
     max_iteration: int,
     tolerance: float,
 ) -> ModelFit:
@@ -704,20 +727,52 @@ def _fit_model(
 
     query = SurfaceDistanceQuery(vt, ft)
     modes = model.modes[:k]
-    shrink = model.variances[:k] / (model.variances[:k] + reg) if k else np.zeros(0)
+    variances = model.variances[:k]
     a = np.zeros(k)
     size = float(np.sqrt(((model.mean - model.mean.mean(axis=0)) ** 2).sum(axis=1).mean()))
     current = _apply(pose, model._synthesize(a))
     success = False
     change = np.inf
     iterations = 0
+    faces = np.asarray(model.faces)
+    n = model.number_of_points
+    # Target samples for the target -> instance correspondences (eq. 3's second term).
+    stride = max(1, vt.shape[0] // (4 * n))
+    samples = vt[::stride]
+    from .landmarks import _barycentric
+
     for iterations in range(1, max_iteration + 1):  # noqa: B007
+        # Forward: instance vertices -> closest target points.
         _, _, closest = query.closest(current)
+        # Backward: target samples -> closest points of the instance surface (barycentric).
+        _, face, on_instance = SurfaceDistanceQuery(current, faces).closest(samples)
+        weights = _barycentric(current[faces[face]], on_instance)
         instance = model._synthesize(a)
-        pose = _fit(instance, closest, model.scaling)
+        src = np.vstack([instance, np.einsum("jc,jcd->jd", weights, instance[faces[face]])])
+        dst = np.vstack([closest, samples])
+        wts = np.concatenate(
+            [np.full(n, 1.0 / n), np.full(samples.shape[0], 1.0 / samples.shape[0])]
+        )
+        pose = _weighted_fit(src, dst, wts, model.scaling)
         inverse = np.linalg.inv(pose)
-        y = _apply(inverse, closest)
-        a = shrink * np.tensordot(modes, y - model.mean, axes=([1, 2], [0, 1]))
+        y = _apply(inverse, dst)
+        sigma2 = reg
+        if sigma2 is None:
+            scale = float(abs(np.linalg.det(pose[:3, :3]))) ** (2.0 / 3.0)
+            resid = ((_apply(pose, src) - dst) ** 2).sum(axis=1)
+            sigma2 = max(float((wts * resid).sum()) / 2.0 / 3.0 / scale, 1e-12)
+        # Model terms of every correspondence: S (M + A a), S = [I; W] (rows of barycentric).
+        sm = np.vstack([model.mean, np.einsum("jc,jcd->jd", weights, model.mean[faces[face]])])
+        sa = np.concatenate(
+            [modes, np.einsum("jc,kjcd->kjd", weights, modes[:, faces[face]])], axis=1
+        )
+        # Normal equations, data weighted so each direction counts as n points (eq. 3).
+        w = wts * n
+        lhs = np.einsum("kjd,j,ljd->kl", sa, w, sa) + sigma2 * np.diag(
+            1.0 / np.maximum(variances, 1e-300)
+        )
+        rhs = np.einsum("kjd,j,jd->k", sa, w, y - sm)
+        a = np.linalg.solve(lhs, rhs) if k else a
         new = _apply(pose, model._synthesize(a))
         change = float(np.sqrt(((new - current) ** 2).sum(axis=1).mean())) / max(size, 1e-300)
         current = new

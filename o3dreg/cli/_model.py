@@ -1,0 +1,320 @@
+"""``o3dreg build-model`` and ``o3dreg model {info, modes, fit}``: statistical shape models.
+
+A model folder holds ``template.ply`` (the template the model is defined on), ``model.npz``
+(:meth:`~o3dreg.ShapeModel.save`), ``model.h5`` (statismo layout), ``mean.ply`` and
+``modes/``, ``variance.txt`` (the paper's Table 4), ``quality/`` (tables and PNG plots),
+``registrations/`` (one semilandmark mesh, deformation and record per patient) and
+``report.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import json
+import logging
+import os
+import sys
+from typing import Any
+
+import numpy as np
+
+logger = logging.getLogger("o3dreg")
+
+
+def add_parser(subparsers: Any) -> None:
+    build = subparsers.add_parser(
+        "build-model",
+        help="register a template onto many patients and build a shape model",
+        description="Batch elastic registration of TEMPLATE onto every TARGET (resumable), "
+        "generalised Procrustes alignment, PCA; writes the model folder.",
+    )
+    build.add_argument("template", help="template mesh (moves; ~1k-4k vertices)")
+    build.add_argument("targets", nargs="+", help="patient meshes")
+    build.add_argument("-o", "--output", required=True, help="model folder (created)")
+    build.add_argument("--jobs", type=int, default=1, help="parallel registrations (processes)")
+    build.add_argument("--scheduler", help="Dask scheduler ADDRESS (tcp://host:8786) to run on")
+    build.add_argument("--force", action="store_true", help="register finished patients again")
+    build.add_argument(
+        "--levels",
+        default=None,
+        help="lattice resolutions, coarse to fine, e.g. 2,4,8,16 (default)",
+    )
+    build.add_argument(
+        "--scaling", action="store_true", help="similarity Procrustes (size removed)"
+    )
+    build.add_argument("--slide", action="store_true", help="slide semilandmarks before the PCA")
+    build.add_argument("--json", action="store_true", help="print the report as JSON")
+    build.set_defaults(func=run_build)
+
+    model = subparsers.add_parser("model", help="inspect and use a shape model")
+    sub = model.add_subparsers(dest="model_command", metavar="ACTION")
+    info = sub.add_parser("info", help="variance table (Table 4)")
+    info.add_argument("model_dir")
+    info.add_argument("--json", action="store_true")
+    info.set_defaults(func=run_info)
+    modes = sub.add_parser("modes", help="write mean and mode meshes (Figure 6)")
+    modes.add_argument("model_dir")
+    modes.add_argument("--modes", type=int, default=2, help="number of modes (default 2)")
+    modes.add_argument(
+        "--sd",
+        type=float,
+        nargs="+",
+        default=[-3.0, 3.0],
+        help="multiples of the standard deviation",
+    )
+    modes.add_argument("-o", "--output", help="folder (default MODEL_DIR/modes)")
+    modes.add_argument("--json", action="store_true")
+    modes.set_defaults(func=run_modes)
+    fit = sub.add_parser("fit", help="fit the model to a patient and predict landmarks")
+    fit.add_argument("model_dir")
+    fit.add_argument("patient", help="patient mesh")
+    fit.add_argument("--landmarks", required=True, help="template landmarks (.mrk.json or .csv)")
+    fit.add_argument("--truth", help="true landmarks on the patient, to report errors")
+    fit.add_argument("-o", "--output", help="write predicted landmarks (.mrk.json or .csv)")
+    fit.add_argument("--modes", type=int, default=None, help="modes used (default all)")
+    fit.add_argument("--regularization", type=float, default=None, help="noise variance (mm^2)")
+    fit.add_argument("--json", action="store_true")
+    fit.set_defaults(func=run_fit)
+    model.set_defaults(func=lambda args: (model.print_help(), 2)[1])
+
+
+def _levels(text: str | None) -> Any:
+    from ..options import ElasticLevel
+
+    if text is None:
+        return None
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError as exc:
+        raise ValueError(f"--levels must be comma-separated integers, got {text!r}") from exc
+    return [ElasticLevel(v) for v in values]
+
+
+def _executor(args: argparse.Namespace) -> tuple[Any, Any]:
+    if args.scheduler:
+        try:
+            from distributed import Client
+        except ImportError as exc:
+            raise RuntimeError("--scheduler needs Dask: pip install 'o3dreg[dask]'") from exc
+        client = Client(args.scheduler)
+        return client.get_executor(), client
+    if args.jobs and args.jobs > 1:
+        pool = cf.ProcessPoolExecutor(args.jobs)
+        return pool, pool
+    return None, None
+
+
+def _write_text(path: str, text: str) -> None:
+    from ..meshio import atomic_write
+
+    def write(tmp: str) -> None:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text)
+
+    atomic_write(path, write, overwrite=True)
+
+
+def run_build(args: argparse.Namespace) -> int:
+    from ..batch import register_batch
+    from ..meshio import read_triangle_mesh, write_triangle_mesh
+    from ..quality import compactness, generalization, specificity
+    from ..shapemodel import build_shape_model
+    from ..statismo import write_statismo
+
+    template = read_triangle_mesh(args.template, name="TEMPLATE")
+    out = args.output
+    os.makedirs(out, exist_ok=True)
+    template_path = os.path.join(out, "template.ply")
+    if os.path.exists(template_path):
+        previous = read_triangle_mesh(template_path)
+        same = np.array_equal(np.asarray(previous.triangles), np.asarray(template.triangles))
+        if not same and not args.force:
+            raise ValueError(
+                f"{out!r} holds a model of another template; use another folder or --force"
+            )
+    write_triangle_mesh(template_path, template, overwrite=True)
+    executor, closer = _executor(args)
+    try:
+        batch = register_batch(
+            template,
+            args.targets,
+            os.path.join(out, "registrations"),
+            executor=executor,
+            force=args.force,
+            progress=not args.json and sys.stderr.isatty(),
+            levels=_levels(args.levels),
+        )
+    finally:
+        if hasattr(closer, "close"):  # a Dask client
+            closer.close()
+        elif closer is not None:
+            closer.shutdown()
+    names, shapes = batch.shapes()
+    if not args.json:
+        print(batch.table())
+    if len(names) < 2:
+        print(
+            f"o3dreg build-model: only {len(names)} patient(s) registered; a model needs at least 2",
+            file=sys.stderr,
+        )
+        return 1
+    faces = np.asarray(template.triangles)
+    slid = None
+    if args.slide:
+        from ..sliding import slide_semilandmarks
+
+        surfaces = [read_triangle_mesh(r.source) for r in batch.registered]
+        slid = slide_semilandmarks(shapes, surfaces, scaling=args.scaling)
+        shapes = slid.shapes
+    model = build_shape_model(shapes, faces, names=names, scaling=args.scaling)
+    model.save(os.path.join(out, "model.npz"), overwrite=True)
+    write_statismo(os.path.join(out, "model.h5"), model, overwrite=True)
+    os.makedirs(os.path.join(out, "modes"), exist_ok=True)
+    model.write_meshes(os.path.join(out, "modes"), overwrite=True)
+    write_triangle_mesh(os.path.join(out, "mean.ply"), model.mesh(), overwrite=True)
+    _write_text(os.path.join(out, "variance.txt"), model.variance_table() + "\n")
+    quality_dir = os.path.join(out, "quality")
+    os.makedirs(quality_dir, exist_ok=True)
+    curves = [compactness(model), specificity(model, shapes, number_of_samples=100, seed=0)]
+    if len(names) >= 3:
+        curves.append(generalization(shapes, faces, scaling=args.scaling))
+    for curve in curves:
+        curve.plot(os.path.join(quality_dir, f"{curve.name}.png"), overwrite=True)
+        _write_text(os.path.join(quality_dir, f"{curve.name}.txt"), curve.table() + "\n")
+    report = {
+        "model_dir": out,
+        "patients": batch.as_dicts(),
+        "registered": list(names),
+        "failed": [r.name for r in batch.failed],
+        "variances": model.variance_records(),
+        "quality": {c.name: c.as_dict() for c in curves},
+        "sliding": None
+        if slid is None
+        else {"iterations": slid.iterations, "message": slid.message},
+    }
+    _write_text(os.path.join(out, "report.json"), json.dumps(report, indent=2) + "\n")
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(model)
+        print(model.variance_table())
+        for curve in curves[1:]:
+            print(curve.table())
+        if batch.failed:
+            print(
+                f"{len(batch.failed)} patient(s) failed: {', '.join(r.name for r in batch.failed)}"
+            )
+    return 0
+
+
+def _load(model_dir: str) -> Any:
+    from ..shapemodel import ShapeModel
+
+    path = os.path.join(model_dir, "model.npz")
+    if not os.path.isfile(path):
+        raise OSError(f"MODEL_DIR: no model.npz in {model_dir!r} (run o3dreg build-model)")
+    return ShapeModel.load(path)
+
+
+def run_info(args: argparse.Namespace) -> int:
+    model = _load(args.model_dir)
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "points": model.number_of_points,
+                    "triangles": int(model.faces.shape[0]),
+                    "shapes": list(model.names),
+                    "scaling": model.scaling,
+                    "total_variance": model.total_variance,
+                    "variances": model.variance_records(),
+                },
+                indent=2,
+            )
+        )
+    else:
+        print(model)
+        print(model.variance_table())
+    return 0
+
+
+def run_modes(args: argparse.Namespace) -> int:
+    model = _load(args.model_dir)
+    folder = args.output or os.path.join(args.model_dir, "modes")
+    os.makedirs(folder, exist_ok=True)
+    count = min(max(args.modes, 0), model.number_of_modes)
+    written = model.write_meshes(
+        folder, modes=range(count), standard_deviations=args.sd, overwrite=True
+    )
+    if args.json:
+        print(json.dumps({"written": written}, indent=2))
+    else:
+        for path in written:
+            print(path)
+    return 0
+
+
+def run_fit(args: argparse.Namespace) -> int:
+    from ..landmarks import (
+        landmark_errors,
+        load_template_landmarks,
+        predict_landmarks,
+        read_landmarks,
+        write_landmarks,
+    )
+    from ..meshio import read_triangle_mesh
+
+    model = _load(args.model_dir)
+    template_path = os.path.join(args.model_dir, "template.ply")
+    template = read_triangle_mesh(template_path, name="MODEL_DIR/template.ply")
+    model.check_template(template, "MODEL_DIR/template.ply")
+    landmarks = load_template_landmarks(args.landmarks, template)
+    patient = read_triangle_mesh(args.patient, name="PATIENT")
+    prediction = predict_landmarks(
+        model,
+        landmarks,
+        patient,
+        number_of_modes=args.modes,
+        regularization=args.regularization,
+    )
+    errors = None
+    if args.truth:
+        labels, truth = read_landmarks(args.truth)
+        index = {label: k for k, label in enumerate(labels)}
+        missing = [lab for lab in prediction.labels if lab not in index]
+        if missing:
+            raise ValueError(f"--truth lacks landmarks {missing}")
+        truth_pts = truth[[index[lab] for lab in prediction.labels]]
+        errors = landmark_errors(prediction.positions, truth_pts)
+    if args.output:
+        write_landmarks(args.output, prediction.labels, prediction.positions, overwrite=True)
+    fit = prediction.fit
+    if args.json:
+        out: dict[str, Any] = {
+            "landmarks": prediction.as_dict(),
+            "fit": {
+                "coefficients": fit.coefficients.tolist(),
+                "transformation": fit.transformation.tolist(),
+                "mean_distance": fit.mean_distance,
+                "iterations": fit.iterations,
+                "success": fit.success,
+                "message": fit.message,
+            },
+        }
+        if errors is not None:
+            out["errors"] = dict(zip(prediction.labels, errors.tolist()))
+            out["mean_error"] = float(errors.mean())
+        print(json.dumps(out, indent=2))
+    else:
+        print(fit)
+        head = f"{'landmark':<16}{'x':>10}{'y':>10}{'z':>10}" + (
+            f"{'error':>10}" if errors is not None else ""
+        )
+        print(head)
+        for k, (label, p) in enumerate(zip(prediction.labels, prediction.positions)):
+            err = f"{errors[k]:>10.3g}" if errors is not None else ""
+            print(f"{label:<16}{p[0]:>10.2f}{p[1]:>10.2f}{p[2]:>10.2f}{err}")
+        if errors is not None:
+            print(f"mean error {errors.mean():.3g} mm")
+    return 0 if fit.success else 1
