@@ -44,17 +44,23 @@ _STENCILS = _stencils()
 
 @dataclass
 class Evaluation:
-    """Residuals, Jacobian and cost terms at one ``u``."""
+    """Residuals, Jacobian blocks and cost terms at one ``u``."""
 
     u: np.ndarray
     residuals: np.ndarray
-    jacobian: sp.csr_matrix
+    blocks: list[sp.csr_matrix]
     cost: float
     cost_distance: float
     cost_symmetric: float
     cost_regularization: float
     distances: np.ndarray
     moved: np.ndarray
+    symmetric_scale: np.ndarray | None = None
+
+    @property
+    def jacobian(self) -> sp.csr_matrix:
+        """The full sparse Jacobian (the residual blocks stacked)."""
+        return sp.vstack(self.blocks, format="csr")
 
 
 class LevelProblem:
@@ -111,6 +117,7 @@ class LevelProblem:
         self.sqrt_reg = float(np.sqrt(regularization * n / edges))
         self._Jreg = sp.kron(self._G, sp.identity(3), format="csr") * self.sqrt_reg
         self._Wx = sp.kron(self.W, sp.identity(3), format="csr")  # (3n, 3m) for vector residuals
+        self._reg_gram = (self._Jreg.T @ self._Jreg).tocsr()
 
     def _stencil_matrix(self, lookup: np.ndarray, energy: str) -> sp.csr_matrix:
         """Finite-difference operator over the lattice, one row per stencil touching a free node.
@@ -174,6 +181,7 @@ class LevelProblem:
         blocks = [Ja]
         residuals = [dist]
         cost_sym = 0.0
+        scale = None
         if self.target_points is not None:
             # (b) barycentre of the target vertices whose nearest template vertex is i.
             _, nearest = cKDTree(y).query(self.target_points, workers=-1)
@@ -186,26 +194,47 @@ class LevelProblem:
             # residual vector keeps its length from one evaluation to the next.
             assigned = (counts > 0).astype(np.float64)
             bary = sums / np.maximum(counts, 1)[:, None]
-            scale = self.sqrt_ws * np.repeat(assigned, 3)
-            rb = scale * (y - bary).ravel()
-            blocks.append(sp.diags(scale, format="csr") @ self._Wx)
+            scale = self.sqrt_ws * assigned
+            rb = (scale[:, None] * (y - bary)).ravel()
+            blocks.append(sp.diags(np.repeat(scale, 3), format="csr") @ self._Wx)
             residuals.append(rb)
             cost_sym = float(rb @ rb)
         rc = self._Jreg @ u
         blocks.append(self._Jreg)
         residuals.append(rc)
         r = np.concatenate(residuals)
-        J = sp.vstack(blocks, format="csr")
         cost_d = float(dist @ dist)
         cost_r = float(rc @ rc)
         return Evaluation(
             u=u,
             residuals=r,
-            jacobian=J,
+            blocks=blocks,
             cost=cost_d + cost_sym + cost_r,
             cost_distance=cost_d,
             cost_symmetric=cost_sym,
             cost_regularization=cost_r,
             distances=dist,
             moved=y,
+            symmetric_scale=scale,
         )
+
+    def normal_equations(self, ev: Evaluation) -> tuple[sp.csr_matrix, np.ndarray]:
+        """``J^T J`` and ``J^T r`` assembled block by block.
+
+        The regularisation block is constant within a level (cached); the barycentre block is
+        ``(W^T S^2 W) (x) I_3`` with ``S`` the per-vertex weights, computed on the small
+        ``(m, m)`` node matrix rather than on the ``3n x 3m`` Jacobian.
+        """
+        n = ev.distances.size
+        Ja = ev.blocks[0]
+        ra = ev.residuals[:n]
+        A = Ja.T @ Ja + self._reg_gram
+        g = Ja.T @ ra
+        if ev.symmetric_scale is not None:
+            s2 = ev.symmetric_scale**2
+            A = A + sp.kron(self.W.T @ sp.diags(s2) @ self.W, sp.identity(3), format="csr")
+            rb = ev.residuals[n : 4 * n]
+            g = g + self._Wx.T @ (np.repeat(ev.symmetric_scale, 3) * rb)
+        rc = ev.residuals[ev.residuals.size - self._Jreg.shape[0] :]
+        g = g + self._Jreg.T @ rc
+        return A.tocsr(), g

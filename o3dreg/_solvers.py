@@ -76,9 +76,7 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
     success = False
     iterations = 0
     while iterations < criteria.max_iteration:
-        J = ev.jacobian
-        A = (J.T @ J).tocsr()
-        g = J.T @ ev.residuals
+        A, g = problem.normal_equations(ev)
         diag = A.diagonal()
         diag = np.maximum(diag, 1e-12 * max(float(diag.max()), 1e-300))
         if mu is None:

@@ -24,6 +24,7 @@ from .lattice import TrilinearLattice
 from .options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
 from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances
 from .rigid import registration_rigid
+from .sampling import spatial_subsample
 
 __all__ = ["evaluate_elastic", "lattice_box", "registration_elastic"]
 
@@ -167,6 +168,8 @@ def registration_elastic(
     target_points = vt if estimation_method.symmetric else None
     weight = estimation_method.symmetric_weight if estimation_method.symmetric else 0.0
 
+    surfaces = _TargetLevelsOfDetail(vt, ft, query)
+    target_samples: dict[int, np.ndarray] = {}
     deformation = LatticeDeformation(())
     previous = np.zeros_like(points)
     history: list[LevelReport] = []
@@ -181,20 +184,33 @@ def registration_elastic(
             active = dist > np.quantile(dist, level.adaptive_quantile)
             if not active.any():
                 active = dist >= dist.max()
+        # Coarse lattices have few nodes: a spatial subsample of the data determines them as well
+        # as all of it, at a fraction of the cost of each distance query.
+        use = _level_sample(lattice, points, level.points_per_node)
+        use_target = None
+        if target_points is not None:
+            budget = int(estimation_method.target_points_per_source_point * use.size)
+            if budget not in target_samples:
+                target_samples[budget] = target_points[spatial_subsample(target_points, budget)]
+            use_target = target_samples[budget]
+        level_query = query
+        if level.simplify_target:
+            level_query = surfaces.at(float(lattice.cell_size.min()) / _TARGET_VOXELS_PER_CELL)
         problem = LevelProblem(
-            points,
-            previous,
+            points[use],
+            previous[use],
             lattice,
-            active,
-            query,
-            target_points,
+            active[use],
+            level_query,
+            use_target,
             weight,
             level.regularization,
             level.energy,
         )
         info = solve(problem, level.criteria or criteria, level.solver)
-        deformation = deformation.with_level(problem.scatter(info.evaluation.u))
-        previous = info.evaluation.moved - points
+        level_lattice = problem.scatter(info.evaluation.u)
+        deformation = deformation.with_level(level_lattice)
+        previous = previous + level_lattice.displacement(points)
         report = LevelReport(
             resolution=level.resolution,
             free_nodes=int(problem.free_nodes.size),
@@ -203,6 +219,7 @@ def registration_elastic(
             initial_cost=info.initial_cost,
             final_cost=info.evaluation.cost,
             mean_distance=float(info.evaluation.distances.mean()),
+            points=int(use.size),
             seconds=time.perf_counter() - start,
             success=info.success,
             message=info.message,
@@ -242,6 +259,58 @@ def registration_elastic(
         success=success,
         message=message,
     )
+
+
+#: A coarse level measures distances to the target simplified with this many voxels per cell.
+_TARGET_VOXELS_PER_CELL = 16.0
+
+
+class _TargetLevelsOfDetail:
+    """The target surface at the detail a lattice level can resolve.
+
+    A lattice with cells of size ``h`` cannot follow surface detail much finer than ``h``; far
+    from convergence, the template points of a coarse level are also far from the surface, where
+    an AABB query against a dense mesh visits many boxes. Vertex clustering with voxels of
+    ``h / 16`` keeps the shape to within a voxel and makes those queries several times faster.
+    Only used when the voxel is at least twice the target's mean edge length.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, full: SurfaceDistanceQuery) -> None:
+        self.vertices, self.faces, self.full = vertices, faces, full
+        edges = vertices[faces[:, [1, 2, 0]]] - vertices[faces]
+        self.edge = float(np.linalg.norm(edges, axis=2).mean())
+        self.cache: dict[float, SurfaceDistanceQuery] = {}
+
+    def at(self, voxel: float) -> SurfaceDistanceQuery:
+        if voxel < 2.0 * self.edge:
+            return self.full
+        if voxel not in self.cache:
+            import open3d as o3d
+
+            from .meshio import to_open3d
+
+            mesh = to_open3d(self.vertices, self.faces).simplify_vertex_clustering(
+                voxel, o3d.geometry.SimplificationContraction.Average
+            )
+            mesh.remove_degenerate_triangles()
+            mesh.remove_unreferenced_vertices()
+            if len(mesh.triangles) == 0:
+                return self.full
+            self.cache[voxel] = SurfaceDistanceQuery(
+                np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+            )
+        return self.cache[voxel]
+
+
+def _level_sample(
+    lattice: TrilinearLattice, points: np.ndarray, per_node: float | None
+) -> np.ndarray:
+    """Indices of the template points a level optimises on (all, or a spatial subsample)."""
+    if per_node is None:
+        return np.arange(points.shape[0])
+    nodes, _ = lattice.weights(points)
+    budget = max(1000, int(per_node * np.unique(nodes).size))
+    return spatial_subsample(points, budget)
 
 
 def _distances(

@@ -80,6 +80,17 @@ class ElasticLevel:
         in ``[0, 1)``: only cells holding a vertex whose distance to the target exceeds the
         ``q``-quantile of the distances at the start of the level are refined (the octree-spline
         variant of Szeliski and Lavallee: subdivide where residuals remain large).
+    points_per_node : float or None
+        Data budget of the level: the level is optimised on a spatial subsample of about
+        ``points_per_node`` template vertices per lattice node touching data (at least 1000),
+        which determines a coarse lattice as well as all vertices do at a fraction of the cost.
+        ``None`` uses every vertex. Default 20.
+    simplify_target : bool
+        Measure this level's template->target distances to a copy of the target simplified by
+        vertex clustering with voxels of 1/16 of a cell, when that voxel is at least twice the
+        target's mean edge (coarse levels only). The lattice cannot resolve finer detail, and
+        the queries get several times cheaper. Default ``True``; the reported distances always
+        use the full target.
     solver : {'lm', 'trf', 'lm-dense'}
         ``'lm'``: Levenberg-Marquardt on sparse normal equations (default, fastest);
         ``'trf'``: :func:`scipy.optimize.least_squares` trust-region reflective with a sparse
@@ -93,6 +104,8 @@ class ElasticLevel:
     regularization: float = 1.0
     energy: str = "bending"
     adaptive_quantile: float | None = None
+    points_per_node: float | None = 20.0
+    simplify_target: bool = True
     solver: str = "lm"
     criteria: ElasticCriteria | None = None
 
@@ -105,6 +118,8 @@ class ElasticLevel:
             q = check_probability(self.adaptive_quantile, "adaptive_quantile")
             if q >= 1.0:
                 raise ValueError(f"`adaptive_quantile` must be in [0, 1), got {q!r}")
+        if self.points_per_node is not None:
+            check_positive(self.points_per_node, "points_per_node")
         if self.solver not in SOLVERS:
             raise ValueError(f"`solver` must be one of {SOLVERS}, got {self.solver!r}")
         if self.criteria is not None and not isinstance(self.criteria, ElasticCriteria):
@@ -137,15 +152,22 @@ class DistanceEstimation:
     symmetric_weight : float
         Weight of the barycentre term relative to the point-to-surface term. Default 1 (the
         paper's unweighted sum).
+    target_points_per_source_point : float
+        At most this many target vertices per template vertex enter the barycentre term (an even
+        spatial subsample of the target when it is denser). Default 10: every barycentre still
+        averages about ten target vertices, and a million-vertex target costs no more per
+        iteration than a 30k-vertex one.
     """
 
     symmetric: bool = True
     symmetric_weight: float = 1.0
+    target_points_per_source_point: float = 10.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.symmetric, bool):
             raise TypeError(f"`symmetric` must be a bool, got {type(self.symmetric).__name__}")
         check_positive(self.symmetric_weight, "symmetric_weight", allow_zero=True)
+        check_positive(self.target_points_per_source_point, "target_points_per_source_point")
 
     def __repr__(self) -> str:
         return (

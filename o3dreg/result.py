@@ -87,7 +87,9 @@ class LevelReport:
     initial_cost, final_cost : float
         Total cost (sum of squared residuals) at the start and end of the level.
     mean_distance : float
-        Mean template->target point-to-surface distance at the end of the level.
+        Mean template->target point-to-surface distance of the level's points at its end.
+    points : int
+        Template vertices the level was optimised on (a spatial subsample on coarse levels).
     seconds : float
         Wall time of the level.
     success : bool
@@ -101,6 +103,7 @@ class LevelReport:
     initial_cost: float
     final_cost: float
     mean_distance: float
+    points: int
     seconds: float
     success: bool
     message: str

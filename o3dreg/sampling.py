@@ -1,0 +1,48 @@
+"""Order-independent spatial subsampling of point sets."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["spatial_subsample"]
+
+
+def spatial_subsample(points: np.ndarray, count: int) -> np.ndarray:
+    """Indices of about ``count`` points spread evenly over ``points``.
+
+    One point per occupied cell of a regular grid (the one nearest the cell centre), with the cell
+    size chosen so that about ``count`` cells are occupied. The choice depends on the positions
+    only, not on the order of the points, so results do not change when a mesh's vertices are
+    renumbered.
+
+    Returns
+    -------
+    (k,) int ndarray
+        Sorted indices, ``k <= len(points)``; all indices when ``count >= len(points)``.
+    """
+    n = points.shape[0]
+    if count >= n:
+        return np.arange(n)
+    lo = points.min(axis=0)
+    extent = float(np.ptp(points, axis=0).max()) or 1.0
+    # Points on a surface occupy cells in proportion to (extent / cell)^2: start there, then
+    # adjust the cell size a few times towards the requested count.
+    cell = extent / np.sqrt(count)
+    chosen = np.arange(n)
+    for _ in range(8):
+        keys = np.floor((points - lo) / cell).astype(np.int64)
+        dims = keys.max(axis=0) + 1
+        flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+        offset = ((points - (lo + (keys + 0.5) * cell)) ** 2).sum(axis=1)
+        # Sort by cell, then by distance to the cell centre, then by coordinates (a total order
+        # on distinct points, so the choice does not depend on their numbering).
+        order = np.lexsort((points[:, 2], points[:, 1], points[:, 0], offset, flat))
+        sorted_flat = flat[order]
+        first = np.ones(n, dtype=bool)
+        first[1:] = sorted_flat[1:] != sorted_flat[:-1]
+        chosen = np.sort(order[first])
+        ratio = chosen.size / count
+        if 0.7 <= ratio <= 1.4:
+            break
+        cell *= np.sqrt(ratio)
+    return chosen
