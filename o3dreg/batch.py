@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from ._validation import as_mesh_arrays
+from ._validation import as_mesh_arrays, as_transformation
 from .meshio import atomic_write, read_triangle_mesh, write_triangle_mesh
 
 __all__ = ["BatchResult", "PatientRecord", "register_batch"]
@@ -188,7 +188,7 @@ def _default_name(target: Any, index: int) -> str:
 
 
 def _register_one(
-    template: tuple[np.ndarray, np.ndarray], target: Any, options: dict[str, Any]
+    template: tuple[np.ndarray, np.ndarray], target: Any, init: Any, options: dict[str, Any]
 ) -> tuple[Any, float]:
     """Worker: load (when a path) and register; returns (result, seconds). Runs anywhere."""
     from .elastic import registration_elastic
@@ -196,7 +196,7 @@ def _register_one(
     start = time.perf_counter()
     if isinstance(target, (str, os.PathLike)):
         target = read_triangle_mesh(target, name="target")
-    result = registration_elastic(template, target, **options)
+    result = registration_elastic(template, target, init=init, **options)
     return result, time.perf_counter() - start
 
 
@@ -260,7 +260,8 @@ def register_batch(
         Called with each :class:`PatientRecord` as it is saved (also for skipped ones).
     **options
         Passed to :func:`~o3dreg.registration_elastic` (``init``, ``levels``,
-        ``estimation_method``, ``criteria``, ``padding``).
+        ``estimation_method``, ``criteria``, ``padding``). ``init`` may also be one ``(4, 4)``
+        transformation per target, shape ``(len(targets), 4, 4)`` (e.g. from landmarks).
 
     Returns
     -------
@@ -301,6 +302,19 @@ def register_batch(
         names_ = [str(n) for n in names]
         if len(names_) != len(targets):
             raise ValueError(f"`names` must hold {len(targets)} names, got {len(names_)}")
+    if options.get("init") is not None:
+        init = np.asarray(options["init"], dtype=np.float64)
+        if init.shape == (len(targets), 4, 4):
+            inits: list[Any] = [as_transformation(t, f"init[{i}]") for i, t in enumerate(init)]
+        elif init.shape == (4, 4):
+            inits = [as_transformation(init, "init")] * len(targets)
+        else:
+            raise ValueError(
+                f"`init` must have shape (4, 4) or ({len(targets)}, 4, 4), got {init.shape}"
+            )
+    else:
+        inits = [None] * len(targets)
+    options = {k: v for k, v in options.items() if k != "init"}
     names_ = [_safe_name(n) for n in names_]
     seen: dict[str, int] = {}
     for i, n in enumerate(names_):
@@ -315,7 +329,7 @@ def register_batch(
             prepared.append(as_mesh_arrays(t, f"targets[{i}]", drop_degenerate=True))
     os.makedirs(output_dir, exist_ok=True)
     return _run_batch(
-        (tv, tf), prepared, names_, output_dir, executor, force, progress, callback, options
+        (tv, tf), prepared, names_, inits, output_dir, executor, force, progress, callback, options
     )
 
 
@@ -323,6 +337,7 @@ def _run_batch(
     template: tuple[np.ndarray, np.ndarray],
     targets: list[Any],
     names: list[str],
+    inits: list[Any],
     output_dir: str,
     executor: cf.Executor | None,
     force: bool,
@@ -404,7 +419,7 @@ def _run_batch(
             for i in todo:
                 bar.set_postfix_str(f"current: {names[i]}")
                 try:
-                    outcome = _register_one(template, targets[i], options)
+                    outcome = _register_one(template, targets[i], inits[i], options)
                 except KeyboardInterrupt:
                     raise
                 except Exception as exc:
@@ -413,7 +428,8 @@ def _run_batch(
                     finish(i, outcome, None)
         else:
             futures = {
-                executor.submit(_register_one, template, targets[i], options): i for i in todo
+                executor.submit(_register_one, template, targets[i], inits[i], options): i
+                for i in todo
             }
             try:
                 for future in cf.as_completed(futures):

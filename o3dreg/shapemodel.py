@@ -649,8 +649,9 @@ def fit_shape_model(
     target : open3d.geometry.TriangleMesh or (vertices, faces)
         The patient surface, in its own coordinates. Not modified.
     init : (4, 4) array_like, optional
-        Initial pose (model frame -> patient). Default: rigid registration of the mean mesh onto
-        the patient (:func:`~o3dreg.registration_rigid`).
+        Initial pose (model frame -> patient). Default: two fits, one started from the rigid
+        registration of the mean mesh onto the patient (:func:`~o3dreg.registration_rigid`),
+        one from aligned centroids; the one with the smaller symmetric mean distance is kept.
     number_of_modes : int, optional
         Modes used. Default all.
     regularization : float, optional
@@ -684,13 +685,30 @@ def fit_shape_model(
         reg = check_positive(regularization, "regularization", allow_zero=True)
     max_iteration = check_positive(max_iteration, "max_iteration", integer=True)
     tolerance = check_positive(tolerance, "tolerance", allow_zero=True)
-    if init is None:
-        from .rigid import registration_rigid
-
-        pose = np.array(registration_rigid((model.mean, model.faces), (vt, ft)).transformation)
-    else:
+    if init is not None:
         pose = as_transformation(init, "init")
-    return _fit_model(model, vt, ft, pose, k, reg, max_iteration, tolerance)
+        return _fit_model(model, vt, ft, pose, k, reg, max_iteration, tolerance)
+    from .distance import SurfaceDistanceQuery
+    from .rigid import registration_rigid
+
+    # Two starts: the rigid registration of the mean (moment-based guess + ICP) and a plain
+    # translation of centroids (right when patients share the model's orientation, where the
+    # moment guess may pick a symmetric flip); keep the fit with the smaller symmetric distance.
+    shift = np.eye(4)
+    shift[:3, 3] = vt.mean(axis=0) - model.mean.mean(axis=0)
+    starts = [
+        np.array(registration_rigid((model.mean, model.faces), (vt, ft)).transformation),
+        shift,
+    ]
+    best, best_cost = None, np.inf
+    for pose in starts:
+        fit = _fit_model(model, vt, ft, pose, k, reg, max_iteration, tolerance)
+        back = SurfaceDistanceQuery(fit.vertices, model.faces).distance(vt).mean()
+        cost = fit.mean_distance + float(back)
+        if cost < best_cost:
+            best, best_cost = fit, cost
+    assert best is not None
+    return best
 
 
 def _weighted_fit(

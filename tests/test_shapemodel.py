@@ -1,0 +1,262 @@
+"""Shape model: PCA of a known linear population, synthesis, projection, fitting, persistence.
+
+The synthetic population (also used by the batch, sliding and landmark tests) is generated from
+a known linear model: a mean surface (an asymmetric egg with a nose, ~30 mm) deformed by three
+known smooth displacement fields with standard deviations 4, 2 and 1 mm (RMS over the template),
+then put in a random pose. Each subject's *target* surface is an independent, finer remeshing
+(a randomly rotated sphere tessellation) of that subject, so a registration must find the
+correspondences; the *truth* is the template's vertices moved by the same fields.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial.transform import Rotation
+
+from o3dreg import (
+    ElasticLevel,
+    ShapeModel,
+    build_shape_model,
+    fit_shape_model,
+    procrustes_transform,
+    register_batch,
+)
+
+SD = np.array([4.0, 2.0, 1.0])
+FAST_LEVELS = [ElasticLevel(2), ElasticLevel(4), ElasticLevel(8)]
+
+
+def _base_map(p: np.ndarray) -> np.ndarray:
+    q = p * [39.0, 30.0, 24.0]
+    nose = np.exp(-((p - [0.0, 1.0, 0.3]) ** 2).sum(1) / 0.15)
+    q += 10.0 * nose[:, None] * [0.0, 1.0, 0.0]
+    q[:, 0] += 6.0 * np.clip(p[:, 2], 0, None) ** 2
+    return q
+
+
+def _sphere(resolution: int, rotation: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=resolution)
+    v = np.asarray(m.vertices).copy()
+    if rotation is not None:
+        v = v @ rotation.T
+    return v, np.asarray(m.triangles).astype(np.int64)
+
+
+def _fields(x: np.ndarray) -> list[np.ndarray]:
+    zero = np.zeros(len(x))
+    stretch = np.stack([x[:, 0] / 39.0, zero, zero], 1)
+    top = np.exp(-((x - [0, 0, 24]) ** 2).sum(1) / (2 * 12.0**2))[:, None] * [0.0, 0.0, 1.0]
+    side = np.exp(-((x - [30, 0, 0]) ** 2).sum(1) / (2 * 12.0**2))[:, None] * [0.0, 1.0, 0.0]
+    return [stretch, top, side]
+
+
+def unit_fields(x: np.ndarray, template: np.ndarray) -> list[np.ndarray]:
+    """The three fields at ``x``, each scaled to unit RMS over the template vertices."""
+    norms = [np.sqrt((f**2).sum(1).mean()) for f in _fields(template)]
+    return [f / n for f, n in zip(_fields(x), norms)]
+
+
+def population(
+    count: int, seed: int = 0, template_resolution: int = 12, target_resolution: int = 30
+):
+    """``(template (V, F), targets [(V, F)], truths (count, n, 3), coefficients, poses)``."""
+    rng = np.random.default_rng(seed)
+    tv, tf = _sphere(template_resolution)
+    template = _base_map(tv)
+    b = rng.standard_normal((count, 3)) * SD
+    truths, targets, poses = [], [], []
+    for i in range(count):
+
+        def phi(x: np.ndarray, i: int = i) -> np.ndarray:
+            return x + sum(b[i, k] * f for k, f in enumerate(unit_fields(x, template)))
+
+        sv, sf = _sphere(
+            target_resolution, Rotation.random(random_state=seed * 1000 + i).as_matrix()
+        )
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.from_rotvec(rng.normal(size=3) * 0.15).as_matrix()
+        pose[:3, 3] = rng.normal(size=3) * 5
+        targets.append((phi(_base_map(sv)) @ pose[:3, :3].T + pose[:3, 3], sf))
+        truths.append(phi(template))
+        poses.append(pose)
+    return (template, tf), targets, np.stack(truths), b, poses
+
+
+def principal_cosines(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cosines of the principal angles between the column spans of ``a`` and ``b``."""
+    qa, qb = np.linalg.qr(a)[0], np.linalg.qr(b)[0]
+    return np.linalg.svd(qa.T @ qb, compute_uv=False)
+
+
+@pytest.fixture(scope="module")
+def pop():
+    return population(10)
+
+
+def _posed(x: np.ndarray, seed: int) -> np.ndarray:
+    r = Rotation.random(random_state=seed).as_matrix()
+    return x @ r.T + np.random.default_rng(seed).normal(size=3) * 20
+
+
+def test_pca_recovers_known_linear_model_exactly(pop):
+    (tv, tf), _, truths, b, _ = pop
+    posed = [_posed(x, i) for i, x in enumerate(truths)]
+    model = build_shape_model(posed, tf)
+    # Exact correspondences: 3 modes (the data span 3 directions; pose removal by rotations, a
+    # non-linear operation, leaves only second-order variance, < 1e-4 of the total, in others).
+    assert model.cumulative_variance_ratio[2] > 1 - 1e-4
+    # Mode subspace = span of the known fields (1e-3: pose removal by GPA perturbs the fields
+    # by the rotation that best absorbs them, which is second order for these small fields).
+    # The model frame is the first posed shape's orientation: rotate the fields into it. GPA
+    # removes from each shape the part of its deformation that is a rigid motion, so the model
+    # sees the fields minus their projection on the infinitesimal rigid motions at the mean
+    # (3 translations, 3 rotations w x p).
+    rot = procrustes_transform(truths.mean(axis=0), model.mean)[:3, :3]
+    fields = np.stack([(f @ rot.T).reshape(-1) for f in unit_fields(tv, tv)], axis=1)
+    p = model.mean - model.mean.mean(axis=0)
+    rigid = [np.tile(e, (len(p), 1)).reshape(-1) for e in np.eye(3)]
+    rigid += [np.cross(e, p).reshape(-1) for e in np.eye(3)]
+    q = np.linalg.qr(np.stack(rigid, axis=1))[0]
+    fields = fields - q @ (q.T @ fields)
+    # 1e-2: rotations act non-linearly; what is left is second order in the fields (amplitude
+    # up to ~10 mm on a 30 mm shape, i.e. ~0.1 rad of absorbed rotation: ~1e-2).
+    assert principal_cosines(model.basis[:, :3], fields).min() > 1 - 1e-2
+    # Variance ratios equal those of the same subjects' true (pose-free) displacements.
+    data = b @ fields.T
+    sv = np.linalg.svd(data - data.mean(0), compute_uv=False)
+    ratios = sv**2 / (sv**2).sum()
+    np.testing.assert_allclose(model.explained_variance_ratio[:3], ratios[:3], atol=5e-3)
+    assert np.isclose(model.cumulative_variance_ratio[-1], 1.0)
+    k = model.number_of_modes
+    assert k <= len(truths) - 1
+    np.testing.assert_allclose(model.basis.T @ model.basis, np.eye(k), atol=1e-10)
+
+
+def test_synthesis_projection_and_scores(pop):
+    (tv, tf), _, truths, _, _ = pop
+    model = build_shape_model(truths, tf, names=[f"p{i}" for i in range(len(truths))])
+    # P = M + A alpha, and projecting a training shape (any pose) gives back its scores.
+    for i in (0, 3):
+        proj = model.project(_posed(truths[i], 40 + i))
+        np.testing.assert_allclose(proj.coefficients, model.scores[i], atol=1e-6)
+        assert proj.mean_error < 1e-6
+        np.testing.assert_allclose(
+            model.synthesize(model.scores[i]), proj.reconstruction, atol=1e-9
+        )
+    shape = model.synthesize([1.0, -2.0], standardized=True)
+    expected = (
+        model.mean
+        + model.standard_deviations[0] * model.modes[0]
+        - 2 * model.standard_deviations[1] * model.modes[1]
+    )
+    np.testing.assert_allclose(shape, expected)
+    np.testing.assert_allclose(
+        model.mode_shape(1, 3.0), model.synthesize([0.0, 3.0], standardized=True)
+    )
+    meshes = model.mode_meshes(modes=[0, 1], standard_deviations=(-3.0, 3.0))
+    assert set(meshes) == {(0, -3.0), (0, 3.0), (1, -3.0), (1, 3.0)}
+    table = model.variance_table()
+    assert "Variances %" in table and "Cumulated Variance %" in table
+    assert "ShapeModel(points=" in repr(model)
+    samples = model.sample(5, seed=1)
+    np.testing.assert_array_equal(samples, model.sample(5, seed=1))
+    assert samples.shape == (5, len(tv), 3)
+
+
+def test_number_of_modes_bounded_by_shapes_minus_one(pop):
+    (_, tf), _, truths, _, _ = pop
+    rng = np.random.default_rng(0)
+    noisy = truths[:4] + rng.normal(size=truths[:4].shape)
+    model = build_shape_model(noisy, tf)
+    assert model.number_of_modes == 3
+    with pytest.raises(ValueError, match="shapes - 1"):
+        build_shape_model(noisy, tf, number_of_modes=4)
+    assert build_shape_model(noisy, tf, number_of_modes=2).number_of_modes == 2
+
+
+def test_save_load_roundtrip_and_template_check(pop, tmp_path):
+    (tv, tf), _, truths, _, _ = pop
+    model = build_shape_model(truths, tf)
+    path = model.save(tmp_path / "model.npz")
+    assert [p.name for p in tmp_path.iterdir()] == ["model.npz"]  # no temporary left
+    back = ShapeModel.load(path, template=(tv, tf))
+    np.testing.assert_array_equal(back.modes, model.modes)
+    np.testing.assert_array_equal(back.faces, model.faces)
+    assert back.names == model.names and back.total_variance == model.total_variance
+    with pytest.raises(OSError, match="exists"):
+        model.save(path)
+    other_v, other_f = _sphere(10)
+    with pytest.raises(ValueError, match="not this model's template"):
+        ShapeModel.load(path, template=(other_v, other_f))
+    flipped = tf[:, ::-1].copy()
+    with pytest.raises(ValueError, match="not this model's template"):
+        back.check_template((tv, flipped))
+    written = model.write_meshes(tmp_path, modes=[0], standard_deviations=(-3, 3))
+    assert sorted(os.path.basename(p) for p in written) == [
+        "mean.ply",
+        "mode1_+3sd.ply",
+        "mode1_-3sd.ply",
+    ]
+
+
+def test_build_bad_input(pop):
+    (_, tf), _, truths, _, _ = pop
+    with pytest.raises(ValueError, match="at least 2 shapes"):
+        build_shape_model(truths[:1], tf)
+    with pytest.raises(ValueError, match="same number of points"):
+        build_shape_model([truths[0], truths[1][:-1]], tf)
+    with pytest.raises(ValueError, match="faces"):
+        build_shape_model(truths, tf + 10_000)
+    with pytest.raises(ValueError, match="names"):
+        build_shape_model(truths, tf, names=["a"])
+    model = build_shape_model(truths, tf)
+    with pytest.raises(ValueError, match="points"):
+        model.project(truths[0][:-1])
+    with pytest.raises(ValueError, match="at most"):
+        model.synthesize(np.ones(10))
+
+
+def test_fit_recovers_pose_and_shape(pop):
+    (tv, tf), targets, truths, _, poses = pop
+    model = build_shape_model(truths[:9], tf)
+    target = targets[9]
+    before = target[0].copy()
+    fit = fit_shape_model(model, target)
+    np.testing.assert_array_equal(target[0], before)
+    truth = truths[9] @ poses[9][:3, :3].T + poses[9][:3, 3]
+    err = np.linalg.norm(fit.vertices - truth, axis=1).mean()
+    # 0.5 mm (shape amplitude 4 mm RMS, size 30 mm): the fit knows the true modes, but the
+    # target is a different tessellation, so closest points carry ~0.1 mm of discretisation.
+    assert err < 0.5, err
+    assert fit.mean_distance < 0.3
+    with pytest.raises(TypeError, match="ShapeModel"):
+        fit_shape_model("model", target)
+
+
+def test_registered_population_recovers_variance_ratios_and_modes(pop, tmp_path):
+    (tv, tf), targets, truths, _, poses = pop
+    # Start each registration from the true rigid pose (per-patient ``init``): Open3D's ICP
+    # in the default rigid initialisation is not bit-for-bit deterministic across runs, and
+    # this test is about the elastic correspondences, PCA and pose removal by Procrustes.
+    batch = register_batch((tv, tf), targets, tmp_path, levels=FAST_LEVELS, init=np.stack(poses))
+    assert len(batch.registered) == len(targets)
+    _, shapes = batch.shapes()
+    model = build_shape_model(shapes, tf)
+    truth = build_shape_model(truths, tf)
+    # The truth to compare with is the PCA of the *same* subjects' true correspondences, so
+    # sampling noise (10 subjects) cancels and only registration error remains. That error is
+    # ~0.5-1 mm mean per vertex (tangential slips on a smooth surface, the remeshing) against
+    # mode amplitudes of 4 and 2 mm RMS, and it adds variance of its own. Hence: first ratio
+    # within 0.15 absolute; first mode's direction within ~18 degrees (cos > 0.95); and the true
+    # 2-mode span lies within ~45 degrees of the recovered 3-mode span (cos > 0.7; the 2 mm
+    # mode is only 2-4 times the registration noise, so noise modes can rank above it). The
+    # 1 mm mode is below the noise and not tested.
+    ratio = model.explained_variance_ratio[0]
+    assert abs(ratio - truth.explained_variance_ratio[0]) < 0.15, ratio
+    assert principal_cosines(model.basis[:, :1], truth.basis[:, :1])[0] > 0.95
+    cos = principal_cosines(model.basis[:, :3], truth.basis[:, :2])
+    assert cos.min() > 0.7, cos
