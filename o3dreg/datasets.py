@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 from importlib import resources
+from pathlib import Path
 
 import open3d as o3d
 
-__all__ = ["load_bunny"]
+__all__ = ["headsq_path", "load_bunny"]
 
 
 def load_bunny() -> o3d.geometry.TriangleMesh:
@@ -26,3 +27,13 @@ def load_bunny() -> o3d.geometry.TriangleMesh:
         mesh = o3d.io.read_triangle_mesh(str(p))  # type: ignore[arg-type]  # stubs say PathLike only
     mesh.scale(1000.0, center=(0.0, 0.0, 0.0))
     return mesh
+
+
+def headsq_path() -> Path:
+    """Path of the bundled CT head's detached NRRD header (``quarter.nhdr``).
+
+    The VTK "headsq" CT at quarter resolution: 93 axial slices of 64x64 int16, spacing
+    3.2 x 3.2 x 1.5 mm; bone above about 1150 (raw values, HU = value - 1024). Read it with
+    :func:`o3dreg.read_volume`.
+    """
+    return Path(str(resources.files("o3dreg") / "data" / "headsq_quarter" / "quarter.nhdr"))

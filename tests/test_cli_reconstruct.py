@@ -11,8 +11,10 @@ import pytest
 import SimpleITK as sitk
 
 from o3dreg.cli import main
+from o3dreg.datasets import headsq_path
 
 DATA = Path(__file__).resolve().parent / "data"
+HEADSQ = headsq_path().parent  # bundled with the package (o3dreg/data)
 
 
 @pytest.fixture
@@ -109,7 +111,7 @@ def test_reconstruct_bad_input_leaves_no_file(tmp_path, scan, capsys):
 def test_reconstruct_headsq(tmp_path, capsys):
     output = tmp_path / "skull.ply"
     code, out, err = _run(
-        capsys, str(DATA / "headsq_quarter" / "quarter.nhdr"), "-o", str(output),
+        capsys, str(HEADSQ / "quarter.nhdr"), "-o", str(output),
         "--threshold", "1150", "--largest", "1", "--smooth", "10", "--decimate", "3000", "--json",
     )  # fmt: skip
     assert code == 0, err

@@ -11,8 +11,10 @@ import pytest
 from scipy.special import ellipeinc, ellipkinc
 
 from o3dreg import Volume, connected_components, isosurface, keep_largest_components, read_volume
+from o3dreg.datasets import headsq_path
 
 DATA = Path(__file__).resolve().parent / "data"
+HEADSQ = headsq_path().parent  # bundled with the package (o3dreg/data)
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0])
 
 
@@ -198,7 +200,7 @@ def test_isosurface_rejects_bad_input():
 
 
 def test_headsq_skull_at_bone_level():
-    volume = read_volume(DATA / "headsq_quarter" / "quarter.nhdr")
+    volume = read_volume(HEADSQ / "quarter.nhdr")
     mesh = isosurface(volume, 1150)
     components = connected_components(mesh)
     # One skull-sized connected bone surface dominates (a few small islands of noise remain).

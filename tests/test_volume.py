@@ -16,8 +16,10 @@ from pydicom.dataset import FileDataset, FileMetaDataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
 from o3dreg import Volume, read_raw_slices, read_volume
+from o3dreg.datasets import headsq_path
 
 DATA = Path(__file__).resolve().parent / "data"
+HEADSQ = headsq_path().parent  # bundled with the package (o3dreg/data)
 
 # Rotation about x by 20 degrees then about z by 30 degrees: a non-trivial direction.
 _C, _S = np.cos(np.radians(20)), np.sin(np.radians(20))
@@ -345,14 +347,11 @@ def test_read_volume_rejects_bad_files(tmp_path):
 
 def test_headsq_detached_nrrd_with_slice_list():
     # SimpleITK rejects this header (spacings with a space field): read through pynrrd.
-    v = read_volume(DATA / "headsq_quarter" / "quarter.nhdr")
+    v = read_volume(HEADSQ / "quarter.nhdr")
     assert v.shape == (93, 64, 64)
     assert np.allclose(v.spacing, [1.5, 3.2, 3.2])
     expected = np.stack(
-        [
-            np.fromfile(DATA / "headsq_quarter" / f"quarter.{i}", "<i2").reshape(64, 64)
-            for i in range(1, 94)
-        ]
+        [np.fromfile(HEADSQ / f"quarter.{i}", "<i2").reshape(64, 64) for i in range(1, 94)]
     )
     assert np.array_equal(v.array, expected)
 
