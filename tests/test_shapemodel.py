@@ -221,7 +221,7 @@ def test_build_bad_input(pop):
 
 
 def test_fit_recovers_pose_and_shape(pop):
-    (tv, tf), targets, truths, _, poses = pop
+    (_tv, tf), targets, truths, _, poses = pop
     model = build_shape_model(truths[:9], tf)
     target = targets[9]
     before = target[0].copy()

@@ -1,0 +1,118 @@
+"""Batch registration: files per patient, failures reported, resume, executors (incl. Dask)."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import json
+import os
+
+import numpy as np
+import pytest
+from test_shapemodel import FAST_LEVELS, population
+
+from o3dreg import register_batch, write_triangle_mesh
+
+
+@pytest.fixture(scope="module")
+def small():
+    (tv, tf), targets, _, _, poses = population(3, seed=2)
+    return (tv, tf), targets, np.stack(poses)
+
+
+def test_batch_writes_each_patient_and_reports_failures(small, tmp_path):
+    template, targets, _poses = small
+    bad = tmp_path / "broken.ply"
+    bad.write_text("not a mesh")
+    good = tmp_path / "good.ply"
+    write_triangle_mesh(good, targets[0])
+    out = tmp_path / "out"
+    seen = []
+    result = register_batch(
+        template, [str(good), str(bad), targets[1]], out, levels=FAST_LEVELS, callback=seen.append
+    )
+    assert [r.name for r in result.records] == ["good", "broken", "patient002"]
+    assert [r.status for r in result.records] == ["registered", "failed", "registered"]
+    assert "could not be read" in result.records[1].message
+    assert len(seen) == 3
+    for name in ("good", "patient002"):
+        for suffix in (".ply", ".npz", ".json"):
+            assert (out / f"{name}{suffix}").is_file()
+        record = json.loads((out / f"{name}.json").read_text())
+        assert record["status"] == "registered" and record["distances"]["source_to_target_mean"] < 1
+    assert json.loads((out / "broken.json").read_text())["status"] == "failed"
+    assert not [p for p in os.listdir(out) if ".part" in p]  # nothing half-written
+    table = result.table()
+    assert "broken" in table and "error:" in table and "s->t mean" in table
+    names, shapes = result.shapes()
+    assert names == ("good", "patient002") and shapes.shape == (2, len(template[0]), 3)
+
+
+def test_batch_resumes_and_force_reregisters(small, tmp_path):
+    template, targets, _ = small
+    first = register_batch(template, targets[:2], tmp_path, levels=FAST_LEVELS)
+    assert not any(r.skipped for r in first.records)
+    again = register_batch(template, targets[:2], tmp_path, levels=FAST_LEVELS)
+    assert all(r.skipped for r in again.records)
+    assert again.records[0].distances == first.records[0].distances
+    forced = register_batch(template, targets[:2], tmp_path, levels=FAST_LEVELS, force=True)
+    assert not any(r.skipped for r in forced.records)
+
+
+def test_interrupt_keeps_finished_patients(small, tmp_path):
+    template, targets, _ = small
+
+    def stop(record):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        register_batch(template, targets, tmp_path, levels=FAST_LEVELS, callback=stop)
+    assert (tmp_path / "patient000.json").is_file()
+    assert not (tmp_path / "patient001.json").exists()
+    resumed = register_batch(template, targets, tmp_path, levels=FAST_LEVELS)
+    assert [r.skipped for r in resumed.records] == [True, False, False]
+
+
+def test_thread_pool_executor_gives_same_records(small, tmp_path):
+    template, targets, poses = small
+    serial = register_batch(template, targets, tmp_path / "a", levels=FAST_LEVELS, init=poses)
+    with cf.ThreadPoolExecutor(2) as pool:
+        parallel = register_batch(
+            template, targets, tmp_path / "b", levels=FAST_LEVELS, init=poses, executor=pool
+        )
+    for a, b in zip(serial.records, parallel.records):
+        assert a.name == b.name
+        np.testing.assert_allclose(
+            a.distances["source_to_target_mean"], b.distances["source_to_target_mean"], rtol=1e-9
+        )
+
+
+def test_dask_distributed_executor(small, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    template, targets, poses = small
+    cluster = distributed.LocalCluster(
+        n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
+    )
+    with cluster, distributed.Client(cluster) as client:
+        result = register_batch(
+            template,
+            targets,
+            tmp_path,
+            levels=FAST_LEVELS,
+            init=poses,
+            executor=client.get_executor(),
+        )
+    assert [r.status for r in result.records] == ["registered"] * 3
+
+
+def test_batch_bad_input(small, tmp_path):
+    template, targets, _ = small
+    with pytest.raises(ValueError, match="at least one"):
+        register_batch(template, [], tmp_path)
+    with pytest.raises(ValueError, match="unique"):
+        register_batch(template, targets[:2], tmp_path, names=["a", "a"])
+    with pytest.raises(TypeError, match="sequence"):
+        register_batch(template, "patient.ply", tmp_path)
+    with pytest.raises(TypeError, match="unexpected registration option"):
+        register_batch(template, targets, tmp_path, level=[])
+    with pytest.raises(ValueError, match="init"):
+        register_batch(template, targets, tmp_path, init=np.zeros((2, 4, 4)))

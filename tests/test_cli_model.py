@@ -1,0 +1,147 @@
+"""``o3dreg build-model`` and ``o3dreg model info/modes/fit``; the mandible example (slow)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_shapemodel import population
+
+from o3dreg import write_landmarks, write_triangle_mesh
+from o3dreg.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("cli")
+    (tv, tf), targets, truths, _, poses = population(6, seed=7)
+    write_triangle_mesh(folder / "template.ply", (tv, tf))
+    for i, t in enumerate(targets):
+        write_triangle_mesh(folder / f"p{i}.ply", t)
+    (folder / "broken.ply").write_text("garbage")
+    write_landmarks(folder / "lm.mrk.json", ["a", "b"], tv[[0, 100]])
+    truth = truths[5][[0, 100]] @ poses[5][:3, :3].T + poses[5][:3, 3]
+    write_landmarks(folder / "truth.csv", ["a", "b"], truth)
+    return folder
+
+
+def test_build_model_info_modes_fit(files, capsys):
+    out = files / "model"
+    targets = [str(files / f"p{i}.ply") for i in range(5)] + [str(files / "broken.ply")]
+    code = main(
+        ["build-model", str(files / "template.ply"), *targets, "-o", str(out), "--levels", "2,4,8"]
+    )
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "broken" in text and "failed" in text and "Variances %" in text
+    for name in (
+        "model.npz",
+        "model.h5",
+        "mean.ply",
+        "variance.txt",
+        "report.json",
+        "template.ply",
+    ):
+        assert (out / name).is_file(), name
+    assert (out / "quality" / "generalization.png").is_file()
+    report = json.loads((out / "report.json").read_text())
+    assert report["failed"] == ["broken"] and len(report["registered"]) == 5
+
+    assert main(["model", "info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["points"] > 0 and len(info["variances"]) == 4
+
+    assert (
+        main(
+            ["model", "modes", str(out), "--modes", "1", "--sd", "-2", "2", "-o", str(files / "m")]
+        )
+        == 0
+    )
+    assert sorted(p.name for p in (files / "m").iterdir()) == [
+        "mean.ply",
+        "mode1_+2sd.ply",
+        "mode1_-2sd.ply",
+    ]
+    capsys.readouterr()
+
+    code = main(
+        [
+            "model", "fit", str(out), str(files / "p5.ply"),
+            "--landmarks", str(files / "lm.mrk.json"), "--truth", str(files / "truth.csv"),
+            "-o", str(files / "pred.csv"), "--json",
+        ]
+    )  # fmt: skip
+    result = json.loads(capsys.readouterr().out)
+    assert code in (0, 1)  # 1: the fit ran but did not meet its tolerance
+    # A 4-mode model of 5 registered shapes: errors of a few mm at most on a 30 mm shape.
+    assert result["mean_error"] < 3.0
+    assert (files / "pred.csv").is_file()
+
+    # A second run resumes: every patient but the broken one is skipped.
+    assert (
+        main(["build-model", str(files / "template.ply"), *targets[:2], "-o", str(out), "--json"])
+        == 0
+    )
+    rerun = json.loads(capsys.readouterr().out)
+    assert [p["status"] for p in rerun["patients"]] == ["registered", "registered"]
+
+
+def test_cli_errors(files, tmp_path, capsys):
+    assert main(["model", "info", str(tmp_path)]) == 2
+    assert "no model.npz" in capsys.readouterr().err
+    out = tmp_path / "one"
+    code = main(
+        [
+            "build-model",
+            str(files / "template.ply"),
+            str(files / "p0.ply"),
+            "-o",
+            str(out),
+            "--levels",
+            "2",
+        ]
+    )
+    assert code == 1
+    assert "at least 2" in capsys.readouterr().err
+    assert (
+        main(
+            [
+                "build-model",
+                str(files / "template.ply"),
+                str(files / "p0.ply"),
+                "-o",
+                str(out),
+                "--levels",
+                "x",
+            ]
+        )
+        == 2
+    )
+
+
+@pytest.mark.slow
+def test_mandible_example(shared_data, tmp_path):
+    if not (shared_data / "mandibles" / "masks").is_dir():
+        pytest.skip("mandible masks absent from the shared data")
+    run = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "examples" / "mandible_model.py"),
+            str(tmp_path),
+            "--jobs",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert len(report["variances"]) == 6
+    assert np.isclose(report["variances"][-1]["cumulative"], 1.0)
