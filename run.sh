@@ -37,6 +37,7 @@ case "$cmd" in
     .venv/bin/ruff check o3dreg tests examples benchmarks
     .venv/bin/ruff format --check o3dreg tests examples benchmarks
     .venv/bin/mypy
+    .venv/bin/mkdocs build --strict --quiet --site-dir "$(mktemp -d)"
     exec .venv/bin/python -m pytest -q "$@"
     ;;
   *)

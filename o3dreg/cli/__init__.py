@@ -24,11 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Elastic registration of surface meshes and statistical shape models.",
     )
     parser.add_argument("--version", action="version", version=f"o3dreg {__version__}")
-    verbosity = parser.add_mutually_exclusive_group()
-    verbosity.add_argument("-q", "--quiet", action="store_true", help="print only errors")
-    verbosity.add_argument(
-        "-v", "--verbose", action="count", default=0, help="log progress (-vv: debug details)"
-    )
+    _add_verbosity(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     import importlib
 
@@ -40,7 +36,34 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # sub-command not built yet
             raise
         module.add_parser(sub)
+    for child in _walk(sub):
+        _add_verbosity(child, default=argparse.SUPPRESS)
     return parser
+
+
+def _walk(action: argparse._SubParsersAction) -> list[argparse.ArgumentParser]:
+    """Every sub-command parser, nested ones included."""
+    found = []
+    for child in action.choices.values():
+        found.append(child)
+        for a in child._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                found.extend(_walk(a))
+    return found
+
+
+def _add_verbosity(parser: argparse.ArgumentParser, default=None) -> None:
+    """``-q`` / ``-v``, accepted before or after the sub-command."""
+    group = parser.add_mutually_exclusive_group()
+    kw = {} if default is None else {"default": default}
+    group.add_argument("-q", "--quiet", action="store_true", help="print only errors", **kw)
+    group.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        help="log progress (-vv: debug details)",
+        **({"default": 0} if default is None else kw),
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:

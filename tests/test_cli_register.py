@@ -1,0 +1,137 @@
+"""`o3dreg register`: outputs, refusals, exit codes."""
+
+import json
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from o3dreg.cli import main
+from o3dreg.synthetic import SmoothWarp, synthetic_form
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("pair")
+    template = synthetic_form("cube", 400)
+    dense = synthetic_form("cube", 3000)
+    warp = SmoothWarp.random(np.asarray(dense.vertices), magnitude=0.03, seed=2)
+    dense.vertices = o3d.utility.Vector3dVector(warp(np.asarray(dense.vertices)))
+    o3d.io.write_triangle_mesh(str(folder / "template.ply"), template)
+    o3d.io.write_triangle_mesh(str(folder / "patient.ply"), dense)
+    return folder
+
+
+def test_register_writes_all_outputs(pair, tmp_path, capsys):
+    out = tmp_path / "out.ply"
+    code = main(
+        [
+            "register",
+            str(pair / "template.ply"),
+            str(pair / "patient.ply"),
+            "-o",
+            str(out),
+            "--levels",
+            "2,4,8",
+            "--deformation",
+            str(tmp_path / "d.npz"),
+            "--report",
+            str(tmp_path / "r.json"),
+        ]
+    )
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "source -> target" in printed and "target -> source" in printed
+    mesh = o3d.io.read_triangle_mesh(str(out))
+    assert len(mesh.vertices) == len(o3d.io.read_triangle_mesh(str(pair / "template.ply")).vertices)
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["success"] is True and len(report["levels"]) == 3
+    assert report["distances"]["source_to_target_mean"] < 1.0
+    assert (tmp_path / "d.npz").is_file()
+
+
+def test_json_output_and_no_symmetric(pair, tmp_path, capsys):
+    code = main(
+        [
+            "register",
+            str(pair / "template.ply"),
+            str(pair / "patient.ply"),
+            "-o",
+            str(tmp_path / "o.ply"),
+            "--json",
+            "--no-symmetric",
+            "--levels",
+            "2,4",
+        ]
+    )
+    data = json.loads(capsys.readouterr().out)
+    assert code == 0 and data["levels"][0]["resolution"] == 2
+
+
+def test_refusals_leave_nothing(pair, tmp_path, capsys):
+    out = tmp_path / "exists.ply"
+    out.write_text("keep me")
+    assert (
+        main(["register", str(pair / "template.ply"), str(pair / "patient.ply"), "-o", str(out)])
+        == 2
+    )
+    assert out.read_text() == "keep me"
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+    assert (
+        main(
+            [
+                "register",
+                str(pair / "template.ply"),
+                str(tmp_path / "missing.ply"),
+                "-o",
+                str(tmp_path / "x.ply"),
+            ]
+        )
+        == 2
+    )
+    assert "no such file" in capsys.readouterr().err
+    assert (
+        main(
+            [
+                "register",
+                str(pair / "template.ply"),
+                str(pair / "patient.ply"),
+                "-o",
+                str(tmp_path / "y.ply"),
+                "--levels",
+                "2,4",
+                "--regularization",
+                "1,2,3",
+            ]
+        )
+        == 2
+    )
+    assert "--regularization must give 1 or 2 values" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exists.ply"]
+
+
+def test_non_convergence_exit_code(pair, tmp_path):
+    code = main(
+        [
+            "register",
+            str(pair / "template.ply"),
+            str(pair / "patient.ply"),
+            "-o",
+            str(tmp_path / "o.ply"),
+            "--levels",
+            "2",
+            "--max-iteration",
+            "1",
+            "-q",
+        ]
+    )
+    assert code == 1
+    assert (tmp_path / "o.ply").is_file()
+
+
+def test_version_and_help(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert "o3dreg" in capsys.readouterr().out
+    assert main([]) == 2

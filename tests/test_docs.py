@@ -1,0 +1,48 @@
+"""The generated documentation pages stay in step with the code."""
+
+import importlib.util
+from pathlib import Path
+
+import o3dreg
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+
+
+def load(name):
+    spec = importlib.util.spec_from_file_location(name, DOCS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_every_public_name_has_an_api_page():
+    pages = load("gen_api").render()
+    for name in o3dreg.__all__:
+        if not name.startswith("_"):
+            assert f"{name}.md" in pages
+    for name, text in pages.items():
+        on_disk = DOCS / "api" / name
+        assert on_disk.is_file(), f"docs/api/{name} missing: run python docs/gen_api.py"
+        assert on_disk.read_text(encoding="utf-8") == text, (
+            f"docs/api/{name} is stale: run python docs/gen_api.py"
+        )
+    stale = {p.name for p in (DOCS / "api").glob("*.md")} - set(pages)
+    assert not stale, f"pages for names that are gone: {sorted(stale)}"
+
+
+def test_command_line_page_is_current():
+    text = load("gen_cli").render()
+    assert (DOCS / "cli.md").read_text(encoding="utf-8") == text, (
+        "docs/cli.md is stale: run python docs/gen_cli.py"
+    )
+    for command in ("register", "reconstruct", "demo"):
+        assert f"## o3dreg {command}" in text
+
+
+def test_every_public_function_has_a_docstring():
+    missing = [
+        n
+        for n in o3dreg.__all__
+        if not n.startswith("_") and not (getattr(o3dreg, n).__doc__ or "").strip()
+    ]
+    assert not missing
