@@ -38,7 +38,35 @@ def build_parser() -> argparse.ArgumentParser:
         module.add_parser(sub)
     for child in _walk(sub):
         _add_verbosity(child, default=argparse.SUPPRESS)
+        if child.epilog is None and child.prog in _EXAMPLES:
+            child.epilog = "examples:\n" + "\n".join(f"  {line}" for line in _EXAMPLES[child.prog])
+            child.formatter_class = argparse.RawDescriptionHelpFormatter
     return parser
+
+
+# Examples for the sub-commands whose modules do not write their own epilog.
+_EXAMPLES = {
+    "o3dreg reconstruct": [
+        "o3dreg reconstruct scan/ -o bone.ply --threshold 400 --largest 1 --smooth 10",
+        "o3dreg reconstruct mask.nrrd -o mandible.ply --threshold 0.5 --largest 1 --smooth 20",
+        "o3dreg reconstruct scan.nii.gz -o template.ply --threshold 400 --largest 1 --decimate 2500",
+    ],
+    "o3dreg build-model": [
+        "o3dreg build-model template.ply bones/*.ply -o model/ --jobs 2",
+        "o3dreg build-model template.ply bones/*.ply -o model/ --scheduler tcp://scheduler:8786",
+    ],
+    "o3dreg model": [
+        "o3dreg model info model/",
+        "o3dreg model modes model/ --modes 3 --sd -3 3",
+        "o3dreg model fit model/ patient.ply --landmarks landmarks.mrk.json -o predicted.mrk.json",
+    ],
+    "o3dreg model info": ["o3dreg model info model/", "o3dreg model info model/ --json"],
+    "o3dreg model modes": ["o3dreg model modes model/ --modes 3 --sd -3 3 -o modes/"],
+    "o3dreg model fit": [
+        "o3dreg model fit model/ patient.ply --landmarks landmarks.mrk.json",
+        "o3dreg model fit model/ patient.ply --landmarks lm.csv --truth truth.csv --json",
+    ],
+}
 
 
 def _walk(action: argparse._SubParsersAction) -> list[argparse.ArgumentParser]:
