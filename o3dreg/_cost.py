@@ -13,18 +13,69 @@ trilinear weights (8 nodes per point). Residual blocks:
 (c) ``sqrt(lambda N / E) (D u)`` over the ``E`` finite-difference stencils of the lattice that
     touch a free node: second differences (thin-plate bending energy, free for affine motion) or
     first differences (membrane energy). Fixed nodes keep a zero increment.
+
+Robustness (issue 6) enters as per-row weights, recomputed at every evaluation and held fixed in
+the Jacobian (iteratively reweighted least squares inside Levenberg-Marquardt): block (a) becomes
+``sqrt(w_i) d_i`` with Jacobian ``sqrt(w_i) grad_i (x) W_i``, where ``w_i`` is the robust-loss
+weight of ``d_i`` (see :class:`~o3dreg.DistanceEstimation`) times 0/1 masks (closest point beyond
+the target's open boundary, incompatible normals, distance beyond ``max_distance_factor``
+scales). Block (b) averages the target vertices with their own robust weights ``v_j`` (of the
+distance to their nearest template vertex) and scales row ``i`` by
+``sqrt(w_s * mean_j v_j) * m_i`` with ``m_i`` the 0/1 support mask of template vertex ``i``: a
+template vertex with no data of its own gets no barycentre row, so data near a cut cannot pull
+the unsupported part of the template into the covered part.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .distance import SurfaceDistanceQuery
-from .lattice import TrilinearLattice
+from .lattice import _CORNERS, TrilinearLattice
+
+#: Tuning constants of the robust losses (95% efficiency under Gaussian noise), in units of the
+#: robust scale ``sigma``.
+LOSS_CONSTANTS = {"linear": np.inf, "huber": 1.345, "cauchy": 2.3849, "tukey": 4.6851}
+
+
+def robust_weights(r: np.ndarray, loss: str, c: float) -> np.ndarray:
+    """IRLS weights ``w(r) = rho'(r) / r`` of the residuals ``r`` for the threshold ``c``.
+
+    ``huber``: ``1`` if ``|r| <= c`` else ``c / |r|``; ``cauchy``: ``1 / (1 + (r / c)^2)``;
+    ``tukey``: ``(1 - (r / c)^2)^2`` if ``|r| < c`` else ``0``; ``linear``: ``1``.
+    """
+    if loss == "linear" or r.size == 0:
+        return np.ones(r.shape)
+    z = np.abs(r) / c
+    if loss == "huber":
+        return 1.0 / np.maximum(z, 1.0)
+    if loss == "cauchy":
+        return 1.0 / (1.0 + z * z)
+    return np.where(z < 1.0, (1.0 - z * z) ** 2, 0.0)
+
+
+def robust_scale(r: np.ndarray, floor: float) -> float:
+    """``max(1.4826 * median(|r|), floor)``: the MAD scale of residuals whose centre is zero."""
+    if r.size == 0:
+        return floor
+    return max(1.4826 * float(np.median(np.abs(r))), floor)
+
+
+@dataclass(frozen=True)
+class Robustness:
+    """Per-level robustness settings of :class:`LevelProblem` (see DistanceEstimation)."""
+
+    loss: str = "linear"
+    loss_scale: float | None = None
+    max_distance_factor: float | None = None
+    reject_boundary: bool = True
+    max_normal_angle: float | None = None
+    min_jacobian_determinant: float | None = None
 
 
 def _stencils() -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
@@ -56,6 +107,8 @@ class Evaluation:
     distances: np.ndarray
     moved: np.ndarray
     symmetric_scale: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    support: np.ndarray | None = None
 
     @property
     def jacobian(self) -> sp.csr_matrix:
@@ -94,9 +147,15 @@ class LevelProblem:
         symmetric_weight: float,
         regularization: float,
         energy: str = "bending",
+        *,
+        robustness: Robustness | None = None,
+        normals: np.ndarray | None = None,
+        prior: Any = None,
     ) -> None:
         self.lattice = lattice
+        self.robust = robustness or Robustness()
         self.base = points + previous
+        self._points = points
         self.target = target
         self.target_points = target_points if symmetric_weight > 0 else None
         self.sqrt_ws = float(np.sqrt(symmetric_weight))
@@ -118,6 +177,96 @@ class LevelProblem:
         self._Jreg = sp.kron(self._G, sp.identity(3), format="csr") * self.sqrt_reg
         self._Wx = sp.kron(self.W, sp.identity(3), format="csr")  # (3n, 3m) for vector residuals
         self._reg_gram = (self._Jreg.T @ self._Jreg).tocsr()
+        self.normals = normals
+        rb = self.robust
+        self._reject_boundary = rb.reject_boundary and target.has_boundary
+        self._cos_max = (
+            None
+            if rb.max_normal_angle is None or normals is None
+            else float(np.cos(np.radians(rb.max_normal_angle)))
+        )
+        self._c = LOSS_CONSTANTS[rb.loss]
+        self._robust = rb.loss != "linear" or rb.max_distance_factor is not None
+        self.sigma = self.sigma_symmetric = 1.0
+        if self._robust:
+            # Scales from the data at the level start (u = 0), over the accepted correspondences.
+            floor = 0.01 * float(lattice.cell_size.min())
+            dist, face, closest = target.closest(self.base)
+            keep = self._masks(self.base, dist, face, closest)
+            self.sigma = rb.loss_scale or robust_scale(dist[keep], floor)
+            if self.target_points is not None:
+                e, _ = cKDTree(self.base[keep] if keep.any() else self.base).query(
+                    self.target_points, workers=-1
+                )
+                self.sigma_symmetric = rb.loss_scale or robust_scale(e, floor)
+        self._fold = None
+        if rb.min_jacobian_determinant is not None and self.number_of_unknowns:
+            self._fold = self._fold_samples(prior, active)
+
+    def _masks(
+        self, y: np.ndarray, dist: np.ndarray, face: np.ndarray, closest: np.ndarray
+    ) -> np.ndarray:
+        """0/1 support of each point: not beyond the open boundary, compatible normal, near."""
+        keep = np.ones(y.shape[0], dtype=bool)
+        if self._reject_boundary:
+            keep &= ~self.target.beyond_boundary(y, face, closest)
+        if self._cos_max is not None and self.normals is not None:
+            cos = (self.normals * self.target.face_normals[face]).sum(axis=1)
+            keep &= cos >= self._cos_max
+        if self.robust.max_distance_factor is not None and hasattr(self, "sigma"):
+            keep &= dist <= self.robust.max_distance_factor * self.sigma
+        return keep
+
+    # -- folding ----------------------------------------------------------------------------------
+    def _fold_samples(
+        self, prior: Any, active: np.ndarray
+    ) -> tuple[np.ndarray, list[sp.csr_matrix]]:
+        """Samples (8 per cell, at local coordinates 1/4 and 3/4) of every cell holding an active
+        point of the level; the Jacobian of the coarser levels there and the derivative
+        operators of the increment (``d u / d x_a = D_a U``)."""
+        lat = self.lattice
+        f = self.free_nodes
+        cells, _, _ = lat.locate(self._points[active])
+        flat = np.unique(lat.node_index(cells))
+        nz1, ny1 = lat.node_shape[2], lat.node_shape[1]
+        cells = np.stack([flat // (ny1 * nz1), (flat // nz1) % ny1, flat % nz1], axis=1)
+        local = 0.25 + 0.5 * _CORNERS
+        pts = lat.origin + (cells[:, None, :] + local[None, :, :]).reshape(-1, 3) * lat.cell_size
+        base = np.broadcast_to(np.eye(3), (pts.shape[0], 3, 3)).copy()
+        if prior is not None:
+            base = prior.jacobian(pts)
+        lookup = np.full(lat.number_of_nodes, -1, dtype=np.int64)
+        lookup[f] = np.arange(f.size)
+        probe = lat.with_displacements(np.zeros(lat.displacements.shape))
+        nodes, _ = probe.weights(pts)
+        _, t, _ = probe.locate(pts)
+        fv = np.stack([1.0 - t, t], axis=1)
+        df = np.stack([-np.ones_like(t), np.ones_like(t)], axis=1) / lat.cell_size
+        c0, c1, c2 = _CORNERS[:, 0], _CORNERS[:, 1], _CORNERS[:, 2]
+        grads = [
+            df[:, c0, 0] * fv[:, c1, 1] * fv[:, c2, 2],
+            fv[:, c0, 0] * df[:, c1, 1] * fv[:, c2, 2],
+            fv[:, c0, 0] * fv[:, c1, 1] * df[:, c2, 2],
+        ]
+        local_nodes = lookup[nodes]
+        keep = local_nodes >= 0
+        rows = np.broadcast_to(np.arange(pts.shape[0])[:, None], nodes.shape)[keep]
+        ops = [
+            sp.csr_matrix((g[keep], (rows, local_nodes[keep])), shape=(pts.shape[0], f.size))
+            for g in grads
+        ]
+        return base, ops
+
+    def min_determinant(self, u: np.ndarray) -> float:
+        """Smallest ``det(dT/dx)`` over the fold samples with this level's increment ``u``."""
+        if self._fold is None:
+            return 1.0
+        base, ops = self._fold
+        U = u.reshape(-1, 3)
+        jac = base.copy()
+        for a, D in enumerate(ops):
+            jac[:, :, a] += D @ U
+        return float(np.linalg.det(jac).min()) if jac.shape[0] else 1.0
 
     def _stencil_matrix(self, lookup: np.ndarray, energy: str) -> sp.csr_matrix:
         """Finite-difference operator over the lattice, one row per stencil touching a free node.
@@ -166,7 +315,16 @@ class LevelProblem:
     def evaluate(self, u: np.ndarray) -> Evaluation:
         y = self.moved(u)
         n = y.shape[0]
-        dist, _, grad = self.target.gradient(y)
+        dist, closest, grad, face = self.target.gradient(y, return_faces=True)
+        support = None
+        sw = None
+        ra = dist
+        if self._reject_boundary or self._cos_max is not None or self._robust:
+            support = self._masks(y, dist, face, closest)
+            w = robust_weights(dist, self.robust.loss, self._c * self.sigma) * support
+            sw = np.sqrt(w)
+            ra = sw * dist
+            grad = grad * sw[:, None]
         # (a) point-to-surface distances: row i has grad_i (x) W_i.
         Ja = sp.csr_matrix(
             (
@@ -179,22 +337,40 @@ class LevelProblem:
             shape=(n, self.number_of_unknowns),
         )
         blocks = [Ja]
-        residuals = [dist]
+        residuals = [ra]
         cost_sym = 0.0
         scale = None
         if self.target_points is not None:
             # (b) barycentre of the target vertices whose nearest template vertex is i.
-            _, nearest = cKDTree(y).query(self.target_points, workers=-1)
+            e, nearest = cKDTree(y).query(self.target_points, workers=-1)
             counts = np.bincount(nearest, minlength=n)
-            sums = np.stack(
-                [np.bincount(nearest, self.target_points[:, c], minlength=n) for c in range(3)],
-                axis=1,
-            )
+            if self._robust:
+                v = robust_weights(e, self.robust.loss, self._c * self.sigma_symmetric)
+                if self.robust.max_distance_factor is not None:
+                    v = v * (e <= self.robust.max_distance_factor * self.sigma_symmetric)
+                vsum = np.bincount(nearest, v, minlength=n)
+                sums = np.stack(
+                    [
+                        np.bincount(nearest, v * self.target_points[:, c], minlength=n)
+                        for c in range(3)
+                    ],
+                    axis=1,
+                )
+                bary = sums / np.where(vsum > 0, vsum, 1.0)[:, None]
+                assigned = vsum / np.maximum(counts, 1)
+            else:
+                sums = np.stack(
+                    [np.bincount(nearest, self.target_points[:, c], minlength=n) for c in range(3)],
+                    axis=1,
+                )
+                bary = sums / np.maximum(counts, 1)[:, None]
+                assigned = (counts > 0).astype(np.float64)
+            if support is not None:
+                # A template vertex without data of its own is not pulled by the barycentres.
+                assigned = assigned * support
             # Every template vertex has a row (zero when nothing is assigned to it), so the
             # residual vector keeps its length from one evaluation to the next.
-            assigned = (counts > 0).astype(np.float64)
-            bary = sums / np.maximum(counts, 1)[:, None]
-            scale = self.sqrt_ws * assigned
+            scale = self.sqrt_ws * np.sqrt(assigned)
             rb = (scale[:, None] * (y - bary)).ravel()
             blocks.append(sp.diags(np.repeat(scale, 3), format="csr") @ self._Wx)
             residuals.append(rb)
@@ -203,7 +379,7 @@ class LevelProblem:
         blocks.append(self._Jreg)
         residuals.append(rc)
         r = np.concatenate(residuals)
-        cost_d = float(dist @ dist)
+        cost_d = float(ra @ ra)
         cost_r = float(rc @ rc)
         return Evaluation(
             u=u,
@@ -216,6 +392,8 @@ class LevelProblem:
             distances=dist,
             moved=y,
             symmetric_scale=scale,
+            weights=None if sw is None else sw * sw,
+            support=support,
         )
 
     def normal_equations(self, ev: Evaluation) -> tuple[sp.csr_matrix, np.ndarray]:

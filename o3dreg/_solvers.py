@@ -72,6 +72,10 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
     mu = None
     nu = 2.0
     cell = _cell(problem)
+    threshold = problem.robust.min_jacobian_determinant
+    guard = threshold is not None and problem._fold is not None
+    det = problem.min_determinant(u) if guard else 1.0
+    folds_rejected = 0
     message = f"reached max_iteration={criteria.max_iteration}"
     success = False
     iterations = 0
@@ -95,6 +99,14 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
             evaluations += 1
             actual = 0.5 * (ev.cost - trial.cost)
             rho = actual / predicted if predicted > 0 else -1.0
+            trial_det = det
+            if guard and rho > 0:
+                # Folding guard: a step that brings det(dT/dx) below the threshold (and below
+                # its current value) is rejected like a step that increases the cost.
+                trial_det = problem.min_determinant(u + delta)
+                if trial_det < threshold and trial_det < det:  # type: ignore[operator]
+                    rho = -1.0
+                    folds_rejected += 1
             if rho > 0:
                 accepted = True
                 mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
@@ -117,6 +129,7 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
         step = float(np.sqrt((delta.reshape(-1, 3) ** 2).sum(axis=1)).max()) / cell
         u = u + delta
         ev = trial
+        det = trial_det
         if decrease < criteria.relative_cost:
             message = f"relative cost decrease {decrease:.2e} < relative_cost"
             success = True
@@ -125,6 +138,8 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
             message = f"relative step {step:.2e} < relative_step"
             success = True
             break
+    if folds_rejected:
+        message += f" ({folds_rejected} folding step(s) rejected)"
     return SolveInfo(
         ev, initial, iterations, evaluations, success, message, time.perf_counter() - start
     )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import igl
 import numpy as np
 
@@ -58,11 +60,12 @@ class SurfaceDistanceQuery:
         """Point-to-surface distances, ``(k,)``."""
         return self.closest(points)[0]
 
-    def gradient(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def gradient(self, points: np.ndarray, return_faces: bool = False) -> Any:
         """Distances, closest points and the gradient of the unsigned distance at each point.
 
         The gradient of ``d(x) = |x - c(x)|`` is the unit vector ``(x - c) / d``; on the surface,
-        where it is undefined, the triangle's normal is used (the point-to-plane limit).
+        where it is undefined, the triangle's normal is used (the point-to-plane limit). With
+        ``return_faces``, the closest triangle of each point is returned fourth.
         """
         dist, face, closest = self.closest(points)
         diff = np.ascontiguousarray(points) - closest
@@ -70,4 +73,86 @@ class SurfaceDistanceQuery:
         safe = np.where(on_surface, 1.0, dist)
         grad = diff / safe[:, None]
         grad[on_surface] = self.face_normals[face[on_surface]]
+        if return_faces:
+            return dist, closest, grad, face
         return dist, closest, grad
+
+    # -- open boundaries (partial targets) ------------------------------------------------------
+    def _boundary(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """Per face, which edge is open (``(m, 3)`` bool, edge ``k`` opposite corner ``k``); per
+        vertex whether it lies on an open edge; the mean edge length. Computed once, lazily."""
+        cached = getattr(self, "_boundary_cache", None)
+        if cached is not None:
+            return cached
+        f = self.faces
+        m = f.shape[0]
+        # Edge k of a face joins corners (k+1, k+2): it is opposite corner k.
+        a = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+        b = np.concatenate([f[:, 2], f[:, 0], f[:, 1]])
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        key = lo * np.int64(self.vertices.shape[0]) + hi
+        _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+        open_edge = (counts[inverse] == 1).reshape(3, m).T
+        on_boundary = np.zeros(self.vertices.shape[0], dtype=bool)
+        on_boundary[lo[counts[inverse] == 1]] = True
+        on_boundary[hi[counts[inverse] == 1]] = True
+        lengths = np.linalg.norm(self.vertices[a] - self.vertices[b], axis=1)
+        cached = (open_edge, on_boundary, float(lengths.mean()) if lengths.size else 0.0)
+        self._boundary_cache = cached
+        return cached
+
+    @property
+    def has_boundary(self) -> bool:
+        """Whether the surface has open edges (edges of exactly one triangle)."""
+        return bool(self._boundary()[1].any())
+
+    def beyond_boundary(
+        self, points: np.ndarray, face: np.ndarray, closest: np.ndarray
+    ) -> np.ndarray:
+        """Which points lie beyond the surface's open boundary.
+
+        A point is beyond the boundary when its closest surface point lies on an open edge or an
+        open-boundary vertex (barycentric coordinate ``<= 1e-9`` opposite an open edge) and its
+        offset ``p - c`` has a component tangent to that triangle longer than half the mean edge
+        length of the surface: ``|(p - c) - ((p - c) . n) n| > e / 2``. Points just off the rim
+        of a decimated or noisy surface are thus kept; points beyond a cut (where the surface
+        has no data) are not.
+
+        Returns
+        -------
+        (k,) bool ndarray
+        """
+        open_edge, on_boundary, edge = self._boundary()
+        if points.shape[0] == 0 or not on_boundary.any():
+            return np.zeros(points.shape[0], dtype=bool)
+        corners = self.faces[face]
+        a, b, c = (self.vertices[corners[:, k]] for k in range(3))
+        bary = _barycentric(closest, a, b, c)
+        tiny = bary <= 1e-9
+        hit = (tiny & open_edge[face]).any(axis=1)
+        # At a corner (two coordinates ~0) the closest point is that vertex.
+        vertex_hit = tiny.sum(axis=1) >= 2
+        if vertex_hit.any():
+            corner = np.argmax(bary[vertex_hit], axis=1)
+            hit[vertex_hit] |= on_boundary[corners[vertex_hit, corner]]
+        diff = points - closest
+        n = self.face_normals[face]
+        tangent = diff - (diff * n).sum(axis=1, keepdims=True) * n
+        return hit & (np.linalg.norm(tangent, axis=1) > 0.5 * edge)
+
+
+def _barycentric(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates ``(k, 3)`` of points ``p`` in triangles ``(a, b, c)``, clipped to
+    ``[0, 1]`` (the points are closest points, so inside their triangle up to rounding)."""
+    v0, v1, v2 = b - a, c - a, p - a
+    d00 = (v0 * v0).sum(axis=1)
+    d01 = (v0 * v1).sum(axis=1)
+    d11 = (v1 * v1).sum(axis=1)
+    d20 = (v2 * v0).sum(axis=1)
+    d21 = (v2 * v1).sum(axis=1)
+    denom = d00 * d11 - d01 * d01
+    safe = np.where(np.abs(denom) > 0, denom, 1.0)
+    v = (d11 * d20 - d01 * d21) / safe
+    w = (d00 * d21 - d01 * d20) / safe
+    out = np.stack([1.0 - v - w, v, w], axis=1)
+    return np.clip(out, 0.0, 1.0)

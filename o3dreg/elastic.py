@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ._cost import LevelProblem
+from ._cost import LevelProblem, Robustness
 from ._solvers import solve
 from ._validation import as_mesh_arrays, as_transformation, check_positive
 from .deformation import LatticeDeformation
@@ -26,7 +26,7 @@ from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances
 from .rigid import registration_rigid
 from .sampling import spatial_subsample
 
-__all__ = ["evaluate_elastic", "lattice_box", "registration_elastic"]
+__all__ = ["canonical_mesh", "evaluate_elastic", "lattice_box", "registration_elastic"]
 
 logger = logging.getLogger("o3dreg")
 
@@ -140,7 +140,7 @@ def registration_elastic(
     True
     """
     vs, fs = as_mesh_arrays(source, "source")
-    vt, ft = as_mesh_arrays(target, "target", drop_degenerate=True)
+    vt, ft = canonical_mesh(*as_mesh_arrays(target, "target", drop_degenerate=True))
     levels_ = _check_levels(levels)
     if estimation_method is None:
         estimation_method = DistanceEstimation()
@@ -174,6 +174,7 @@ def registration_elastic(
     previous = np.zeros_like(points)
     history: list[LevelReport] = []
     failures: list[str] = []
+    last_problem: LevelProblem | None = None
     for k, level in enumerate(levels_):
         start = time.perf_counter()
         lattice = TrilinearLattice.zeros(origin, size, (level.resolution,) * 3)
@@ -196,6 +197,19 @@ def registration_elastic(
         level_query = query
         if level.simplify_target:
             level_query = surfaces.at(float(lattice.cell_size.min()) / _TARGET_VOXELS_PER_CELL)
+        robustness = Robustness(
+            loss=estimation_method.loss,
+            loss_scale=estimation_method.loss_scale,
+            max_distance_factor=estimation_method.max_distance_factor,
+            reject_boundary=estimation_method.reject_boundary,
+            max_normal_angle=estimation_method.max_normal_angle,
+            min_jacobian_determinant=level.min_jacobian_determinant
+            if level.solver == "lm"
+            else None,
+        )
+        normals = None
+        if estimation_method.max_normal_angle is not None:
+            normals = vertex_normals(points + previous, fs)[use]
         problem = LevelProblem(
             points[use],
             previous[use],
@@ -206,7 +220,11 @@ def registration_elastic(
             weight,
             level.regularization,
             level.energy,
+            robustness=robustness,
+            normals=normals,
+            prior=deformation if deformation.levels else None,
         )
+        last_problem = problem
         info = solve(problem, level.criteria or criteria, level.solver)
         level_lattice = problem.scatter(info.evaluation.u)
         deformation = deformation.with_level(level_lattice)
@@ -246,6 +264,7 @@ def registration_elastic(
     moved = points + previous
     distances = _distances(moved, fs, query, vt)
     det = float(deformation.jacobian_determinant(points).min()) if deformation.levels else 1.0
+    supported = _supported(moved, fs, query, estimation_method, last_problem)
     success = not failures
     message = "all levels converged" if success else "; ".join(failures)
     return ElasticRegistrationResult(
@@ -258,7 +277,108 @@ def registration_elastic(
         min_jacobian_determinant=det,
         success=success,
         message=message,
+        min_cell_jacobian_determinant=_min_cell_determinant(deformation, points),
+        flipped_triangles=flipped_triangles(points, moved, fs),
+        supported=supported,
     )
+
+
+def canonical_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The same surface with its vertices and triangles in a canonical order.
+
+    Exact duplicate vertices are merged, vertices are sorted lexicographically ``(x, y, z)``,
+    each triangle is rotated (orientation kept) to start at its smallest index, triangles are
+    sorted and repeated ones (and those that merging made degenerate) removed. Everything computed
+    from the result is then independent of the input's vertex and face numbering, and triangle
+    soups (STL) get their connectivity back, so open boundaries are found.
+    """
+    order = np.lexsort((vertices[:, 2], vertices[:, 1], vertices[:, 0]))
+    sorted_v = vertices[order]
+    new = np.ones(order.size, dtype=bool)
+    new[1:] = np.any(sorted_v[1:] != sorted_v[:-1], axis=1)
+    ids = np.cumsum(new) - 1
+    remap = np.empty(order.size, dtype=np.int64)
+    remap[order] = ids
+    v = sorted_v[new]
+    f = remap[faces]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+    if f.shape[0] == 0:
+        return v, f
+    shift = np.argmin(f, axis=1)
+    rows = np.arange(f.shape[0])[:, None]
+    f = f[rows, (shift[:, None] + np.arange(3)) % 3]
+    f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
+    repeated = np.zeros(f.shape[0], dtype=bool)
+    repeated[1:] = np.all(f[1:] == f[:-1], axis=1)
+    f = f[~repeated]
+    used = np.zeros(v.shape[0], dtype=bool)
+    used[f.ravel()] = True
+    if not used.all():
+        keep = np.cumsum(used) - 1
+        v, f = v[used], keep[f]
+    return v, f
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (zero for vertices of no non-degenerate triangle)."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    fn = np.cross(b - a, c - a)
+    out = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(out, faces[:, k], fn)
+    length = np.linalg.norm(out, axis=1, keepdims=True)
+    return out / np.where(length > 0, length, 1.0)
+
+
+def flipped_triangles(before: np.ndarray, after: np.ndarray, faces: np.ndarray) -> int:
+    """Triangles whose normal reverses (``n_before . n_after <= 0``) between two vertex sets;
+    triangles of zero area before are not counted."""
+
+    def normals(v: np.ndarray) -> np.ndarray:
+        a, b, c = (v[faces[:, k]] for k in range(3))
+        return np.cross(b - a, c - a)
+
+    n0, n1 = normals(before), normals(after)
+    area0 = np.linalg.norm(n0, axis=1)
+    valid = area0 > 1e-12 * max(float(area0.max(initial=0.0)), 1e-300)
+    return int(np.count_nonzero(valid & ((n0 * n1).sum(axis=1) <= 0.0)))
+
+
+def _min_cell_determinant(deformation: LatticeDeformation, points: np.ndarray) -> float:
+    """Smallest ``det(dT/dx)`` at 8 interior samples (local 1/4, 3/4) of every finest cell that
+    holds a template vertex."""
+    if not deformation.levels:
+        return 1.0
+    shape = deformation._common_shape()
+    lat = TrilinearLattice.zeros(deformation.levels[0].origin, deformation.levels[0].size, shape)
+    cells, _, _ = lat.locate(points)
+    cells = np.unique(cells, axis=0)
+    from .lattice import corner_offsets
+
+    local = 0.25 + 0.5 * corner_offsets()
+    pts = lat.origin + (cells[:, None, :] + local[None, :, :]).reshape(-1, 3) * lat.cell_size
+    return float(deformation.jacobian_determinant(pts).min())
+
+
+def _supported(
+    moved: np.ndarray,
+    faces: np.ndarray,
+    query: SurfaceDistanceQuery,
+    method: DistanceEstimation,
+    problem: LevelProblem | None,
+) -> np.ndarray:
+    """Whether each template vertex has data: the masks of the last level, on all vertices and
+    the full target at the final positions."""
+    dist, face, closest = query.closest(moved)
+    keep = np.ones(moved.shape[0], dtype=bool)
+    if method.reject_boundary:
+        keep &= ~query.beyond_boundary(moved, face, closest)
+    if method.max_normal_angle is not None:
+        cos = (vertex_normals(moved, faces) * query.face_normals[face]).sum(axis=1)
+        keep &= cos >= np.cos(np.radians(method.max_normal_angle))
+    if method.max_distance_factor is not None and problem is not None:
+        keep &= dist <= method.max_distance_factor * problem.sigma
+    return keep
 
 
 #: A coarse level measures distances to the target simplified with this many voxels per cell.
@@ -345,7 +465,7 @@ def evaluate_elastic(
         the target vertices to the moved source surface.
     """
     vs, fs = as_mesh_arrays(source, "source")
-    vt, ft = as_mesh_arrays(target, "target", drop_degenerate=True)
+    vt, ft = canonical_mesh(*as_mesh_arrays(target, "target", drop_degenerate=True))
     t = np.eye(4) if transformation is None else as_transformation(transformation, "transformation")
     if deformation is not None and not isinstance(deformation, LatticeDeformation):
         raise TypeError(

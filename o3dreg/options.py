@@ -8,6 +8,9 @@ from ._validation import check_positive, check_probability
 
 ENERGIES = ("bending", "membrane")
 
+#: Robust losses of :class:`DistanceEstimation`.
+LOSSES = ("linear", "huber", "cauchy", "tukey")
+
 __all__ = [
     "SOLVERS",
     "DistanceEstimation",
@@ -91,6 +94,13 @@ class ElasticLevel:
         target's mean edge (coarse levels only). The lattice cannot resolve finer detail, and
         the queries get several times cheaper. Default ``True``; the reported distances always
         use the full target.
+    min_jacobian_determinant : float or None
+        Folding guard of the ``'lm'`` solver: a step after which the smallest Jacobian
+        determinant ``det(dT/dx)`` of the whole map (coarser levels included), sampled at 8
+        interior points (local coordinates 1/4 and 3/4) of every cell with a free corner, falls
+        below this value (and below its value before the step) is rejected like a step that
+        increases the cost (the damping grows, so the next step is shorter and smoother).
+        ``None`` disables the guard. Default 0.05. The SciPy solvers ignore it.
     solver : {'lm', 'trf', 'lm-dense'}
         ``'lm'``: Levenberg-Marquardt on sparse normal equations (default, fastest);
         ``'trf'``: :func:`scipy.optimize.least_squares` trust-region reflective with a sparse
@@ -108,9 +118,16 @@ class ElasticLevel:
     simplify_target: bool = True
     solver: str = "lm"
     criteria: ElasticCriteria | None = None
+    min_jacobian_determinant: float | None = 0.05
 
     def __post_init__(self) -> None:
         check_positive(self.resolution, "resolution", integer=True)
+        if self.min_jacobian_determinant is not None:
+            d = check_positive(
+                self.min_jacobian_determinant, "min_jacobian_determinant", allow_zero=True
+            )
+            if d >= 1.0:
+                raise ValueError(f"`min_jacobian_determinant` must be in [0, 1), got {d!r}")
         check_positive(self.regularization, "regularization", allow_zero=True)
         if self.energy not in ENERGIES:
             raise ValueError(f"`energy` must be one of {ENERGIES}, got {self.energy!r}")
@@ -157,22 +174,92 @@ class DistanceEstimation:
         spatial subsample of the target when it is denser). Default 10: every barycentre still
         averages about ten target vertices, and a million-vertex target costs no more per
         iteration than a 30k-vertex one.
+    loss : {'linear', 'huber', 'cauchy', 'tukey'}
+        Robust loss of both distance terms, applied as iteratively reweighted least squares: at
+        every cost evaluation each residual ``r`` (a point-to-surface distance ``d_i``, or the
+        distance ``e_j`` of a target vertex to its nearest template vertex) gets the weight
+        ``w(r)`` and enters as ``sqrt(w) r`` (Jacobian ``sqrt(w) J``, weights held fixed in it).
+        With ``z = |r| / (k sigma)``: ``'huber'`` (``k = 1.345``) ``w = min(1, 1 / z)``;
+        ``'cauchy'`` (``k = 2.3849``) ``w = 1 / (1 + z^2)``; ``'tukey'`` (``k = 4.6851``)
+        ``w = (1 - z^2)^2`` for ``z < 1``, else 0; ``'linear'`` (default) ``w = 1`` (plain least
+        squares, the paper's cost). A target vertex's weight ``v_j`` enters its barycentre
+        ``b_i = sum v_j t_j / sum v_j`` and the row scale ``sqrt(w_s mean_j v_j)``.
+    loss_scale : float or None
+        ``sigma`` above, in the input's units. ``None`` (default): estimated at the start of
+        every level from the data, ``sigma = max(1.4826 median |r|, 0.01 h)`` (the MAD of
+        residuals centred at zero; ``h`` the level's cell size), separately for ``d_i`` (over the
+        correspondences not rejected by the masks below) and for ``e_j``.
+    max_distance_factor : float or None
+        Drop (weight 0) every correspondence whose residual exceeds ``max_distance_factor *
+        sigma``: farther than the data justify. ``None`` (default) keeps them.
+    reject_boundary : bool
+        Drop the template->target correspondence of a template vertex whose closest target point
+        lies on an open boundary edge or vertex of the target and which lies beyond it (its
+        offset has a tangential part longer than half the target's mean edge): the target has no
+        data there (a cut, a hole, a partial scan), so the vertex follows its neighbours'
+        regularised motion instead of being dragged onto the rim. Such a vertex also gets no
+        barycentre row. No effect on closed targets. Default ``True``.
+    max_normal_angle : float or None
+        Drop a correspondence when the angle between the template vertex normal (at the start
+        of the level, after the coarser levels' deformation) and the normal of the target
+        triangle holding its closest point exceeds this many degrees, in ``(0, 180]``. Both
+        meshes must be consistently oriented (same side out). ``None`` (default) disables it;
+        60 is a common choice for scans with debris or nearby structures.
     """
 
     symmetric: bool = True
     symmetric_weight: float = 1.0
     target_points_per_source_point: float = 10.0
+    loss: str = "linear"
+    loss_scale: float | None = None
+    max_distance_factor: float | None = None
+    reject_boundary: bool = True
+    max_normal_angle: float | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.symmetric, bool):
             raise TypeError(f"`symmetric` must be a bool, got {type(self.symmetric).__name__}")
         check_positive(self.symmetric_weight, "symmetric_weight", allow_zero=True)
         check_positive(self.target_points_per_source_point, "target_points_per_source_point")
+        if self.loss not in LOSSES:
+            raise ValueError(f"`loss` must be one of {LOSSES}, got {self.loss!r}")
+        if self.loss_scale is not None:
+            check_positive(self.loss_scale, "loss_scale")
+        if self.max_distance_factor is not None:
+            check_positive(self.max_distance_factor, "max_distance_factor")
+        if not isinstance(self.reject_boundary, bool):
+            raise TypeError(
+                f"`reject_boundary` must be a bool, got {type(self.reject_boundary).__name__}"
+            )
+        if self.max_normal_angle is not None:
+            a = check_positive(self.max_normal_angle, "max_normal_angle")
+            if a > 180.0:
+                raise ValueError(f"`max_normal_angle` must be in (0, 180] degrees, got {a!r}")
+
+    @property
+    def is_robust(self) -> bool:
+        """Whether any option beyond the paper's plain least squares is on."""
+        return (
+            self.loss != "linear"
+            or self.max_distance_factor is not None
+            or self.max_normal_angle is not None
+        )
 
     def __repr__(self) -> str:
+        extra = ""
+        if self.loss != "linear":
+            extra += f", loss={self.loss!r}"
+        if self.loss_scale is not None:
+            extra += f", loss_scale={self.loss_scale:g}"
+        if self.max_distance_factor is not None:
+            extra += f", max_distance_factor={self.max_distance_factor:g}"
+        if not self.reject_boundary:
+            extra += ", reject_boundary=False"
+        if self.max_normal_angle is not None:
+            extra += f", max_normal_angle={self.max_normal_angle:g}"
         return (
             f"DistanceEstimation(symmetric={self.symmetric}, "
-            f"symmetric_weight={self.symmetric_weight:g})"
+            f"symmetric_weight={self.symmetric_weight:g}{extra})"
         )
 
 

@@ -143,6 +143,19 @@ class ElasticRegistrationResult:
         Whether every level met its stopping criteria (``False``: some level hit
         ``max_iteration``; the result is still usable).
     message : str
+    min_cell_jacobian_determinant : float
+        Smallest ``det(dT/dx)`` over 8 interior samples (local coordinates 1/4 and 3/4) of every
+        finest cell holding a source vertex: the map is one-to-one there when positive.
+    flipped_triangles : int
+        Source triangles whose normal reverses between the rigidly aligned source and the
+        result (``n_rigid . n_registered <= 0``): local folds of the surface.
+    supported : (n,) bool ndarray or None
+        Per source vertex, whether the target has data for it at the end: ``False`` where its
+        closest target point lies beyond an open boundary of the target (with
+        ``reject_boundary``), its normal disagrees (``max_normal_angle``), or it is farther than
+        ``max_distance_factor`` robust scales (see :class:`~o3dreg.DistanceEstimation`).
+        Unsupported vertices followed the regularised motion of their neighbours.
+        :meth:`semilandmark_mesh` colours them.
     """
 
     transformation: np.ndarray
@@ -154,6 +167,9 @@ class ElasticRegistrationResult:
     min_jacobian_determinant: float
     success: bool
     message: str
+    min_cell_jacobian_determinant: float = 1.0
+    flipped_triangles: int = 0
+    supported: np.ndarray | None = field(default=None, repr=False)
 
     def __repr__(self) -> str:
         d = self.distances
@@ -183,7 +199,11 @@ class ElasticRegistrationResult:
         Returns
         -------
         open3d.geometry.TriangleMesh
-            Same vertex count and triangles for every patient: the semilandmark mesh.
+            Same vertex count and triangles for every patient: the semilandmark mesh. When
+            :attr:`supported` is known and some vertex is unsupported, the mesh carries vertex
+            colours: grey ``(0.7, 0.7, 0.7)`` for supported vertices, red ``(1, 0, 0)`` for
+            unsupported ones (a PLY file written with Open3D keeps them as ``red``, ``green``,
+            ``blue`` vertex properties; ``supported == (red == green)``).
         """
         from ._validation import as_mesh_arrays
         from .distance import SurfaceDistanceQuery
@@ -195,4 +215,7 @@ class ElasticRegistrationResult:
             vertices = SurfaceDistanceQuery(tv, tf).closest(vertices)[2]
         mesh = to_open3d(vertices, self.faces)
         mesh.compute_vertex_normals()
+        if self.supported is not None and not self.supported.all():
+            colours = np.where(self.supported[:, None], 0.7, np.array([1.0, 0.0, 0.0]))
+            mesh.vertex_colors = o3d.utility.Vector3dVector(colours)
         return mesh
