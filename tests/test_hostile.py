@@ -1,0 +1,156 @@
+"""Hostile input: random and degenerate meshes through the public API (issue 6).
+
+Every call either returns a valid result or raises a documented ``TypeError``/``ValueError``
+naming the parameter (in backquotes); never a crash, a hang, or NaN in a converged result.
+"""
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
+
+from o3dreg import (
+    ElasticCriteria,
+    ElasticLevel,
+    LatticeDeformation,
+    evaluate_elastic,
+    registration_elastic,
+    registration_rigid,
+)
+from o3dreg.lattice import TrilinearLattice
+from o3dreg.synthetic import synthetic_form
+
+LEVELS = [ElasticLevel(2, 0.1), ElasticLevel(4, 0.1)]
+CRITERIA = ElasticCriteria(max_iteration=3)
+SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+@st.composite
+def meshes(draw, max_vertices=30, valid_faces=False):
+    """Random triangle sets: any scale, duplicate vertices, zero-area and repeated triangles,
+    non-manifold edges, disconnected pieces, collinear or coincident points."""
+    n = draw(st.integers(3, max_vertices))
+    scale = draw(st.sampled_from([1e-6, 1.0, 1e6]))
+    kind = draw(st.sampled_from(["random", "duplicates", "collinear", "planar", "coincident"]))
+    rng = np.random.default_rng(draw(st.integers(0, 2**16)))
+    v = rng.normal(size=(n, 3))
+    if kind == "duplicates":
+        v[n // 2 :] = v[: n - n // 2]
+    elif kind == "collinear":
+        v = np.outer(rng.normal(size=n), [1.0, 2.0, 3.0])
+    elif kind == "planar":
+        v[:, 2] = 0.0
+    elif kind == "coincident":
+        v[:] = v[0]
+    v = v * scale + draw(st.sampled_from([0.0, 1e3 * scale]))
+    m = draw(st.integers(1, 3 * n))
+    f = rng.integers(0, n, size=(m, 3))
+    if valid_faces:
+        # Distinct corners of positive area (a template must not have degenerate triangles,
+        # a documented ValueError): still duplicates, non-manifold edges and any scale.
+        a, b, c = (v[f[:, k]] for k in range(3))
+        area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+        ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+        ok &= area > 1e-6 * max(float(area.max()), 1e-300)
+        if ok.any():
+            f = f[ok]
+    return v, f
+
+
+def check_error(exc: Exception) -> None:
+    assert isinstance(exc, (TypeError, ValueError))
+    assert "`" in str(exc), f"error does not name a parameter: {exc}"
+
+
+@SETTINGS
+@given(source=meshes(valid_faces=True), target=meshes(60))
+def test_registration_elastic_on_random_meshes(source, target):
+    try:
+        result = registration_elastic(
+            source, target, init=np.eye(4), levels=LEVELS, criteria=CRITERIA
+        )
+    except (TypeError, ValueError) as exc:
+        check_error(exc)
+        event(f"error: {str(exc)[:40]}")
+        return
+    event("registered")
+    assert result.vertices.shape == source[0].shape
+    if result.success:
+        assert np.all(np.isfinite(result.vertices))
+        assert np.isfinite(result.distances.source_to_target_mean)
+    assert result.supported is not None and result.supported.shape == (source[0].shape[0],)
+
+
+@SETTINGS
+@given(source=meshes(valid_faces=True), target=meshes(60))
+def test_evaluate_elastic_on_random_meshes(source, target):
+    try:
+        d = evaluate_elastic(source, target)
+    except (TypeError, ValueError) as exc:
+        check_error(exc)
+        return
+    assert np.isfinite(d.source_to_target_mean) and np.isfinite(d.target_to_source_max)
+
+
+@SETTINGS
+@given(source=meshes(), target=meshes(60))
+def test_registration_rigid_on_random_meshes(source, target):
+    try:
+        result = registration_rigid(source, target)
+    except (TypeError, ValueError) as exc:
+        check_error(exc)
+        return
+    assert np.all(np.isfinite(np.asarray(result.transformation)))
+
+
+@SETTINGS
+@given(
+    points=st.lists(
+        st.tuples(*[st.floats(-1e6, 1e6, allow_nan=False)] * 3), min_size=0, max_size=20
+    ),
+    scale=st.sampled_from([1e-6, 1.0, 1e6]),
+)
+def test_lattice_deformation_transform_on_any_points(points, scale):
+    rng = np.random.default_rng(0)
+    lat = TrilinearLattice.zeros(np.full(3, -scale), np.full(3, 2 * scale), (2, 2, 2))
+    lat = lat.with_displacements(0.01 * scale * rng.normal(size=lat.displacements.shape))
+    deformation = LatticeDeformation((lat,))
+    pts = np.array(points, dtype=np.float64).reshape(-1, 3)
+    out = deformation.transform(pts)
+    assert out.shape == pts.shape and np.all(np.isfinite(out))
+
+
+def test_one_triangle_meshes():
+    tri = (np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))
+    moved = (tri[0] + [0.1, 0.0, 0.05], tri[1])
+    result = registration_elastic(tri, moved, init=np.eye(4), levels=LEVELS, criteria=CRITERIA)
+    assert np.all(np.isfinite(result.vertices))
+    assert result.distances.source_to_target_max < 0.1
+    registration_rigid(tri, moved)
+    evaluate_elastic(tri, moved)
+
+
+def test_duplicate_template_vertices_and_disconnected_pieces():
+    sphere = synthetic_form("sphere", 300)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    # Two copies of the sphere sharing no vertex, the second with every vertex duplicated.
+    v2 = np.vstack([v, v + 200.0, v + 200.0])
+    f2 = np.vstack([f, f + v.shape[0]])
+    target = (np.vstack([v * 1.05, (v + 200.0) * 1.0]), np.vstack([f, f + v.shape[0]]))
+    result = registration_elastic((v2, f2), target, init=np.eye(4), levels=LEVELS)
+    assert np.all(np.isfinite(result.vertices))
+    # Duplicates move together: the map is a function of position.
+    np.testing.assert_array_equal(
+        result.vertices[v.shape[0] : 2 * v.shape[0]], result.vertices[2 * v.shape[0] :]
+    )
+
+
+@pytest.mark.slow
+def test_million_vertex_target():
+    sphere = synthetic_form("sphere", 1000)
+    import open3d as o3d
+
+    dense = o3d.geometry.TriangleMesh.create_sphere(radius=41.0, resolution=700)
+    assert len(dense.vertices) > 900_000
+    result = registration_elastic(sphere, dense, init=np.eye(4), levels=LEVELS)
+    assert result.distances.source_to_target_mean < 0.5
