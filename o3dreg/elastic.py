@@ -14,6 +14,8 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
 from ._cost import LevelProblem, Robustness
 from ._solvers import solve
@@ -81,6 +83,7 @@ def registration_elastic(
     criteria: ElasticCriteria | None = None,
     padding: float = 0.1,
     callback: Callable[[LevelReport], Any] | None = None,
+    parts: str = "joint",
 ) -> ElasticRegistrationResult:
     """Register a low-density template onto a high-density surface, elastically.
 
@@ -109,6 +112,16 @@ def registration_elastic(
         largest extent. Default 0.1.
     callback : callable, optional
         Called with the :class:`~o3dreg.LevelReport` of each level when it finishes.
+    parts : {'joint', 'connected'}, optional
+        ``'joint'`` (default): one deformation of space for the whole source. ``'connected'``:
+        when the source has several connected components (separate bones, nearby plates), each
+        is registered with its own lattice hierarchy (its own box) after the common rigid
+        alignment, against the target vertices whose nearest rigidly aligned source vertex
+        belongs to it (target triangles whose three corners go to the same component). Nearby
+        but distinct structures are then not dragged together by one map of space. The result's
+        ``deformation`` is that of the largest component; ``part_labels`` and
+        ``part_deformations`` hold all of them, and :meth:`ElasticRegistrationResult.transform`
+        maps each point with the deformation of its nearest source vertex's component.
 
     Returns
     -------
@@ -156,6 +169,8 @@ def registration_elastic(
     padding = check_positive(padding, "padding", allow_zero=True)
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable, got {type(callback).__name__}")
+    if parts not in ("joint", "connected"):
+        raise ValueError(f"`parts` must be 'joint' or 'connected', got {parts!r}")
 
     if init is None:
         rigid = np.array(registration_rigid((vs, fs), (vt, ft)).transformation)
@@ -163,6 +178,22 @@ def registration_elastic(
         rigid = as_transformation(init, "init")
 
     points = _apply(rigid, vs)
+    if parts == "connected":
+        labels = connected_components(vs.shape[0], fs)
+        if labels.max() > 0:
+            return _register_parts(
+                vs,
+                fs,
+                vt,
+                ft,
+                rigid,
+                labels,
+                levels_,
+                estimation_method,
+                criteria,
+                padding,
+                callback,
+            )
     query = SurfaceDistanceQuery(vt, ft)
     origin, size = lattice_box([points, vt], padding)
     target_points = vt if estimation_method.symmetric else None
@@ -280,6 +311,96 @@ def registration_elastic(
         min_cell_jacobian_determinant=_min_cell_determinant(deformation, points),
         flipped_triangles=flipped_triangles(points, moved, fs),
         supported=supported,
+    )
+
+
+def connected_components(number_of_vertices: int, faces: np.ndarray) -> np.ndarray:
+    """Component label of every vertex (through shared triangle edges), numbered by first
+    vertex; isolated vertices get their own labels."""
+    from scipy.sparse.csgraph import connected_components as cc
+
+    a = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
+    b = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
+    graph = sp.csr_matrix((np.ones(a.size), (a, b)), shape=(number_of_vertices, number_of_vertices))
+    _, labels = cc(graph, directed=False)
+    return np.asarray(labels, dtype=np.int64)
+
+
+def _register_parts(
+    vs: np.ndarray,
+    fs: np.ndarray,
+    vt: np.ndarray,
+    ft: np.ndarray,
+    rigid: np.ndarray,
+    labels: np.ndarray,
+    levels: list[ElasticLevel],
+    method: DistanceEstimation,
+    criteria: ElasticCriteria,
+    padding: float,
+    callback: Any,
+) -> ElasticRegistrationResult:
+    """``parts='connected'``: one elastic registration per source component."""
+    points = _apply(rigid, vs)
+    _, nearest = cKDTree(points).query(vt, workers=-1)
+    target_labels = labels[nearest]
+    face_labels = target_labels[ft]
+    moved = points.copy()
+    supported = np.zeros(vs.shape[0], dtype=bool)
+    history: list[LevelReport] = []
+    deformations: list[LatticeDeformation] = []
+    failures: list[str] = []
+    det, cell_det = 1.0, 1.0
+    count = int(labels.max()) + 1
+    for part in range(count):
+        sel = np.flatnonzero(labels == part)
+        remap = np.full(vs.shape[0], -1, dtype=np.int64)
+        remap[sel] = np.arange(sel.size)
+        pf = remap[fs[np.all(labels[fs] == part, axis=1)]]
+        tf = ft[np.all(face_labels == part, axis=1)]
+        if pf.shape[0] == 0 or tf.shape[0] == 0:
+            deformations.append(LatticeDeformation(()))
+            continue
+        used = np.unique(tf)
+        tmap = np.full(vt.shape[0], -1, dtype=np.int64)
+        tmap[used] = np.arange(used.size)
+        result = registration_elastic(
+            (vs[sel], pf),
+            (vt[used], tmap[tf]),
+            init=rigid,
+            levels=levels,
+            estimation_method=method,
+            criteria=criteria,
+            padding=padding,
+            callback=callback,
+        )
+        moved[sel] = result.vertices
+        if result.supported is not None:
+            supported[sel] = result.supported
+        history.extend(result.history)
+        deformations.append(result.deformation)
+        det = min(det, result.min_jacobian_determinant)
+        cell_det = min(cell_det, result.min_cell_jacobian_determinant)
+        if not result.success:
+            failures.append(f"part {part}: {result.message}")
+    sizes = np.bincount(labels, minlength=count)
+    query = SurfaceDistanceQuery(vt, ft)
+    success = not failures
+    return ElasticRegistrationResult(
+        transformation=rigid,
+        deformation=deformations[int(np.argmax(sizes))],
+        vertices=moved,
+        faces=fs,
+        distances=_distances(moved, fs, query, vt),
+        history=tuple(history),
+        min_jacobian_determinant=det,
+        success=success,
+        message=f"{count} parts: all levels converged" if success else "; ".join(failures),
+        min_cell_jacobian_determinant=cell_det,
+        flipped_triangles=flipped_triangles(points, moved, fs),
+        supported=supported,
+        part_labels=labels,
+        part_deformations=tuple(deformations),
+        part_sites=points,
     )
 
 

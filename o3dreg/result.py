@@ -156,6 +156,14 @@ class ElasticRegistrationResult:
         ``max_distance_factor`` robust scales (see :class:`~o3dreg.DistanceEstimation`).
         Unsupported vertices followed the regularised motion of their neighbours.
         :meth:`semilandmark_mesh` colours them.
+    part_labels : (n,) int ndarray or None
+        With ``parts='connected'``: the connected component of each source vertex.
+    part_deformations : tuple of LatticeDeformation
+        With ``parts='connected'``: one deformation per component (``deformation`` is the
+        largest component's).
+    part_sites : (n, 3) ndarray or None
+        With ``parts='connected'``: the rigidly aligned source vertices, which route each point
+        of :meth:`transform` to the component of its nearest site.
     """
 
     transformation: np.ndarray
@@ -170,6 +178,9 @@ class ElasticRegistrationResult:
     min_cell_jacobian_determinant: float = 1.0
     flipped_triangles: int = 0
     supported: np.ndarray | None = field(default=None, repr=False)
+    part_labels: np.ndarray | None = field(default=None, repr=False)
+    part_deformations: tuple[LatticeDeformation, ...] = field(default=(), repr=False)
+    part_sites: np.ndarray | None = field(default=None, repr=False)
 
     def __repr__(self) -> str:
         d = self.distances
@@ -186,7 +197,18 @@ class ElasticRegistrationResult:
 
         pts = as_points(points, "points", allow_empty=True)
         moved = pts @ self.transformation[:3, :3].T + self.transformation[:3, 3]
-        return self.deformation.transform(moved)
+        if self.part_labels is None or self.part_sites is None or not self.part_deformations:
+            return self.deformation.transform(moved)
+        from scipy.spatial import cKDTree
+
+        out = moved.copy()
+        if moved.shape[0]:
+            part = self.part_labels[cKDTree(self.part_sites).query(moved)[1]]
+            for k, deformation in enumerate(self.part_deformations):
+                sel = part == k
+                if sel.any():
+                    out[sel] = deformation.transform(moved[sel])
+        return out
 
     def semilandmark_mesh(self, target: Any = None) -> o3d.geometry.TriangleMesh:
         """The template's triangles on the registered vertex positions.
