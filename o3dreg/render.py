@@ -1,0 +1,296 @@
+"""Headless pictures of meshes coloured by a scalar (distances, errors), written as PNG.
+
+Two back ends: Open3D's :class:`open3d.visualization.rendering.OffscreenRenderer` (Filament; on a
+machine without a GPU it runs on Mesa's software Vulkan, ``llvmpipe``), and matplotlib's
+``plot_trisurf``-style :class:`~mpl_toolkits.mplot3d.art3d.Poly3DCollection` with per-face
+colours when Open3D cannot render. ``backend='auto'`` tries them in that order.
+"""
+
+from __future__ import annotations
+
+import atexit
+import logging
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ._validation import as_mesh_arrays
+from .meshio import atomic_write
+
+__all__ = ["BACKENDS", "render_mesh"]
+
+logger = logging.getLogger("o3dreg")
+
+#: Values accepted by ``render_mesh(backend=...)``.
+BACKENDS = ("auto", "open3d", "matplotlib")
+
+# One Filament renderer per process, of a fixed size: creating several in a process is slow and
+# unreliable, so it is reused with its scene cleared, and its picture is scaled into the figure.
+_CANVAS = (640, 480)
+_RENDERER: list[Any] = []
+_OPEN3D_FAILED: list[str] = []
+
+
+def _release_renderer() -> None:
+    # Filament aborts at exit when a renderer is destroyed with geometry still in its scene.
+    while _RENDERER:
+        renderer = _RENDERER.pop()
+        renderer.scene.clear_geometry()
+        del renderer
+
+
+def _check_view(view: Any) -> tuple[float, float]:
+    try:
+        az, el = (float(v) for v in view)
+    except (TypeError, ValueError):
+        raise ValueError(f"`view` must be (azimuth, elevation) in degrees, got {view!r}") from None
+    return az, el
+
+
+def _camera(
+    vertices: np.ndarray, view: tuple[float, float], up: np.ndarray, fov: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eye and centre looking at the bounding box from (azimuth, elevation) about ``up``."""
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    centre = (lo + hi) / 2.0
+    radius = max(float(np.linalg.norm(hi - lo)) / 2.0, 1e-9)
+    # An orthonormal frame with ``up`` as its third axis.
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    e1 = np.cross(up, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    az, el = np.radians(view[0]), np.radians(view[1])
+    direction = np.cos(el) * (np.cos(az) * e2 + np.sin(az) * e1) + np.sin(el) * up
+    distance = 0.85 * radius / np.sin(np.radians(fov) / 2.0)
+    return centre + distance * direction, centre
+
+
+def _colours(
+    scalars: np.ndarray | None, cmap: str, vmin: float | None, vmax: float | None
+) -> tuple[np.ndarray | None, float, float]:
+    if scalars is None:
+        return None, 0.0, 1.0
+    import matplotlib
+
+    finite = scalars[np.isfinite(scalars)]
+    lo = float(finite.min()) if vmin is None and finite.size else (vmin or 0.0)
+    hi = float(finite.max()) if vmax is None and finite.size else (vmax or 1.0)
+    if hi <= lo:
+        hi = lo + 1.0
+    rgb = matplotlib.colormaps[cmap](np.clip((scalars - lo) / (hi - lo), 0.0, 1.0))[:, :3]
+    return rgb, lo, hi
+
+
+def _render_open3d(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    face_rgb: np.ndarray | None,
+    vertex_rgb: np.ndarray | None,
+    view: tuple[float, float],
+    up: np.ndarray,
+    size: tuple[int, int],
+) -> np.ndarray:
+    import open3d as o3d
+    from open3d.visualization import rendering
+
+    if face_rgb is not None:
+        # Per-face colours need unshared vertices.
+        vertices, faces = vertices[faces].reshape(-1, 3), np.arange(faces.size).reshape(-1, 3)
+        vertex_rgb = np.repeat(face_rgb, 3, axis=0)
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(faces.astype(np.int32))
+    )
+    mesh.compute_vertex_normals()
+    mesh.vertex_colors = o3d.utility.Vector3dVector(
+        np.full_like(vertices, 0.75) if vertex_rgb is None else vertex_rgb
+    )
+    if not _RENDERER:
+        _RENDERER.append(rendering.OffscreenRenderer(*_CANVAS))
+        atexit.register(_release_renderer)
+    renderer = _RENDERER[0]
+    scene = renderer.scene
+    scene.clear_geometry()
+    scene.set_background([1.0, 1.0, 1.0, 1.0])
+    material = rendering.MaterialRecord()
+    material.shader = "defaultLit"
+    scene.add_geometry("mesh", mesh, material)
+    eye, centre = _camera(vertices, view, up, 40.0)
+    renderer.setup_camera(40.0, centre, eye, up)
+    return np.asarray(renderer.render_to_image())[..., :3]
+
+
+def _render_matplotlib(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    face_rgb: np.ndarray | None,
+    view: tuple[float, float],
+    up: np.ndarray,
+    size: tuple[int, int],
+) -> np.ndarray:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    # Rotate so that ``up`` is matplotlib's z axis.
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    e1 = np.cross(up, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    pts = vertices @ np.stack([e2, e1, up], axis=1)
+    tris = pts[faces]
+    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    az, el = np.radians(view[0]), np.radians(view[1])
+    light = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    shade = 0.35 + 0.65 * np.abs(normals @ light)
+    base = np.full((faces.shape[0], 3), 0.75) if face_rgb is None else face_rgb
+    dpi = 100
+    fig = Figure(figsize=(size[0] / dpi, size[1] / dpi), dpi=dpi)
+    FigureCanvasAgg(fig)
+    ax: Any = fig.add_axes((0.0, 0.0, 1.0, 1.0), projection="3d")
+    ax.add_collection3d(Poly3DCollection(tris, facecolors=base * shade[:, None], linewidths=0))
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    half = (hi - lo).max() / 2.0
+    for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), (lo + hi) / 2.0):
+        setter(c - half, c + half)
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(elev=view[1], azim=view[0])
+    ax.set_axis_off()
+    fig.canvas.draw()
+    image = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()  # type: ignore[attr-defined]
+    return image
+
+
+def render_mesh(
+    mesh: Any,
+    path: str | os.PathLike[str],
+    *,
+    scalars: Any = None,
+    cmap: str = "viridis",
+    vmin: float | None = None,
+    vmax: float | None = None,
+    view: Sequence[float] = (30.0, 20.0),
+    up: Sequence[float] = (0.0, 0.0, 1.0),
+    size: tuple[int, int] = (800, 600),
+    title: str | None = None,
+    label: str | None = None,
+    backend: str = "auto",
+    overwrite: bool = True,
+) -> str:
+    """Render ``mesh``, optionally coloured by ``scalars``, to a PNG file, headless.
+
+    Parameters
+    ----------
+    mesh : open3d.geometry.TriangleMesh or (vertices, faces)
+        Not modified.
+    path : str or os.PathLike
+        The PNG to write (atomically: nothing is left there if rendering fails).
+    scalars : (n,) or (m,) array_like, optional
+        One value per vertex (``n``) or per face (``m``), mapped through ``cmap``; NaN is drawn
+        at the bottom of the scale. Default: a uniform grey surface.
+    cmap : str
+        A matplotlib colormap name. Default ``'viridis'``.
+    vmin, vmax : float, optional
+        Colour scale limits. Default: the range of ``scalars``.
+    view : (azimuth, elevation)
+        Camera direction in degrees, about ``up``. Default ``(30, 20)``.
+    up : (3,) array_like
+        The world direction shown upwards. Default ``(0, 0, 1)`` (``(0, 1, 0)`` suits the bunny).
+    size : (width, height)
+        Image size in pixels. Default ``(800, 600)``.
+    title : str, optional
+        Drawn above the picture.
+    label : str, optional
+        Colour-bar label (a colour bar is drawn when ``scalars`` is given).
+    backend : {'auto', 'open3d', 'matplotlib'}
+        ``'auto'`` (default) uses Open3D's offscreen renderer and falls back to matplotlib when it
+        fails (no Vulkan/EGL driver, for instance); the fallback is logged.
+    overwrite : bool
+        Replace an existing file. Default ``True``.
+
+    Returns
+    -------
+    str
+        The path written.
+
+    Raises
+    ------
+    ValueError
+        For a wrong ``scalars`` length, ``size``, ``view``, ``up`` or ``backend``.
+    RuntimeError
+        When ``backend='open3d'`` is requested and Open3D cannot render.
+    """
+    vertices, faces = as_mesh_arrays(mesh, "mesh")
+    if backend not in BACKENDS:
+        raise ValueError(f"`backend` must be one of {BACKENDS}, got {backend!r}")
+    try:
+        width, height = (int(s) for s in size)
+    except (TypeError, ValueError):
+        raise ValueError(f"`size` must be (width, height) in pixels, got {size!r}") from None
+    if width < 16 or height < 16:
+        raise ValueError(f"`size` must be at least (16, 16) pixels, got {size!r}")
+    view_ = _check_view(view)
+    up_ = np.asarray(up, dtype=np.float64)
+    if up_.shape != (3,) or not np.isfinite(up_).all() or np.linalg.norm(up_) == 0:
+        raise ValueError(f"`up` must be a non-zero (3,) vector, got {up!r}")
+    up_ = up_ / np.linalg.norm(up_)
+    values = None
+    if scalars is not None:
+        values = np.asarray(scalars, dtype=np.float64).ravel()
+        if values.size not in (vertices.shape[0], faces.shape[0]):
+            raise ValueError(
+                f"`scalars` must have one value per vertex ({vertices.shape[0]}) or per face "
+                f"({faces.shape[0]}), got {values.size}"
+            )
+    rgb, lo, hi = _colours(values, cmap, vmin, vmax)
+    face_rgb = vertex_rgb = None
+    if rgb is not None and values is not None:
+        if values.size == vertices.shape[0]:
+            vertex_rgb = rgb
+        else:
+            face_rgb = rgb
+    decorate = title is not None or values is not None
+    # Leave room for the title and colour bar.
+    inner = (width - (110 if values is not None else 0), height - (40 if title else 0))
+    inner = (max(inner[0], 16), max(inner[1], 16))
+
+    image: np.ndarray | None = None
+    if backend in ("auto", "open3d") and not (backend == "auto" and _OPEN3D_FAILED):
+        try:
+            image = _render_open3d(vertices, faces, face_rgb, vertex_rgb, view_, up_, inner)
+        except Exception as error:  # any driver failure: fall back
+            if backend == "open3d":
+                raise RuntimeError(f"Open3D offscreen rendering failed: {error}") from error
+            _OPEN3D_FAILED.append(str(error))
+            logger.warning("Open3D offscreen rendering failed (%s); using matplotlib", error)
+    if image is None:
+        if face_rgb is None and vertex_rgb is not None:
+            face_rgb = vertex_rgb[faces].mean(axis=1)
+        image = _render_matplotlib(vertices, faces, face_rgb, view_, up_, inner)
+
+    def write(tmp: str) -> None:
+        import matplotlib
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        dpi = 100
+        fig = Figure(figsize=(width / dpi, height / dpi), dpi=dpi)
+        FigureCanvasAgg(fig)
+        top = 1.0 - (40 / height if title else 0.0)
+        ax = fig.add_axes((0.0, 0.0, inner[0] / width, top))
+        ax.imshow(image, interpolation="antialiased")
+        ax.set_axis_off()
+        if decorate:
+            if title:
+                fig.suptitle(title, y=1.0 - 8 / height, va="top", fontsize=11)
+            if values is not None:
+                cax = fig.add_axes((1.0 - 80 / width, 0.1, 18 / width, 0.75 * top))
+                mappable = matplotlib.cm.ScalarMappable(
+                    norm=matplotlib.colors.Normalize(lo, hi), cmap=cmap
+                )
+                fig.colorbar(mappable, cax=cax, label=label)
+        fig.savefig(tmp, format="png", dpi=dpi)
+
+    return atomic_write(path, write, overwrite=overwrite, name="path")
