@@ -151,8 +151,10 @@ class LevelProblem:
         robustness: Robustness | None = None,
         normals: np.ndarray | None = None,
         prior: Any = None,
+        barycentre_offsets: np.ndarray | None = None,
     ) -> None:
         self.lattice = lattice
+        self.barycentre_offsets = barycentre_offsets
         self.robust = robustness or Robustness()
         self.base = points + previous
         self._points = points
@@ -371,6 +373,10 @@ class LevelProblem:
             # Every template vertex has a row (zero when nothing is assigned to it), so the
             # residual vector keeps its length from one evaluation to the next.
             scale = self.sqrt_ws * np.sqrt(assigned)
+            if self.barycentre_offsets is not None:
+                # Compare like with like: the template's own sampling puts the centroid of its
+                # Voronoi cell at y_i + offset_i, not at y_i (see elastic._barycentre_offsets).
+                bary = bary - self.barycentre_offsets
             rb = (scale[:, None] * (y - bary)).ravel()
             blocks.append(sp.diags(np.repeat(scale, 3), format="csr") @ self._Wx)
             residuals.append(rb)

@@ -200,6 +200,7 @@ def registration_elastic(
     weight = estimation_method.symmetric_weight if estimation_method.symmetric else 0.0
 
     surfaces = _TargetLevelsOfDetail(vt, ft, query)
+    surface_samples, sample_weights = _surface_samples(points, fs)
     target_samples: dict[int, np.ndarray] = {}
     deformation = LatticeDeformation(())
     previous = np.zeros_like(points)
@@ -241,6 +242,11 @@ def registration_elastic(
         normals = None
         if estimation_method.max_normal_angle is not None:
             normals = vertex_normals(points + previous, fs)[use]
+        offsets = None
+        if target_points is not None and estimation_method.barycentre_correction:
+            offsets = _barycentre_offsets(
+                (points + previous)[use], surface_samples, deformation, sample_weights
+            )
         problem = LevelProblem(
             points[use],
             previous[use],
@@ -254,6 +260,7 @@ def registration_elastic(
             robustness=robustness,
             normals=normals,
             prior=deformation if deformation.levels else None,
+            barycentre_offsets=offsets,
         )
         last_problem = problem
         info = solve(problem, level.criteria or criteria, level.solver)
@@ -541,6 +548,52 @@ class _TargetLevelsOfDetail:
                 np.asarray(mesh.vertices), np.asarray(mesh.triangles)
             )
         return self.cache[voxel]
+
+
+def _surface_samples(
+    vertices: np.ndarray, faces: np.ndarray, order: int = 3
+) -> tuple[np.ndarray, np.ndarray]:
+    """Area-weighted samples of a surface: a barycentric grid of ``order`` steps per triangle."""
+    grid = (
+        np.array(
+            [(i, j, order - i - j) for i in range(order + 1) for j in range(order + 1 - i)],
+            dtype=float,
+        )
+        / order
+    )
+    corners = vertices[faces]  # (m, 3, 3)
+    samples = np.einsum("gk,mkd->mgd", grid, corners).reshape(-1, 3)
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    weights = np.repeat(area / grid.shape[0], grid.shape[0])
+    return samples, weights
+
+
+def _barycentre_offsets(
+    used: np.ndarray, samples: np.ndarray, deformation: LatticeDeformation, weights: np.ndarray
+) -> np.ndarray:
+    """Offset from each used template vertex to the centroid of its own Voronoi cell.
+
+    The barycentre term pulls template vertex ``i`` to the centroid ``b_i`` of the target
+    vertices nearest to it. Even at the true correspondence, ``b_i`` is not ``y_i``: it is the
+    centroid of ``i``'s Voronoi cell on the surface, which lies towards the side where the
+    template's own vertices are sparser (a decimated template is denser where the surface bends).
+    Left alone, the term slides vertices along the surface until the cells are centred (Lloyd's
+    relaxation), trading correspondence for even spacing. The same centroid measured on the
+    (deformed) template's own surface, ``c_i``, has the same bias; pulling ``y_i + (c_i - y_i)``
+    to ``b_i`` keeps the spreading effect of eq. (3) without the drift.
+    """
+    moved = deformation.transform(samples) if deformation.levels else samples
+    _, nearest = cKDTree(used).query(moved, workers=-1)
+    n = used.shape[0]
+    total = np.bincount(nearest, weights, minlength=n)
+    centroid = np.stack(
+        [np.bincount(nearest, weights * moved[:, c], minlength=n) for c in range(3)], axis=1
+    )
+    has = total > 0
+    offsets = np.zeros_like(used)
+    offsets[has] = centroid[has] / total[has, None] - used[has]
+    return offsets
 
 
 def _level_sample(

@@ -169,6 +169,17 @@ class DistanceEstimation:
     symmetric_weight : float
         Weight of the barycentre term relative to the point-to-surface term. Default 1 (the
         paper's unweighted sum).
+    barycentre_correction : bool
+        Pull ``y_i + o_i`` rather than ``y_i`` to the barycentre ``b_i``, where ``o_i`` is the
+        offset from template vertex ``i`` to the centroid of its own Voronoi cell on the
+        template surface (computed at the start of every level). The paper's term (``False``,
+        default) slides the vertices of an unevenly sampled template along the surface towards
+        an even spacing (Lloyd's relaxation), which costs correspondence accuracy; the correction
+        removes most of that drift when the target is much denser than the template (measured
+        on the bunny, 3k -> 36k: mean correspondence error 0.173% -> 0.146% of the diagonal,
+        target->template mean 0.141 -> 0.097 mm). It assumes that density ratio: on targets
+        as coarse as the template it moves vertices that are already in place, and it weakens
+        the spreading of the paper's cone -> sphere case (sphere->cone mean 0.52 -> 0.96 mm).
     target_points_per_source_point : float
         At most this many target vertices per template vertex enter the barycentre term (an even
         spatial subsample of the target when it is denser). Default 10: every barycentre still
@@ -209,6 +220,7 @@ class DistanceEstimation:
 
     symmetric: bool = True
     symmetric_weight: float = 1.0
+    barycentre_correction: bool = False
     target_points_per_source_point: float = 10.0
     loss: str = "linear"
     loss_scale: float | None = None
@@ -220,6 +232,11 @@ class DistanceEstimation:
         if not isinstance(self.symmetric, bool):
             raise TypeError(f"`symmetric` must be a bool, got {type(self.symmetric).__name__}")
         check_positive(self.symmetric_weight, "symmetric_weight", allow_zero=True)
+        if not isinstance(self.barycentre_correction, bool):
+            raise TypeError(
+                "`barycentre_correction` must be a bool, "
+                f"got {type(self.barycentre_correction).__name__}"
+            )
         check_positive(self.target_points_per_source_point, "target_points_per_source_point")
         if self.loss not in LOSSES:
             raise ValueError(f"`loss` must be one of {LOSSES}, got {self.loss!r}")

@@ -224,3 +224,21 @@ def test_degenerate_target_triangles_are_dropped():
     target = mesh_of(v, np.vstack([f, [[0, 0, 1]]]))
     result = registration_elastic(sphere, target, init=np.eye(4), levels=[ElasticLevel(2)])
     assert result.distances.source_to_target_max < 1e-6
+
+
+def test_barycentre_correction_reduces_the_drift(bunny_case):
+    # A decimated template is denser where the surface bends, so the barycentre of a vertex's
+    # Voronoi cell is offset from it; the paper's term slides vertices to centre their cells.
+    # Measured (3k -> 36k bunny): 0.173% -> 0.146% of the diagonal; here a ~1.5k template.
+    template, target, warp = bunny_case
+    truth = warp(np.asarray(template.vertices))
+    errors = {}
+    for correction in (False, True):
+        result = registration_elastic(
+            template,
+            target,
+            init=np.eye(4),
+            estimation_method=DistanceEstimation(barycentre_correction=correction),
+        )
+        errors[correction] = np.linalg.norm(result.vertices - truth, axis=1).mean()
+    assert errors[True] < 0.95 * errors[False]
