@@ -158,6 +158,18 @@ def build_case(name: str, seed: int = 1) -> dict | None:
 
 # -- methods ----------------------------------------------------------------------------------
 def rss_mb() -> float:
+    """Peak resident memory of this process (MB).
+
+    ``VmHWM`` from /proc where there is one: Linux keeps ``ru_maxrss`` across ``exec``, so a
+    child would otherwise report its parent's peak at fork time.
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 

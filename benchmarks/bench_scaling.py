@@ -17,7 +17,6 @@ import cProfile
 import json
 import os
 import pstats
-import resource
 import subprocess
 import sys
 import tempfile
@@ -80,14 +79,16 @@ def child(path: str) -> dict:
 
     with np.load(path) as data:
         case = {k: data[k] for k in data.files}
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    from bench_peers import rss_mb
+
+    base = rss_mb()
     start = time.perf_counter()
     result = o3dreg.registration_elastic(
         (case["sv"], case["sf"]), (case["tv"], case["tf"]), init=np.eye(4)
     )
     seconds = time.perf_counter() - start
     err = np.linalg.norm(result.vertices - case["truth"], axis=1)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak = rss_mb()
     return {
         "template": len(case["sv"]),
         "target": len(case["tv"]),
