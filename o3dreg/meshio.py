@@ -100,6 +100,10 @@ def atomic_write(
         ok = writer(tmp)
         if ok is False or not os.path.exists(tmp) or os.path.getsize(tmp) == 0:
             raise OSError(f"`{name}`: writing {path!r} failed")
+        # mkstemp creates the file 0600; give the result the permissions of a normal file.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
