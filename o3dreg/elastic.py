@@ -26,7 +26,7 @@ from .lattice import TrilinearLattice
 from .options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
 from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances
 from .rigid import registration_rigid
-from .sampling import spatial_subsample
+from .sampling import morton_order, spatial_subsample
 
 __all__ = ["canonical_mesh", "evaluate_elastic", "lattice_box", "registration_elastic"]
 
@@ -199,7 +199,16 @@ def registration_elastic(
     target_points = vt if estimation_method.symmetric else None
     weight = estimation_method.symmetric_weight if estimation_method.symmetric else 0.0
 
-    surfaces = _TargetLevelsOfDetail(vt, ft, query)
+    surfaces = _TargetLevelsOfDetail(
+        vt,
+        ft,
+        query,
+        [
+            float(size.min()) / lev.resolution / _TARGET_VOXELS_PER_CELL
+            for lev in levels_
+            if lev.simplify_target
+        ],
+    )
     surface_samples, sample_weights = _surface_samples(points, fs)
     target_samples: dict[int, np.ndarray] = {}
     deformation = LatticeDeformation(())
@@ -207,6 +216,13 @@ def registration_elastic(
     history: list[LevelReport] = []
     failures: list[str] = []
     last_problem: LevelProblem | None = None
+    if target_points is not None:
+        # The largest budget first, so that every level's subsample nests in it.
+        _target_subsample(
+            target_points,
+            int(estimation_method.target_points_per_source_point * points.shape[0]),
+            target_samples,
+        )
     for k, level in enumerate(levels_):
         start = time.perf_counter()
         lattice = TrilinearLattice.zeros(origin, size, (level.resolution,) * 3)
@@ -223,9 +239,7 @@ def registration_elastic(
         use_target = None
         if target_points is not None:
             budget = int(estimation_method.target_points_per_source_point * use.size)
-            if budget not in target_samples:
-                target_samples[budget] = target_points[spatial_subsample(target_points, budget)]
-            use_target = target_samples[budget]
+            use_target = _target_subsample(target_points, budget, target_samples)
         level_query = query
         if level.simplify_target:
             level_query = surfaces.at(float(lattice.cell_size.min()) / _TARGET_VOXELS_PER_CELL)
@@ -233,7 +247,9 @@ def registration_elastic(
             loss=estimation_method.loss,
             loss_scale=estimation_method.loss_scale,
             max_distance_factor=estimation_method.max_distance_factor,
-            reject_boundary=estimation_method.reject_boundary,
+            # Whether the target has open edges is a property of the full target: a simplified
+            # copy of a closed surface can have spurious ones.
+            reject_boundary=estimation_method.reject_boundary and query.has_boundary,
             max_normal_angle=estimation_method.max_normal_angle,
             min_jacobian_determinant=level.min_jacobian_determinant
             if level.solver == "lm"
@@ -523,31 +539,55 @@ class _TargetLevelsOfDetail:
     Only used when the voxel is at least twice the target's mean edge length.
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, full: SurfaceDistanceQuery) -> None:
-        self.vertices, self.faces, self.full = vertices, faces, full
+    def __init__(
+        self,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        full: SurfaceDistanceQuery,
+        voxels: Sequence[float] = (),
+    ) -> None:
+        self.full = full
         edges = vertices[faces[:, [1, 2, 0]]] - vertices[faces]
         self.edge = float(np.linalg.norm(edges, axis=2).mean())
         self.cache: dict[float, SurfaceDistanceQuery] = {}
+        # Finest first, each copy clustered from the previous one: a million-vertex target is
+        # clustered once, the coarser copies cost a fraction of that.
+        import open3d as o3d
 
-    def at(self, voxel: float) -> SurfaceDistanceQuery:
-        if voxel < 2.0 * self.edge:
-            return self.full
-        if voxel not in self.cache:
-            import open3d as o3d
+        from .meshio import to_open3d
 
-            from .meshio import to_open3d
-
-            mesh = to_open3d(self.vertices, self.faces).simplify_vertex_clustering(
+        mesh = None
+        for voxel in sorted({v for v in voxels if v >= 2.0 * self.edge}):
+            source = mesh if mesh is not None else to_open3d(vertices, faces)
+            mesh = source.simplify_vertex_clustering(
                 voxel, o3d.geometry.SimplificationContraction.Average
             )
             mesh.remove_degenerate_triangles()
             mesh.remove_unreferenced_vertices()
             if len(mesh.triangles) == 0:
-                return self.full
+                break
             self.cache[voxel] = SurfaceDistanceQuery(
                 np.asarray(mesh.vertices), np.asarray(mesh.triangles)
             )
-        return self.cache[voxel]
+
+    def at(self, voxel: float) -> SurfaceDistanceQuery:
+        """The simplified target for ``voxel`` (the full target when none was made for it)."""
+        return self.cache.get(voxel, self.full)
+
+
+def _target_subsample(points: np.ndarray, budget: int, cache: dict[int, np.ndarray]) -> np.ndarray:
+    """An even subsample of about ``budget`` target points, nested across budgets.
+
+    The largest budget is drawn from the full target once; smaller ones are drawn from it, so a
+    million-vertex target is sorted into cells once per registration, not once per level.
+    """
+    if budget in cache:
+        return cache[budget]
+    larger = [b for b in cache if b > budget]
+    source = cache[min(larger)] if larger else points
+    chosen = source[spatial_subsample(source, budget)]
+    cache[budget] = chosen[morton_order(chosen)]
+    return cache[budget]
 
 
 def _surface_samples(
