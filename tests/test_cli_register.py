@@ -135,3 +135,30 @@ def test_version_and_help(capsys):
     assert exc.value.code == 0
     assert "o3dreg" in capsys.readouterr().out
     assert main([]) == 2
+
+
+def test_robust_options_reach_the_registration(pair, tmp_path, capsys):
+    code = main(
+        [
+            "register",
+            str(pair / "template.ply"),
+            str(pair / "patient.ply"),
+            "-o",
+            str(tmp_path / "o.ply"),
+            "--levels",
+            "2,4",
+            "--loss",
+            "cauchy",
+            "--max-normal-angle",
+            "60",
+            "--parts",
+            "connected",
+            "--json",
+        ]
+    )
+    data = json.loads(capsys.readouterr().out)
+    assert code in (0, 1)
+    assert data["supported_vertices"] is not None and data["supported_vertices"] > 0
+    with pytest.raises(SystemExit) as exc:  # argparse refuses an unknown choice
+        main(["register", "a.ply", "b.ply", "-o", "c.ply", "--loss", "l1"])
+    assert exc.value.code == 2

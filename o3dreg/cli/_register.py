@@ -20,6 +20,7 @@ EPILOG = """examples:
   o3dreg register template.ply patient.ply -o registered.ply --levels 4,8,16 \\
       --regularization 0.1 --deformation deformation.npz --report report.json
   o3dreg register template.ply patient.ply -o single.ply --no-symmetric
+  o3dreg register template.ply scan.ply -o out.ply --loss cauchy --max-normal-angle 60
 
 exit status: 0 converged, 1 finished without meeting every level's criteria (outputs are
 still written), 2 bad input (nothing written)."""
@@ -54,6 +55,43 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--symmetric-weight", type=float, default=1.0, help="weight of the barycentre term"
     )
+    p.add_argument(
+        "--barycentre-correction",
+        action="store_true",
+        help="compare barycentres with the template's own Voronoi centroids (dense targets)",
+    )
+    robust = p.add_argument_group("robustness (real scans: partial data, debris, outliers)")
+    robust.add_argument(
+        "--loss",
+        choices=["linear", "huber", "cauchy", "tukey"],
+        default="linear",
+        help="robust loss of both distance terms (default linear: the paper's least squares)",
+    )
+    robust.add_argument(
+        "--max-normal-angle",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="drop matches whose normals differ by more than DEG degrees (e.g. 60)",
+    )
+    robust.add_argument(
+        "--max-distance-factor",
+        type=float,
+        default=None,
+        metavar="K",
+        help="drop matches farther than K robust scales",
+    )
+    robust.add_argument(
+        "--keep-boundary",
+        action="store_true",
+        help="do not drop matches beyond the target's open boundary",
+    )
+    robust.add_argument(
+        "--parts",
+        choices=["joint", "connected"],
+        default="joint",
+        help="'connected': one deformation per connected piece of the template",
+    )
     p.add_argument("--max-iteration", type=int, default=20, help="LM steps per level (default 20)")
     p.add_argument("--no-rigid", action="store_true", help="skip the rigid pre-alignment")
     p.add_argument("--with-scaling", action="store_true", help="similarity pre-alignment")
@@ -85,6 +123,11 @@ def report_dict(result: ElasticRegistrationResult, **extra) -> dict:
         "distances": result.distances.as_dict(),
         "transformation": np.asarray(result.transformation).tolist(),
         "min_jacobian_determinant": result.min_jacobian_determinant,
+        "min_cell_jacobian_determinant": result.min_cell_jacobian_determinant,
+        "flipped_triangles": result.flipped_triangles,
+        "supported_vertices": int(np.count_nonzero(result.supported))
+        if result.supported is not None
+        else None,
         "levels": [
             {
                 "resolution": h.resolution,
@@ -147,8 +190,15 @@ def run(args: argparse.Namespace) -> int:
         init=init,
         levels=levels,
         estimation_method=DistanceEstimation(
-            symmetric=not args.no_symmetric, symmetric_weight=args.symmetric_weight
+            symmetric=not args.no_symmetric,
+            symmetric_weight=args.symmetric_weight,
+            barycentre_correction=args.barycentre_correction,
+            loss=args.loss,
+            max_normal_angle=args.max_normal_angle,
+            max_distance_factor=args.max_distance_factor,
+            reject_boundary=not args.keep_boundary,
         ),
+        parts=args.parts,
         criteria=ElasticCriteria(max_iteration=args.max_iteration),
         callback=progress,
     )
