@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 CONFIGS = {
     "default": {},
-    "robust": {"loss": "cauchy", "max_normal_angle": 60.0},
+    "robust": {"loss": "cauchy", "max_normal_angle": 60.0, "min_target_component": 0.01},
 }
 
 

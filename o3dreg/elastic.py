@@ -162,6 +162,8 @@ def registration_elastic(
             "`estimation_method` must be a DistanceEstimation, "
             f"got {type(estimation_method).__name__}"
         )
+    if estimation_method.min_target_component is not None:
+        vt, ft = _drop_small_components(vt, ft, estimation_method.min_target_component)
     if criteria is None:
         criteria = ElasticCriteria()
     elif not isinstance(criteria, ElasticCriteria):
@@ -573,6 +575,29 @@ class _TargetLevelsOfDetail:
     def at(self, voxel: float) -> SurfaceDistanceQuery:
         """The simplified target for ``voxel`` (the full target when none was made for it)."""
         return self.cache.get(voxel, self.full)
+
+
+def _drop_small_components(
+    vertices: np.ndarray, faces: np.ndarray, fraction: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The target without its connected components smaller than ``fraction`` of the largest."""
+    from .cleaning import _components
+
+    components = _components(vertices, faces)
+    big = components.vertex_counts >= fraction * components.vertex_counts[0]
+    keep = big[components.labels]
+    if keep.all():
+        return vertices, faces
+    kept = faces[keep]
+    used = np.zeros(vertices.shape[0], dtype=bool)
+    used[kept.ravel()] = True
+    remap = np.cumsum(used) - 1
+    logger.info(
+        "ignoring %d small target component(s) (%d vertices)",
+        int((~big).sum()),
+        int((~used).sum()),
+    )
+    return vertices[used], remap[kept]
 
 
 def _target_subsample(points: np.ndarray, budget: int, cache: dict[int, np.ndarray]) -> np.ndarray:

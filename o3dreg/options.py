@@ -216,6 +216,11 @@ class DistanceEstimation:
         triangle holding its closest point exceeds this many degrees, in ``(0, 180]``. Both
         meshes must be consistently oriented (same side out). ``None`` (default) disables it;
         60 is a common choice for scans with debris or nearby structures.
+    min_target_component : float or None
+        Ignore the connected components of the target with fewer vertices than this fraction
+        of its largest component (islands, debris, loose fragments a marching-cubes surface
+        keeps), e.g. 0.01. ``None`` (default) uses every component. The reported distances
+        still measure the whole target.
     """
 
     symmetric: bool = True
@@ -227,6 +232,7 @@ class DistanceEstimation:
     max_distance_factor: float | None = None
     reject_boundary: bool = True
     max_normal_angle: float | None = None
+    min_target_component: float | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.symmetric, bool):
@@ -238,6 +244,10 @@ class DistanceEstimation:
                 f"got {type(self.barycentre_correction).__name__}"
             )
         check_positive(self.target_points_per_source_point, "target_points_per_source_point")
+        if self.min_target_component is not None:
+            f = check_probability(self.min_target_component, "min_target_component")
+            if f <= 0.0:
+                raise ValueError(f"`min_target_component` must be in (0, 1], got {f!r}")
         if self.loss not in LOSSES:
             raise ValueError(f"`loss` must be one of {LOSSES}, got {self.loss!r}")
         if self.loss_scale is not None:
