@@ -82,6 +82,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="drop matches farther than K robust scales",
     )
     robust.add_argument(
+        "--min-target-component",
+        type=float,
+        default=None,
+        metavar="F",
+        help="ignore target islands smaller than F times its largest component (e.g. 0.01)",
+    )
+    robust.add_argument(
         "--keep-boundary",
         action="store_true",
         help="do not drop matches beyond the target's open boundary",
@@ -197,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
             max_normal_angle=args.max_normal_angle,
             max_distance_factor=args.max_distance_factor,
             reject_boundary=not args.keep_boundary,
+            min_target_component=args.min_target_component,
         ),
         parts=args.parts,
         criteria=ElasticCriteria(max_iteration=args.max_iteration),
