@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
+from ._archive import read_archive, write_archive
 from ._validation import as_points
 from .lattice import TrilinearLattice
-from .meshio import atomic_write
 
 __all__ = ["LatticeDeformation"]
 
@@ -161,52 +161,26 @@ class LatticeDeformation:
     # -- persistence ----------------------------------------------------------------------------
     def save(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> str:
         """Write the deformation to a ``.npz`` file (atomically)."""
-        path = os.fspath(path)
-        if not path.endswith(".npz"):
-            raise ValueError(f"`path` must end with .npz, got {path!r}")
-        arrays: dict[str, Any] = {
-            "format": np.array(_FORMAT),
-            "version": np.array(_VERSION),
-            "number_of_levels": np.array(len(self.levels)),
-        }
+        arrays: dict[str, Any] = {"number_of_levels": np.array(len(self.levels))}
         for k, lat in enumerate(self.levels):
             arrays[f"level{k}_origin"] = lat.origin
             arrays[f"level{k}_size"] = lat.size
             arrays[f"level{k}_shape"] = np.asarray(lat.shape)
             arrays[f"level{k}_displacements"] = lat.displacements
-
-        def write(tmp: str) -> None:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
-
-        return atomic_write(path, write, overwrite=overwrite)
+        return write_archive(path, arrays, kind=_FORMAT, version=_VERSION, overwrite=overwrite)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> LatticeDeformation:
         """Read a deformation written by :meth:`save`."""
-        path = os.fspath(path)
-        if not os.path.isfile(path):
-            raise OSError(f"`path`: no such file {path!r}")
-        try:
-            data = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as exc:
-            raise OSError(f"`path`: {path!r} is not a readable .npz file ({exc})") from exc
-        with data:
-            if "format" not in data or str(data["format"]) != _FORMAT:
-                raise ValueError(f"`path`: {path!r} does not hold an o3dreg LatticeDeformation")
-            if int(data["version"]) > _VERSION:
-                raise ValueError(
-                    f"`path`: {path!r} has format version {int(data['version'])}, "
-                    f"this o3dreg reads up to {_VERSION}"
+        data = read_archive(path, kind=_FORMAT, version=_VERSION, what="LatticeDeformation")
+        levels = []
+        for k in range(int(data["number_of_levels"])):
+            levels.append(
+                TrilinearLattice(
+                    data[f"level{k}_origin"].astype(np.float64),
+                    data[f"level{k}_size"].astype(np.float64),
+                    tuple(int(s) for s in data[f"level{k}_shape"]),  # type: ignore[arg-type]
+                    data[f"level{k}_displacements"].astype(np.float64),
                 )
-            levels = []
-            for k in range(int(data["number_of_levels"])):
-                levels.append(
-                    TrilinearLattice(
-                        data[f"level{k}_origin"].astype(np.float64),
-                        data[f"level{k}_size"].astype(np.float64),
-                        tuple(int(s) for s in data[f"level{k}_shape"]),  # type: ignore[arg-type]
-                        data[f"level{k}_displacements"].astype(np.float64),
-                    )
-                )
+            )
         return cls(tuple(levels))

@@ -17,8 +17,9 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
+from ._archive import read_archive, write_archive
 from ._validation import as_mesh_arrays, as_points, as_transformation, check_positive
-from .meshio import atomic_write, to_open3d, write_triangle_mesh
+from .meshio import to_open3d, write_triangle_mesh
 from .procrustes import _apply, _fit, _generalized_procrustes, as_shape_array
 
 __all__ = [
@@ -374,12 +375,7 @@ class ShapeModel:
     # -- persistence ------------------------------------------------------------------------------
     def save(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> str:
         """Write the whole model (with the template triangles) to a ``.npz`` file, atomically."""
-        path = os.fspath(path)
-        if not path.endswith(".npz"):
-            raise ValueError(f"`path` must end with .npz, got {path!r}")
         arrays: dict[str, Any] = {
-            "format": np.array(_FORMAT),
-            "version": np.array(_VERSION),
             "mean": self.mean,
             "modes": self.modes,
             "variances": self.variances,
@@ -390,12 +386,7 @@ class ShapeModel:
             "scaling": np.array(self.scaling),
             "noise_variance": np.array(self.noise_variance),
         }
-
-        def write(tmp: str) -> None:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
-
-        return atomic_write(path, write, overwrite=overwrite)
+        return write_archive(path, arrays, kind=_FORMAT, version=_VERSION, overwrite=overwrite)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], *, template: Any = None) -> ShapeModel:
@@ -408,34 +399,18 @@ class ShapeModel:
             When given, check that the model was built on this template (same vertex count and
             triangle array); ``ValueError`` otherwise.
         """
-        if not isinstance(path, (str, os.PathLike)):
-            raise TypeError(f"`path` must be a path, got {type(path).__name__}")
-        path = os.fspath(path)
-        if not os.path.isfile(path):
-            raise OSError(f"`path`: no such file {path!r}")
-        try:
-            data = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as exc:
-            raise OSError(f"`path`: {path!r} is not a readable .npz file ({exc})") from exc
-        with data:
-            if "format" not in data or str(data["format"]) != _FORMAT:
-                raise ValueError(f"`path`: {path!r} does not hold an o3dreg ShapeModel")
-            if int(data["version"]) > _VERSION:
-                raise ValueError(
-                    f"`path`: {path!r} has format version {int(data['version'])}, "
-                    f"this o3dreg reads up to {_VERSION}"
-                )
-            model = cls(
-                mean=data["mean"],
-                modes=data["modes"],
-                variances=data["variances"],
-                faces=data["faces"],
-                total_variance=float(data["total_variance"]),
-                scores=data["scores"],
-                names=tuple(json.loads(str(data["names"]))),
-                scaling=bool(data["scaling"]),
-                noise_variance=float(data["noise_variance"]),
-            )
+        data = read_archive(path, kind=_FORMAT, version=_VERSION, what="ShapeModel")
+        model = cls(
+            mean=data["mean"],
+            modes=data["modes"],
+            variances=data["variances"],
+            faces=data["faces"],
+            total_variance=float(data["total_variance"]),
+            scores=data["scores"],
+            names=tuple(json.loads(str(data["names"]))),
+            scaling=bool(data["scaling"]),
+            noise_variance=float(data["noise_variance"]),
+        )
         if template is not None:
             model.check_template(template)
         return model

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import open3d as o3d
 import pytest
@@ -20,19 +17,6 @@ from o3dreg import (
     remove_small_components,
     smooth_taubin,
 )
-
-
-@pytest.fixture(scope="session")
-def shared_data() -> Path:
-    """The project's shared research data (not in the repository); skip when absent."""
-    root = Path(
-        os.environ.get(
-            "O3DREG_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"
-        )
-    )
-    if not root.is_dir():
-        pytest.skip(f"shared data folder {root} is absent (set O3DREG_SHARED_DATA)")
-    return root
 
 
 def _sphere(radius: float, centre: tuple[float, float, float], resolution: int):

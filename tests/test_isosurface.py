@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import nibabel as nib
@@ -16,19 +15,6 @@ from o3dreg.datasets import headsq_path
 DATA = Path(__file__).resolve().parent / "data"
 HEADSQ = headsq_path().parent  # bundled with the package (o3dreg/data)
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0])
-
-
-@pytest.fixture(scope="session")
-def shared_data() -> Path:
-    """The project's shared research data (not in the repository); skip when absent."""
-    root = Path(
-        os.environ.get(
-            "O3DREG_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"
-        )
-    )
-    if not root.is_dir():
-        pytest.skip(f"shared data folder {root} is absent (set O3DREG_SHARED_DATA)")
-    return root
 
 
 def _rotation(degrees_x: float, degrees_z: float) -> np.ndarray:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import shutil
 from pathlib import Path
 
@@ -28,19 +27,6 @@ _C, _S = np.cos(np.radians(30)), np.sin(np.radians(30))
 _RZ = np.array([[_C, -_S, 0], [_S, _C, 0], [0, 0, 1]])
 ROTATION = _RZ @ _RX
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
-
-
-@pytest.fixture(scope="session")
-def shared_data() -> Path:
-    """The project's shared research data (not in the repository); skip when absent."""
-    root = Path(
-        os.environ.get(
-            "O3DREG_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"
-        )
-    )
-    if not root.is_dir():
-        pytest.skip(f"shared data folder {root} is absent (set O3DREG_SHARED_DATA)")
-    return root
 
 
 @pytest.fixture
