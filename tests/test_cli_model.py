@@ -145,3 +145,35 @@ def test_mandible_example(shared_data, tmp_path):
     report = json.loads((tmp_path / "report.json").read_text())
     assert len(report["variances"]) == 6
     assert np.isclose(report["variances"][-1]["cumulative"], 1.0)
+
+
+def test_build_model_on_a_dask_scheduler_address(files, tmp_path, capsys):
+    # `--scheduler ADDRESS` as on a cluster; here the scheduler is a LocalCluster on loopback.
+    distributed = pytest.importorskip("distributed")
+    cluster = distributed.LocalCluster(
+        n_workers=1,
+        threads_per_worker=2,
+        processes=False,
+        dashboard_address=None,
+        protocol="tcp://",
+        host="127.0.0.1",
+    )
+    with cluster:
+        targets = [str(files / f"p{i}.ply") for i in range(3)]
+        code = main(
+            [
+                "build-model",
+                str(files / "template.ply"),
+                *targets,
+                "-o",
+                str(tmp_path / "model"),
+                "--levels",
+                "2,4",
+                "--scheduler",
+                cluster.scheduler_address,
+                "-q",
+            ]
+        )
+    assert code == 0
+    report = json.loads((tmp_path / "model" / "report.json").read_text())
+    assert len(report["registered"]) == 3
