@@ -6,7 +6,9 @@ the four proper sign choices of the axes) refined by Open3D's ICP.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -180,6 +182,35 @@ def registration_rigid(
             "`criteria` must be an open3d.pipelines.registration.ICPConvergenceCriteria, "
             f"got {type(criteria).__name__}"
         )
+    with _single_thread():
+        return _icp(
+            vs, fs, vt, ft, candidates, max_correspondence_distance, estimation_method, criteria
+        )
+
+
+@contextlib.contextmanager
+def _single_thread() -> Iterator[None]:
+    """Run Open3D on one thread: its ICP sums over threads in no fixed order, so two runs on the
+    same input could differ in the last bits and, through the candidate ranking, pick different
+    poses. On one thread the same input gives a bit-identical result."""
+    previous = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(previous)
+
+
+def _icp(
+    vs: np.ndarray,
+    fs: np.ndarray,
+    vt: np.ndarray,
+    ft: np.ndarray,
+    candidates: list[np.ndarray],
+    max_correspondence_distance: float,
+    estimation_method: Any,
+    criteria: Any,
+) -> Any:
     src, tgt = _cloud(vs, fs), _cloud(vt, ft)
     # Rank the candidates on a coarse copy of the target (about as many points as the source):
     # the ranking needs the shape, not the detail. Only the winner is refined on all points.
