@@ -6,7 +6,14 @@ from pathlib import Path
 
 import pytest
 
-EXAMPLES = sorted((Path(__file__).resolve().parents[1] / "examples").glob("*.py"))
+# paper_tables.py and mandible_model.py have slow tests of their own (test_examples_paper.py,
+# test_cli_model.py::test_mandible_example) with the options that keep them short.
+OWN_TESTS = {"paper_tables.py", "mandible_model.py"}
+EXAMPLES = sorted(
+    p
+    for p in (Path(__file__).resolve().parents[1] / "examples").glob("*.py")
+    if p.name not in OWN_TESTS
+)
 
 
 @pytest.mark.slow
