@@ -6,7 +6,7 @@ registration's correspondence error can be measured exactly.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -38,7 +38,6 @@ class SmoothWarp:
     centres: np.ndarray
     amplitudes: np.ndarray
     width: float
-    _unused: Any = field(default=None, repr=False)
 
     @classmethod
     def random(
@@ -146,7 +145,7 @@ def _marching_cubes_form(name: str, voxel: float) -> Any:
     return mesh
 
 
-def synthetic_form(name: str, number_of_vertices: int, *, seed: int = 0) -> Any:
+def synthetic_form(name: str, number_of_vertices: int) -> Any:
     """One of the paper's synthetic test forms as a closed triangle mesh, in millimetres.
 
     All forms are made by the same procedure, so they differ only by shape and density: the
@@ -162,8 +161,6 @@ def synthetic_form(name: str, number_of_vertices: int, *, seed: int = 0) -> Any:
         40 and height 80. All centred at the origin.
     number_of_vertices : int
         Approximate vertex count (within a few percent), e.g. 1000 (low) or 30000 (high).
-    seed : int
-        Reserved for reproducible jitter; the construction is deterministic.
 
     Returns
     -------
