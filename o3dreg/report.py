@@ -231,7 +231,7 @@ def write_report(
             f"**{name}**",
             "",
             "```text",
-            curve.table() if hasattr(curve, "table") else repr(curve),
+            curve.table(),
             "```",
             "",
         ]
