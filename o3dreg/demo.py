@@ -6,9 +6,10 @@ Steps (each logged, the report says what each produced):
 2. bone isosurface at 1150 (raw units, HU 126), largest component, Taubin smoothing: the
    high-density patient mesh (~38k vertices);
 3. the low-density template: that mesh decimated to 2500 vertices;
-4. a population: the patient mesh under smooth random deformations (3% of the diagonal) and
-   rigid motions, each independently remeshed (decimated to its own vertex count), with a seed:
-   a known ground truth for every template vertex;
+4. a population: the patient mesh under smooth deformations drawn from a known 3-mode linear
+   model (3% of the diagonal per mode) plus a small individual part, and rigid motions, each
+   independently remeshed (decimated to its own vertex count), with a seed: a known ground truth
+   for every template vertex;
 5. batch registration of the template onto every patient (single and symmetric distances
    measured on the first);
 6. generalised Procrustes analysis and PCA: the paper's Table 4 (variance per mode) and
@@ -101,21 +102,37 @@ def make_population(
     reference: o3d.geometry.TriangleMesh,
     number_of_patients: int,
     *,
+    number_of_modes: int = 3,
     magnitude: float = 0.03,
+    individual: float = 0.005,
     seed: int = 0,
 ) -> list[Patient]:
     """Patients made from ``reference`` by a smooth warp, a rigid motion and a remeshing each.
 
-    Every patient gets its own warp (``SmoothWarp.random`` with ``magnitude`` of the diagonal),
-    a rotation of up to 10 degrees and a shift of up to 10 mm, and is decimated to its own vertex
-    count (80-95% of the reference's), so no two patients share a triangulation.
+    The warps follow a known linear model, as anatomy does: ``number_of_modes`` fixed smooth
+    displacement fields (``SmoothWarp.random`` with ``magnitude`` of the diagonal each) combined
+    with standard-normal coefficients per patient, plus a small individual warp (``individual``
+    of the diagonal). Each patient also gets a rotation of up to 10 degrees and a shift of up to
+    10 mm, and is decimated to its own vertex count (80-95% of the reference's), so no two
+    patients share a triangulation.
     """
     rng = np.random.default_rng(seed)
     vertices = np.asarray(reference.vertices)
     centre = vertices.mean(axis=0)
+    modes = [
+        SmoothWarp.random(vertices, magnitude=magnitude, seed=int(rng.integers(2**31)))
+        for _ in range(number_of_modes)
+    ]
     patients = []
     for k in range(number_of_patients):
-        warp = SmoothWarp.random(vertices, magnitude=magnitude, seed=int(rng.integers(2**31)))
+        alpha = rng.standard_normal(number_of_modes)
+        own = SmoothWarp.random(vertices, magnitude=individual, seed=int(rng.integers(2**31)))
+        # A sum of Gaussian bumps is itself a SmoothWarp: the modes' bumps scaled by alpha.
+        warp = SmoothWarp(
+            np.concatenate([m.centres for m in modes] + [own.centres]),
+            np.concatenate([a * m.amplitudes for a, m in zip(alpha, modes)] + [own.amplitudes]),
+            own.width,
+        )
         rot = Rotation.from_rotvec(
             np.radians(10.0) * rng.uniform(-1, 1, 3) / np.sqrt(3)
         ).as_matrix()

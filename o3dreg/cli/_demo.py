@@ -13,7 +13,7 @@ MARKER = ".o3dreg-demo"
 
 EPILOG = """what it does:
   bundled CT head -> bone mesh (marching cubes, largest component, smoothing) -> template
-  (decimated) -> a population of patients (smooth random deformations, rigid motions,
+  (decimated) -> a population of patients (smooth deformations from a known 3-mode model, rigid motions,
   independent remeshing; a known ground truth) -> batch registration -> Procrustes -> PCA shape
   model -> landmarks predicted on a held-out patient -> report.md with tables and pictures.
 
