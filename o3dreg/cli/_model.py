@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from ._common import int_list
+
 logger = logging.getLogger("o3dreg")
 
 
@@ -37,6 +39,7 @@ def add_parser(subparsers: Any) -> None:
     build.add_argument("--force", action="store_true", help="register finished patients again")
     build.add_argument(
         "--levels",
+        type=int_list,
         default=None,
         help="lattice resolutions, coarse to fine, e.g. 2,4,8,16 (default)",
     )
@@ -79,16 +82,10 @@ def add_parser(subparsers: Any) -> None:
     model.set_defaults(func=lambda args: (model.print_help(), 2)[1])
 
 
-def _levels(text: str | None) -> Any:
+def _levels(values: list[int] | None) -> Any:
     from ..options import ElasticLevel
 
-    if text is None:
-        return None
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError as exc:
-        raise ValueError(f"--levels must be comma-separated integers, got {text!r}") from exc
-    return [ElasticLevel(v) for v in values]
+    return None if values is None else [ElasticLevel(v) for v in values]
 
 
 def _executor(args: argparse.Namespace) -> tuple[Any, Any]:
