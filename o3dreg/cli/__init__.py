@@ -22,6 +22,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="o3dreg",
         description="Elastic registration of surface meshes and statistical shape models.",
+        epilog="exit status: 0 success; 1 the job ran and wrote its outputs but did not converge "
+        "(or some patients failed); 2 bad input, nothing written; 130 interrupted. "
+        "`o3dreg COMMAND --help` shows each command's options and examples.",
     )
     parser.add_argument("--version", action="version", version=f"o3dreg {__version__}")
     _add_verbosity(parser)
