@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from ._validation import as_mesh_arrays, as_transformation
-from .meshio import atomic_write, read_triangle_mesh, write_triangle_mesh
+from .meshio import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 
 __all__ = ["BatchResult", "PatientRecord", "register_batch"]
 
@@ -211,13 +211,7 @@ def _read_record(path: str) -> PatientRecord | None:
 
 
 def _write_json(path: str, data: Any) -> None:
-    text = json.dumps(data, indent=2) + "\n"
-
-    def write(tmp: str) -> None:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(text)
-
-    atomic_write(path, write, overwrite=True)
+    atomic_write_text(path, json.dumps(data, indent=2) + "\n", overwrite=True)
 
 
 def register_batch(

@@ -7,6 +7,8 @@ from typing import Any
 import igl
 import numpy as np
 
+from ._geometry import barycentric
+
 __all__ = ["SurfaceDistanceQuery"]
 
 
@@ -126,8 +128,7 @@ class SurfaceDistanceQuery:
         if points.shape[0] == 0 or not on_boundary.any():
             return np.zeros(points.shape[0], dtype=bool)
         corners = self.faces[face]
-        a, b, c = (self.vertices[corners[:, k]] for k in range(3))
-        bary = _barycentric(closest, a, b, c)
+        bary = barycentric(self.vertices[corners], closest)
         tiny = bary <= 1e-9
         hit = (tiny & open_edge[face]).any(axis=1)
         # At a corner (two coordinates ~0) the closest point is that vertex.
@@ -139,20 +140,3 @@ class SurfaceDistanceQuery:
         n = self.face_normals[face]
         tangent = diff - (diff * n).sum(axis=1, keepdims=True) * n
         return hit & (np.linalg.norm(tangent, axis=1) > 0.5 * edge)
-
-
-def _barycentric(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates ``(k, 3)`` of points ``p`` in triangles ``(a, b, c)``, clipped to
-    ``[0, 1]`` (the points are closest points, so inside their triangle up to rounding)."""
-    v0, v1, v2 = b - a, c - a, p - a
-    d00 = (v0 * v0).sum(axis=1)
-    d01 = (v0 * v1).sum(axis=1)
-    d11 = (v1 * v1).sum(axis=1)
-    d20 = (v2 * v0).sum(axis=1)
-    d21 = (v2 * v1).sum(axis=1)
-    denom = d00 * d11 - d01 * d01
-    safe = np.where(np.abs(denom) > 0, denom, 1.0)
-    v = (d11 * d20 - d01 * d21) / safe
-    w = (d00 * d21 - d01 * d20) / safe
-    out = np.stack([1.0 - v - w, v, w], axis=1)
-    return np.clip(out, 0.0, 1.0)

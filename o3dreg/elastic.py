@@ -18,6 +18,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from ._cost import LevelProblem, Robustness
+from ._geometry import apply_transformation
 from ._solvers import solve
 from ._validation import as_mesh_arrays, as_transformation, check_positive
 from .deformation import LatticeDeformation
@@ -31,10 +32,6 @@ from .sampling import morton_order, spatial_subsample
 __all__ = ["canonical_mesh", "evaluate_elastic", "lattice_box", "registration_elastic"]
 
 logger = logging.getLogger("o3dreg")
-
-
-def _apply(transformation: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ transformation[:3, :3].T + transformation[:3, 3]
 
 
 def lattice_box(
@@ -179,7 +176,7 @@ def registration_elastic(
     else:
         rigid = as_transformation(init, "init")
 
-    points = _apply(rigid, vs)
+    points = apply_transformation(rigid, vs)
     if parts == "connected":
         labels = connected_components(vs.shape[0], fs)
         if labels.max() > 0:
@@ -365,7 +362,7 @@ def _register_parts(
     callback: Any,
 ) -> ElasticRegistrationResult:
     """``parts='connected'``: one elastic registration per source component."""
-    points = _apply(rigid, vs)
+    points = apply_transformation(rigid, vs)
     _, nearest = cKDTree(points).query(vt, workers=-1)
     target_labels = labels[nearest]
     face_labels = target_labels[ft]
@@ -710,7 +707,7 @@ def evaluate_elastic(
         raise TypeError(
             f"`deformation` must be a LatticeDeformation, got {type(deformation).__name__}"
         )
-    moved = _apply(t, vs)
+    moved = apply_transformation(t, vs)
     if deformation is not None:
         moved = deformation.transform(moved)
     return _distances(moved, fs, SurfaceDistanceQuery(vt, ft), vt)

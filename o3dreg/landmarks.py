@@ -19,8 +19,9 @@ from typing import Any
 
 import numpy as np
 
+from ._geometry import barycentric
 from ._validation import as_mesh_arrays, as_points, check_positive
-from .meshio import atomic_write
+from .meshio import atomic_write_text
 
 __all__ = [
     "LandmarkPrediction",
@@ -160,7 +161,7 @@ class TemplateLandmarks:
                 f"`points` must lie within {max_distance:.3g} of the template surface "
                 f"(landmarks outside the template): {which}"
             )
-        bary = _barycentric(v[f[face]], closest)
+        bary = barycentric(v[f[face]], closest)
         return cls(labels_, face.astype(np.int64), bary, f, v.shape[0])
 
     def positions(self, vertices: Any) -> np.ndarray:
@@ -193,23 +194,6 @@ def _labels(labels: Any, count: int) -> tuple[str, ...]:
     if len(out) != count:
         raise ValueError(f"`labels` must hold {count} labels, got {len(out)}")
     return out
-
-
-def _barycentric(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
-    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
-    v0, v1, v2 = b - a, c - a, points - a
-    d00 = (v0 * v0).sum(1)
-    d01 = (v0 * v1).sum(1)
-    d11 = (v1 * v1).sum(1)
-    d20 = (v2 * v0).sum(1)
-    d21 = (v2 * v1).sum(1)
-    den = d00 * d11 - d01 * d01
-    den = np.where(den == 0, 1.0, den)
-    v = (d11 * d20 - d01 * d21) / den
-    w = (d00 * d21 - d01 * d20) / den
-    bary = np.stack([1.0 - v - w, v, w], axis=1)
-    bary = np.clip(bary, 0.0, None)
-    return bary / bary.sum(axis=1, keepdims=True)
 
 
 # -- files ------------------------------------------------------------------------------------------
@@ -324,11 +308,7 @@ def write_landmarks(
         }
         text = json.dumps(doc, indent=2) + "\n"
 
-    def write(tmp: str) -> None:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(text)
-
-    return atomic_write(path, write, overwrite=overwrite)
+    return atomic_write_text(path, text, overwrite=overwrite)
 
 
 def load_template_landmarks(

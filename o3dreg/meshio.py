@@ -31,6 +31,18 @@ def _suffix(path: str, name: str) -> str:
     return suffix
 
 
+def atomic_write_text(
+    path: str | os.PathLike[str], text: str, *, overwrite: bool = False, name: str = "path"
+) -> str:
+    """Write ``text`` (UTF-8) to ``path`` atomically; see :func:`atomic_write`."""
+
+    def writer(tmp: str) -> None:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text)
+
+    return atomic_write(path, writer, overwrite=overwrite, name=name)
+
+
 def read_triangle_mesh(
     path: str | os.PathLike[str], *, name: str = "path"
 ) -> o3d.geometry.TriangleMesh:

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ._geometry import apply_transformation
 from ._validation import as_points, check_positive
 
 __all__ = ["ProcrustesResult", "as_shape_array", "generalized_procrustes", "procrustes_transform"]
@@ -59,22 +60,29 @@ def _rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
 
 
-def _fit(source: np.ndarray, target: np.ndarray, scaling: bool) -> np.ndarray:
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-    a, b = source - mu_s, target - mu_t
-    r = _rotation(a, b)
+def _fit(
+    source: np.ndarray, target: np.ndarray, scaling: bool, weights: np.ndarray | None = None
+) -> np.ndarray:
+    """Least-squares rigid (or similarity) map of ``source`` onto ``target``, optionally with
+    a non-negative weight per point pair; no reflection."""
+    if weights is None:
+        mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+        a, b = source - mu_s, target - mu_t
+        wa = a
+    else:
+        w = weights / weights.sum()
+        mu_s, mu_t = w @ source, w @ target
+        a, b = source - mu_s, target - mu_t
+        wa = a * w[:, None]
+    r = _rotation(wa, b)
     s = 1.0
     if scaling:
-        denom = float((a * a).sum())
-        s = float(((a @ r.T) * b).sum()) / denom if denom > 0 else 1.0
+        denom = float((wa * a).sum())
+        s = float(((wa @ r.T) * b).sum()) / denom if denom > 0 else 1.0
     t = np.eye(4)
     t[:3, :3] = s * r
     t[:3, 3] = mu_t - s * r @ mu_s
     return t
-
-
-def _apply(t: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ t[:3, :3].T + t[:3, 3]
 
 
 def procrustes_transform(source: Any, target: Any, *, scaling: bool = False) -> np.ndarray:
@@ -222,7 +230,7 @@ def _generalized_procrustes(
     for iterations in range(1, max_iteration + 1):  # noqa: B007
         for i in range(k):
             transforms[i] = _fit(x[i], mean, scaling)
-            aligned[i] = _apply(transforms[i], x[i])
+            aligned[i] = apply_transformation(transforms[i], x[i])
         new_mean = aligned.mean(axis=0)
         new_mean -= new_mean.mean(axis=0)
         # Keep the orientation of the previous mean (a rotation of all shapes is free).
@@ -238,7 +246,7 @@ def _generalized_procrustes(
             break
     for i in range(k):
         transforms[i] = _fit(x[i], mean, scaling)
-        aligned[i] = _apply(transforms[i], x[i])
+        aligned[i] = apply_transformation(transforms[i], x[i])
     message = (
         f"mean converged in {iterations} iterations (relative change {change:.3g})"
         if success

@@ -212,9 +212,10 @@ def specificity(
         if max_modes is None
         else min(model.number_of_modes, check_positive(max_modes, "max_modes", integer=True))
     )
-    from .procrustes import _apply, _fit
+    from ._geometry import apply_transformation
+    from .procrustes import _fit
 
-    aligned = np.stack([_apply(_fit(s, model.mean, model.scaling), s) for s in x])
+    aligned = np.stack([apply_transformation(_fit(s, model.mean, model.scaling), s) for s in x])
     rng = np.random.default_rng(seed)
     z = rng.standard_normal((count, model.number_of_modes))
     values, spreads = np.zeros(top), np.zeros(top)
@@ -225,7 +226,7 @@ def specificity(
         for ref in aligned:
             for j in range(count):
                 t = _fit(ref, samples[j], model.scaling)
-                d = float(np.linalg.norm(_apply(t, ref) - samples[j], axis=1).mean())
+                d = float(np.linalg.norm(apply_transformation(t, ref) - samples[j], axis=1).mean())
                 best[j] = min(best[j], d)
         values[m - 1], spreads[m - 1] = best.mean(), best.std()
     logger.info("specificity: %s", ", ".join(f"{v:.3g}" for v in values))

@@ -10,7 +10,7 @@ import numpy as np
 import open3d as o3d
 
 from .distance import SurfaceDistanceQuery
-from .meshio import atomic_write, to_open3d
+from .meshio import atomic_write, atomic_write_text, to_open3d
 
 logger = logging.getLogger("o3dreg")
 
@@ -249,9 +249,5 @@ def write_report(
     lines += ["", f"Mean error {errors.mean():.2f} mm.", ""]
     text = "\n".join(lines)
     path = out / "report.md"
-
-    def writer(tmp: str) -> None:
-        Path(tmp).write_text(text, encoding="utf-8")
-
-    atomic_write(path, writer, overwrite=True)
+    atomic_write_text(path, text, overwrite=True)
     return path

@@ -193,10 +193,11 @@ class ElasticRegistrationResult:
 
     def transform(self, points: Any) -> np.ndarray:
         """Map any source-space points (landmarks, other meshes' vertices) with ``T``."""
+        from ._geometry import apply_transformation
         from ._validation import as_points
 
         pts = as_points(points, "points", allow_empty=True)
-        moved = pts @ self.transformation[:3, :3].T + self.transformation[:3, 3]
+        moved = apply_transformation(self.transformation, pts)
         if self.part_labels is None or self.part_sites is None or not self.part_deformations:
             return self.deformation.transform(moved)
         from scipy.spatial import cKDTree

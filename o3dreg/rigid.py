@@ -15,6 +15,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
+from ._geometry import apply_transformation
 from ._validation import as_mesh_arrays, as_transformation, check_positive
 
 __all__ = ["moment_alignments", "registration_rigid", "surface_moments"]
@@ -223,7 +224,7 @@ def _icp(
             src, coarse_tgt, 4.0 * max_correspondence_distance, guess, estimation_method, criteria
         )
         t = np.asarray(coarse.transformation)
-        score = _chamfer(vs @ t[:3, :3].T + t[:3, 3], coarse_pts, tree_t)
+        score = _chamfer(apply_transformation(t, vs), coarse_pts, tree_t)
         logger.debug("rigid candidate: fitness %.3f, score %.4g", coarse.fitness, score)
         if score < best_score:
             best, best_score = t, score

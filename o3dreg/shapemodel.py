@@ -18,9 +18,10 @@ import numpy as np
 import open3d as o3d
 
 from ._archive import read_archive, write_archive
+from ._geometry import apply_transformation, barycentric
 from ._validation import as_mesh_arrays, as_points, as_transformation, check_positive
 from .meshio import to_open3d, write_triangle_mesh
-from .procrustes import _apply, _fit, _generalized_procrustes, as_shape_array
+from .procrustes import _fit, _generalized_procrustes, as_shape_array
 
 __all__ = [
     "ModelFit",
@@ -344,10 +345,10 @@ class ShapeModel:
             # best fits the model instance is not exactly the pose that best fits the mean).
             t = _fit(x, self.mean, self.scaling)
             for _ in range(3):
-                y = _apply(t, x)
+                y = apply_transformation(t, x)
                 a = np.tensordot(self.modes[:k], y - self.mean, axes=([1, 2], [0, 1]))
                 t = _fit(x, self._synthesize(a), self.scaling)
-        y = _apply(t, x)
+        y = apply_transformation(t, x)
         a = np.tensordot(self.modes[:k], y - self.mean, axes=([1, 2], [0, 1]))
         rec = self._synthesize(a)
         return ShapeProjection(a, t, rec, y - rec)
@@ -686,26 +687,6 @@ def fit_shape_model(
     return best
 
 
-def _weighted_fit(
-    source: np.ndarray, target: np.ndarray, weights: np.ndarray, scaling: bool
-) -> np.ndarray:
-    """Weighted Procrustes (rigid or similarity, no reflection) of ``source`` onto ``target``."""
-    w = weights / weights.sum()
-    mu_s, mu_t = w @ source, w @ target
-    a, b = source - mu_s, target - mu_t
-    u, _, vt = np.linalg.svd((a * w[:, None]).T @ b)
-    d = 1.0 if np.linalg.det(vt.T @ u.T) >= 0 else -1.0
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    s = 1.0
-    if scaling:
-        denom = float((w[:, None] * a * a).sum())
-        s = float((w[:, None] * (a @ r.T) * b).sum()) / denom if denom > 0 else 1.0
-    t = np.eye(4)
-    t[:3, :3] = s * r
-    t[:3, 3] = mu_t - s * r @ mu_s
-    return t
-
-
 def _fit_model(
     model: ShapeModel,
     vt: np.ndarray,
@@ -723,7 +704,7 @@ def _fit_model(
     variances = model.variances[:k]
     a = np.zeros(k)
     size = float(np.sqrt(((model.mean - model.mean.mean(axis=0)) ** 2).sum(axis=1).mean()))
-    current = _apply(pose, model._synthesize(a))
+    current = apply_transformation(pose, model._synthesize(a))
     success = False
     change = np.inf
     iterations = 0
@@ -732,27 +713,25 @@ def _fit_model(
     # Target samples for the target -> instance correspondences (eq. 3's second term).
     stride = max(1, vt.shape[0] // (4 * n))
     samples = vt[::stride]
-    from .landmarks import _barycentric
-
     for iterations in range(1, max_iteration + 1):  # noqa: B007
         # Forward: instance vertices -> closest target points.
         _, _, closest = query.closest(current)
         # Backward: target samples -> closest points of the instance surface (barycentric).
         _, face, on_instance = SurfaceDistanceQuery(current, faces).closest(samples)
-        weights = _barycentric(current[faces[face]], on_instance)
+        weights = barycentric(current[faces[face]], on_instance)
         instance = model._synthesize(a)
         src = np.vstack([instance, np.einsum("jc,jcd->jd", weights, instance[faces[face]])])
         dst = np.vstack([closest, samples])
         wts = np.concatenate(
             [np.full(n, 1.0 / n), np.full(samples.shape[0], 1.0 / samples.shape[0])]
         )
-        pose = _weighted_fit(src, dst, wts, model.scaling)
+        pose = _fit(src, dst, model.scaling, wts)
         inverse = np.linalg.inv(pose)
-        y = _apply(inverse, dst)
+        y = apply_transformation(inverse, dst)
         sigma2 = reg
         if sigma2 is None:
             scale = float(abs(np.linalg.det(pose[:3, :3]))) ** (2.0 / 3.0)
-            resid = ((_apply(pose, src) - dst) ** 2).sum(axis=1)
+            resid = ((apply_transformation(pose, src) - dst) ** 2).sum(axis=1)
             sigma2 = max(float((wts * resid).sum()) / 2.0 / 3.0 / scale, 1e-12)
         # Model terms of every correspondence: S (M + A a), S = [I; W] (rows of barycentric).
         sm = np.vstack([model.mean, np.einsum("jc,jcd->jd", weights, model.mean[faces[face]])])
@@ -766,7 +745,7 @@ def _fit_model(
         )
         rhs = np.einsum("kjd,j,jd->k", sa, w, y - sm)
         a = np.linalg.solve(lhs, rhs) if k else a
-        new = _apply(pose, model._synthesize(a))
+        new = apply_transformation(pose, model._synthesize(a))
         change = float(np.sqrt(((new - current) ** 2).sum(axis=1).mean())) / max(size, 1e-300)
         current = new
         if change < tolerance:

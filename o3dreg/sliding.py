@@ -17,9 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from ._geometry import apply_transformation
 from ._validation import as_mesh_arrays, check_positive
 from .distance import SurfaceDistanceQuery
-from .procrustes import _apply, _generalized_procrustes, as_shape_array
+from .procrustes import _generalized_procrustes, as_shape_array
 
 __all__ = ["SlidingResult", "slide_semilandmarks"]
 
@@ -187,7 +188,7 @@ def _slide(
             normals = query.face_normals[face]
             t1, t2 = _tangent_bases(normals)
             # The mean in this shape's frame.
-            target = _apply(np.linalg.inv(gpa.transformations[i]), mean)
+            target = apply_transformation(np.linalg.inv(gpa.transformations[i]), mean)
             if criterion == "procrustes":
                 diff = target - shape
                 step = (diff * t1).sum(1)[:, None] * t1 + (diff * t2).sum(1)[:, None] * t2

@@ -8,31 +8,28 @@ import os
 import sys
 from typing import Any
 
-from ..meshio import atomic_write
+from ..meshio import atomic_write_text
+
+
+def _number_list(text: str, convert: type, kind: str, minimum: float) -> list:
+    try:
+        values = [convert(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated {kind}, got {text!r}") from None
+    if not values or min(values) < minimum:
+        bound = "positive integers" if convert is int else "non-negative numbers"
+        raise argparse.ArgumentTypeError(f"expected {bound}, got {text!r}")
+    return values
 
 
 def int_list(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated integers, got {text!r}"
-        ) from None
-    if not values or min(values) < 1:
-        raise argparse.ArgumentTypeError(f"expected positive integers, got {text!r}")
-    return values
+    """``"2,4,8"`` -> ``[2, 4, 8]`` (positive integers), for argparse ``type=``."""
+    return _number_list(text, int, "integers", 1)
 
 
 def float_list(text: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated numbers, got {text!r}"
-        ) from None
-    if not values or min(values) < 0:
-        raise argparse.ArgumentTypeError(f"expected non-negative numbers, got {text!r}")
-    return values
+    """``"0.1,1"`` -> ``[0.1, 1.0]`` (non-negative numbers), for argparse ``type=``."""
+    return _number_list(text, float, "numbers", 0.0)
 
 
 def check_outputs(paths: dict[str, str | None], overwrite: bool) -> None:
@@ -48,12 +45,9 @@ def check_outputs(paths: dict[str, str | None], overwrite: bool) -> None:
 
 
 def write_json(path: str, data: Any, *, overwrite: bool) -> str:
-    def writer(tmp: str) -> None:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=2, sort_keys=False)
-            fh.write("\n")
-
-    return atomic_write(path, writer, overwrite=overwrite, name="report")
+    return atomic_write_text(
+        path, json.dumps(data, indent=2) + "\n", overwrite=overwrite, name="report"
+    )
 
 
 def emit(text: str, args: argparse.Namespace) -> None:

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from ..meshio import atomic_write_text
 from ._common import int_list
 
 logger = logging.getLogger("o3dreg")
@@ -102,16 +103,6 @@ def _executor(args: argparse.Namespace) -> tuple[Any, Any]:
     return None, None
 
 
-def _write_text(path: str, text: str) -> None:
-    from ..meshio import atomic_write
-
-    def write(tmp: str) -> None:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(text)
-
-    atomic_write(path, write, overwrite=True)
-
-
 def run_build(args: argparse.Namespace) -> int:
     from ..batch import register_batch
     from ..meshio import read_triangle_mesh, write_triangle_mesh
@@ -170,7 +161,9 @@ def run_build(args: argparse.Namespace) -> int:
     os.makedirs(os.path.join(out, "modes"), exist_ok=True)
     model.write_meshes(os.path.join(out, "modes"), overwrite=True)
     write_triangle_mesh(os.path.join(out, "mean.ply"), model.mesh(), overwrite=True)
-    _write_text(os.path.join(out, "variance.txt"), model.variance_table() + "\n")
+    atomic_write_text(
+        os.path.join(out, "variance.txt"), model.variance_table() + "\n", overwrite=True
+    )
     quality_dir = os.path.join(out, "quality")
     os.makedirs(quality_dir, exist_ok=True)
     curves = [compactness(model), specificity(model, shapes, number_of_samples=100, seed=0)]
@@ -178,7 +171,9 @@ def run_build(args: argparse.Namespace) -> int:
         curves.append(generalization(shapes, faces, scaling=args.scaling))
     for curve in curves:
         curve.plot(os.path.join(quality_dir, f"{curve.name}.png"), overwrite=True)
-        _write_text(os.path.join(quality_dir, f"{curve.name}.txt"), curve.table() + "\n")
+        atomic_write_text(
+            os.path.join(quality_dir, f"{curve.name}.txt"), curve.table() + "\n", overwrite=True
+        )
     report = {
         "model_dir": out,
         "patients": batch.as_dicts(),
@@ -190,7 +185,9 @@ def run_build(args: argparse.Namespace) -> int:
         if slid is None
         else {"iterations": slid.iterations, "message": slid.message},
     }
-    _write_text(os.path.join(out, "report.json"), json.dumps(report, indent=2) + "\n")
+    atomic_write_text(
+        os.path.join(out, "report.json"), json.dumps(report, indent=2) + "\n", overwrite=True
+    )
     if args.json:
         print(json.dumps(report, indent=2))
     else:
