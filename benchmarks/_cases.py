@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from o3dreg.datasets import load_bunny
-from o3dreg.synthetic import SmoothWarp
+from o3dreg.app.datasets import load_bunny
+from o3dreg.app.synthetic import SmoothWarp
 
 #: Warp magnitudes as a fraction of the bounding-box diagonal.
 MAGNITUDES = {"small": 0.02, "medium": 0.05, "large": 0.1}

@@ -79,7 +79,7 @@ CASES = (
 def _warped_case(dense, magnitude: float, template_vertices: int, seed: int) -> dict:
     import open3d as o3d
 
-    from o3dreg.synthetic import SmoothWarp
+    from o3dreg.app.synthetic import SmoothWarp
 
     template = o3d.geometry.TriangleMesh(dense).simplify_quadric_decimation(2 * template_vertices)
     template.remove_unreferenced_vertices()
@@ -109,8 +109,8 @@ def build_case(name: str, seed: int = 1) -> dict | None:
     """The arrays of one case, or ``None`` when its data is absent."""
     from _cases import MAGNITUDES
 
-    from o3dreg.datasets import load_bunny
-    from o3dreg.synthetic import synthetic_form
+    from o3dreg.app.datasets import load_bunny
+    from o3dreg.app.synthetic import synthetic_form
 
     rng = np.random.default_rng(seed)
     if name.startswith("bunny"):

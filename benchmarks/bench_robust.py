@@ -12,7 +12,7 @@ default levels) onto the full bunny under a known smooth warp (5% of the diagona
   random positions in the target's bounding box grown by 10%, as many as 1%, 5%, 20% of the
   target's vertices;
 * outliers 20% + clean: the same debris removed first by
-  ``o3dreg.cleaning.remove_small_components(target, 100)``;
+  ``o3dreg.volume.cleaning.remove_small_components(target, 100)``;
 * plates: two 60 x 60 x 1 mm plates 4 mm apart, the upper one shifted +3 mm along x and the lower
   one -3 mm (``--plates``), with one map of space (default) and with ``parts='connected'`` (one
   lattice hierarchy per connected component of the template).
@@ -106,7 +106,7 @@ def robustness_table() -> None:
             target = with_debris(case.target, spec[1])
         elif spec is not None:
             # Preprocessing: drop the components with fewer than 100 vertices first.
-            from o3dreg.cleaning import remove_small_components
+            from o3dreg.volume.cleaning import remove_small_components
 
             target = remove_small_components(with_debris(case.target, spec[1]), 100)
         truly = truth[:, 1] <= cut

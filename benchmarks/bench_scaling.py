@@ -46,7 +46,7 @@ STAGES = [
 
 def target_mesh(n: int):
 
-    from o3dreg.datasets import load_bunny
+    from o3dreg.app.datasets import load_bunny
 
     bunny = load_bunny()
     k = TARGETS[n]
@@ -58,8 +58,8 @@ def target_mesh(n: int):
 
 
 def make_case(target, template_vertices: int) -> dict:
-    from o3dreg.datasets import load_bunny
-    from o3dreg.synthetic import SmoothWarp
+    from o3dreg.app.datasets import load_bunny
+    from o3dreg.app.synthetic import SmoothWarp
 
     bunny = load_bunny()
     template = bunny.simplify_quadric_decimation(2 * template_vertices)

@@ -30,7 +30,7 @@ def plot_error_vs_time(rows: list[dict], path: Path) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from o3dreg.meshio import atomic_write
+    from o3dreg.io.mesh import atomic_write
 
     fig = Figure(figsize=(8, 5.5), dpi=100)
     FigureCanvasAgg(fig)
@@ -65,7 +65,7 @@ def render_registrations(folder: Path) -> None:
 
     from bench_peers import build_case, register
 
-    from o3dreg.render import render_mesh
+    from o3dreg.app.render import render_mesh
 
     case = build_case("bunny-medium")
     assert case is not None

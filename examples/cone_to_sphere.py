@@ -9,7 +9,7 @@ patch of it (large sphere->cone distance); the symmetric distance spreads it ove
 import numpy as np
 
 import o3dreg
-from o3dreg.synthetic import synthetic_form
+from o3dreg.app.synthetic import synthetic_form
 
 cone = synthetic_form("cone", 1000)
 sphere = synthetic_form("sphere", 30000)

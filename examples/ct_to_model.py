@@ -11,8 +11,8 @@ import tempfile
 import numpy as np
 
 import o3dreg
-from o3dreg.datasets import headsq_path
-from o3dreg.demo import make_population
+from o3dreg.app.datasets import headsq_path
+from o3dreg.app.demo import make_population
 
 output = sys.argv[1] if len(sys.argv) > 1 else tempfile.mkdtemp(prefix="o3dreg-")
 

@@ -25,7 +25,7 @@ import time
 import numpy as np
 
 import o3dreg
-from o3dreg.synthetic import FORMS, synthetic_form
+from o3dreg.app.synthetic import FORMS, synthetic_form
 
 LABELS = {"sphere": "Sphere", "cube": "Cube", "open_ring": "Open Ring", "cone": "Cone"}
 
@@ -201,8 +201,8 @@ def draw(folder: str, meshes: dict) -> None:
     """Figures: cone -> sphere (single, symmetric) and sphere -> open ring (symmetric)."""
     from pathlib import Path
 
-    from o3dreg.distance import SurfaceDistanceQuery
-    from o3dreg.render import render_mesh
+    from o3dreg.app.render import render_mesh
+    from o3dreg.registration.distance import SurfaceDistanceQuery
 
     Path(folder).mkdir(parents=True, exist_ok=True)
     cases = [

@@ -12,8 +12,8 @@ import numpy as np
 import open3d as o3d
 
 import o3dreg
-from o3dreg.datasets import load_bunny
-from o3dreg.synthetic import SmoothWarp
+from o3dreg.app.datasets import load_bunny
+from o3dreg.app.synthetic import SmoothWarp
 
 dense = load_bunny()  # 35,947 vertices, millimetres
 template = dense.simplify_quadric_decimation(6000)

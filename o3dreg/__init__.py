@@ -12,22 +12,22 @@ __version__ = "0.1.0"
 
 logging.getLogger("o3dreg").addHandler(logging.NullHandler())
 
-from .meshio import read_triangle_mesh, write_triangle_mesh  # noqa: E402
+from .io.mesh import read_triangle_mesh, write_triangle_mesh  # noqa: E402
 
 __all__ = ["__version__", "read_triangle_mesh", "write_triangle_mesh"]
 
 # --- elastic registration -----------------------------------------------------------------------
-from .deformation import LatticeDeformation  # noqa: E402
-from .elastic import evaluate_elastic, registration_elastic  # noqa: E402
-from .lattice import TrilinearLattice  # noqa: E402
-from .options import (  # noqa: E402
+from .registration.deformation import LatticeDeformation  # noqa: E402
+from .registration.elastic import evaluate_elastic, registration_elastic  # noqa: E402
+from .registration.lattice import TrilinearLattice  # noqa: E402
+from .registration.options import (  # noqa: E402
     DistanceEstimation,
     ElasticCriteria,
     ElasticLevel,
     default_levels,
 )
-from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances  # noqa: E402
-from .rigid import registration_rigid  # noqa: E402
+from .registration.result import ElasticRegistrationResult, LevelReport, SurfaceDistances  # noqa: E402
+from .registration.rigid import registration_rigid  # noqa: E402
 
 __all__ += [
     "DistanceEstimation",
@@ -45,7 +45,7 @@ __all__ += [
 ]
 
 # --- CT reconstruction (volume, isosurface, cleaning) ---
-from .cleaning import (  # noqa: E402
+from .volume.cleaning import (  # noqa: E402
     Components,
     connected_components,
     crop_mesh,
@@ -54,8 +54,8 @@ from .cleaning import (  # noqa: E402
     remove_small_components,
     smooth_taubin,
 )
-from .isosurface import isosurface  # noqa: E402
-from .volume import Volume, read_raw_slices, read_volume  # noqa: E402
+from .volume.isosurface import isosurface  # noqa: E402
+from .volume.volume import Volume, read_raw_slices, read_volume  # noqa: E402
 
 __all__ += [
     "Components",
@@ -72,8 +72,8 @@ __all__ += [
 ]
 
 # --- shape models ---
-from .batch import BatchResult, PatientRecord, register_batch  # noqa: E402
-from .landmarks import (  # noqa: E402
+from .registration.batch import BatchResult, PatientRecord, register_batch  # noqa: E402
+from .shape.landmarks import (  # noqa: E402
     LandmarkPrediction,
     TemplateLandmarks,
     landmark_errors,
@@ -82,17 +82,17 @@ from .landmarks import (  # noqa: E402
     read_landmarks,
     write_landmarks,
 )
-from .procrustes import ProcrustesResult, generalized_procrustes, procrustes_transform  # noqa: E402
-from .quality import QualityCurve, compactness, generalization, specificity  # noqa: E402
-from .shapemodel import (  # noqa: E402
+from .shape.model import (  # noqa: E402
     ModelFit,
     ShapeModel,
     ShapeProjection,
     build_shape_model,
     fit_shape_model,
 )
-from .sliding import SlidingResult, slide_semilandmarks  # noqa: E402
-from .statismo import read_statismo, write_statismo  # noqa: E402
+from .shape.procrustes import ProcrustesResult, generalized_procrustes, procrustes_transform  # noqa: E402
+from .shape.quality import QualityCurve, compactness, generalization, specificity  # noqa: E402
+from .shape.sliding import SlidingResult, slide_semilandmarks  # noqa: E402
+from .shape.statismo import read_statismo, write_statismo  # noqa: E402
 
 __all__ += [
     "BatchResult",

@@ -8,7 +8,7 @@ from pathlib import Path
 import open3d as o3d
 import pytest
 
-from o3dreg.datasets import load_bunny
+from o3dreg.app.datasets import load_bunny
 
 
 def shared_data_dir() -> Path | None:

@@ -10,8 +10,8 @@ import open3d as o3d
 import pytest
 import SimpleITK as sitk
 
+from o3dreg.app.datasets import headsq_path
 from o3dreg.cli import main
-from o3dreg.datasets import headsq_path
 
 DATA = Path(__file__).resolve().parent / "data"
 HEADSQ = headsq_path().parent  # bundled with the package (o3dreg/data)

@@ -6,8 +6,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from o3dreg.app.synthetic import SmoothWarp, synthetic_form
 from o3dreg.cli import main
-from o3dreg.synthetic import SmoothWarp, synthetic_form
 
 
 @pytest.fixture(scope="module")

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from o3dreg._cost import LevelProblem
-from o3dreg.distance import SurfaceDistanceQuery
-from o3dreg.elastic import lattice_box
-from o3dreg.lattice import TrilinearLattice
-from o3dreg.synthetic import synthetic_form
+from o3dreg.app.synthetic import synthetic_form
+from o3dreg.registration._cost import LevelProblem
+from o3dreg.registration.distance import SurfaceDistanceQuery
+from o3dreg.registration.elastic import lattice_box
+from o3dreg.registration.lattice import TrilinearLattice
 
 
 @pytest.fixture(scope="module")

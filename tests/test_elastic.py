@@ -14,7 +14,7 @@ from o3dreg import (
     evaluate_elastic,
     registration_elastic,
 )
-from o3dreg.synthetic import SmoothWarp, synthetic_form
+from o3dreg.app.synthetic import SmoothWarp, synthetic_form
 
 FAST = [ElasticLevel(2, 0.1), ElasticLevel(4, 0.1), ElasticLevel(8, 0.1)]
 

@@ -17,8 +17,8 @@ from o3dreg import (
     registration_elastic,
     registration_rigid,
 )
-from o3dreg.lattice import TrilinearLattice
-from o3dreg.synthetic import synthetic_form
+from o3dreg.app.synthetic import synthetic_form
+from o3dreg.registration.lattice import TrilinearLattice
 
 LEVELS = [ElasticLevel(2, 0.1), ElasticLevel(4, 0.1)]
 CRITERIA = ElasticCriteria(max_iteration=3)

@@ -10,7 +10,7 @@ import pytest
 from scipy.special import ellipeinc, ellipkinc
 
 from o3dreg import Volume, connected_components, isosurface, keep_largest_components, read_volume
-from o3dreg.datasets import headsq_path
+from o3dreg.app.datasets import headsq_path
 
 DATA = Path(__file__).resolve().parent / "data"
 HEADSQ = headsq_path().parent  # bundled with the package (o3dreg/data)

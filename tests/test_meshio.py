@@ -6,8 +6,8 @@ import pytest
 from _helpers import assert_untouched, mesh_of, snapshot
 
 from o3dreg import read_triangle_mesh, write_triangle_mesh
-from o3dreg.meshio import atomic_write
-from o3dreg.synthetic import synthetic_form
+from o3dreg.app.synthetic import synthetic_form
+from o3dreg.io.mesh import atomic_write
 
 
 def test_roundtrip_and_inputs_untouched(tmp_path):

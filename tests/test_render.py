@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from o3dreg.render import render_mesh
-from o3dreg.synthetic import synthetic_form
+from o3dreg.app.render import render_mesh
+from o3dreg.app.synthetic import synthetic_form
 
 
 def _png_size(path) -> tuple[int, int]:

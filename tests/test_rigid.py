@@ -7,8 +7,8 @@ from _helpers import assert_untouched, snapshot
 from scipy.spatial.transform import Rotation
 
 from o3dreg import registration_rigid
-from o3dreg.rigid import moment_alignments, surface_moments
-from o3dreg.synthetic import synthetic_form
+from o3dreg.app.synthetic import synthetic_form
+from o3dreg.registration.rigid import moment_alignments, surface_moments
 
 
 def known_transform(angle_deg=35.0, axis=(1.0, 2.0, 0.5), shift=(12.0, -7.0, 4.0), scale=1.0):

@@ -6,10 +6,10 @@ import open3d as o3d
 import pytest
 
 from o3dreg import DistanceEstimation, ElasticLevel, registration_elastic
-from o3dreg._cost import robust_weights
-from o3dreg.distance import SurfaceDistanceQuery
-from o3dreg.elastic import canonical_mesh, flipped_triangles
-from o3dreg.synthetic import SmoothWarp, synthetic_form
+from o3dreg.app.synthetic import SmoothWarp, synthetic_form
+from o3dreg.registration._cost import robust_weights
+from o3dreg.registration.distance import SurfaceDistanceQuery
+from o3dreg.registration.elastic import canonical_mesh, flipped_triangles
 
 FAST = [ElasticLevel(2, 0.1), ElasticLevel(4, 0.1), ElasticLevel(8, 0.1)]
 

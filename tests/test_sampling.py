@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from o3dreg.sampling import spatial_subsample
-from o3dreg.synthetic import synthetic_form
+from o3dreg.app.synthetic import synthetic_form
+from o3dreg.registration.sampling import spatial_subsample
 
 
 def test_count_and_order_independence():

@@ -7,7 +7,7 @@ import pytest
 from test_shapemodel import FAST_LEVELS, population
 
 from o3dreg import build_shape_model, register_batch, slide_semilandmarks
-from o3dreg.distance import SurfaceDistanceQuery
+from o3dreg.registration.distance import SurfaceDistanceQuery
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from o3dreg.synthetic import FORMS, synthetic_form
+from o3dreg.app.synthetic import FORMS, synthetic_form
 
 #: Analytic volumes (mm^3) of the shapes whose signed distance functions are sampled.
 VOLUMES = {

@@ -15,7 +15,7 @@ from pydicom.dataset import FileDataset, FileMetaDataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
 from o3dreg import Volume, read_raw_slices, read_volume
-from o3dreg.datasets import headsq_path
+from o3dreg.app.datasets import headsq_path
 
 DATA = Path(__file__).resolve().parent / "data"
 HEADSQ = headsq_path().parent  # bundled with the package (o3dreg/data)

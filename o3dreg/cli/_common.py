@@ -8,7 +8,7 @@ import os
 import sys
 from typing import Any
 
-from ..meshio import atomic_write_text
+from ..io.mesh import atomic_write_text
 
 
 def _number_list(text: str, convert: type, kind: str, minimum: float) -> list:

@@ -65,7 +65,7 @@ def prepare_output(folder: str) -> str:
 def run(args: argparse.Namespace) -> int:
     import concurrent.futures as cf
 
-    from ..demo import run_demo
+    from ..app.demo import run_demo
 
     if args.patients < 3:
         raise ValueError(f"--patients must be >= 3, got {args.patients}")

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..meshio import atomic_write_text
+from ..io.mesh import atomic_write_text
 from ._common import int_list
 
 logger = logging.getLogger("o3dreg")
@@ -84,7 +84,7 @@ def add_parser(subparsers: Any) -> None:
 
 
 def _levels(values: list[int] | None) -> Any:
-    from ..options import ElasticLevel
+    from ..registration.options import ElasticLevel
 
     return None if values is None else [ElasticLevel(v) for v in values]
 
@@ -104,11 +104,11 @@ def _executor(args: argparse.Namespace) -> tuple[Any, Any]:
 
 
 def run_build(args: argparse.Namespace) -> int:
-    from ..batch import register_batch
-    from ..meshio import read_triangle_mesh, write_triangle_mesh
-    from ..quality import compactness, generalization, specificity
-    from ..shapemodel import build_shape_model
-    from ..statismo import write_statismo
+    from ..io.mesh import read_triangle_mesh, write_triangle_mesh
+    from ..registration.batch import register_batch
+    from ..shape.model import build_shape_model
+    from ..shape.quality import compactness, generalization, specificity
+    from ..shape.statismo import write_statismo
 
     template = read_triangle_mesh(args.template, name="TEMPLATE")
     out = args.output
@@ -150,7 +150,7 @@ def run_build(args: argparse.Namespace) -> int:
     faces = np.asarray(template.triangles)
     slid = None
     if args.slide:
-        from ..sliding import slide_semilandmarks
+        from ..shape.sliding import slide_semilandmarks
 
         surfaces = [read_triangle_mesh(r.source) for r in batch.registered]
         slid = slide_semilandmarks(shapes, surfaces, scaling=args.scaling)
@@ -203,7 +203,7 @@ def run_build(args: argparse.Namespace) -> int:
 
 
 def _load(model_dir: str) -> Any:
-    from ..shapemodel import ShapeModel
+    from ..shape.model import ShapeModel
 
     path = os.path.join(model_dir, "model.npz")
     if not os.path.isfile(path):
@@ -250,14 +250,14 @@ def run_modes(args: argparse.Namespace) -> int:
 
 
 def run_fit(args: argparse.Namespace) -> int:
-    from ..landmarks import (
+    from ..io.mesh import read_triangle_mesh
+    from ..shape.landmarks import (
         landmark_errors,
         load_template_landmarks,
         predict_landmarks,
         read_landmarks,
         write_landmarks,
     )
-    from ..meshio import read_triangle_mesh
 
     model = _load(args.model_dir)
     template_path = os.path.join(args.model_dir, "template.ply")

@@ -74,7 +74,8 @@ def add_parser(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .._validation import check_output_path, check_positive
-    from ..cleaning import (
+    from ..io.mesh import _suffix, write_triangle_mesh
+    from ..volume.cleaning import (
         connected_components,
         crop_mesh,
         decimate,
@@ -82,9 +83,8 @@ def run(args: argparse.Namespace) -> int:
         remove_small_components,
         smooth_taubin,
     )
-    from ..isosurface import isosurface
-    from ..meshio import _suffix, write_triangle_mesh
-    from ..volume import read_volume
+    from ..volume.isosurface import isosurface
+    from ..volume.volume import read_volume
 
     start = time.perf_counter()
     # Fail before any work: bad output suffix, missing folder, existing file.

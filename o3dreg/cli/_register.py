@@ -8,11 +8,11 @@ import time
 
 import numpy as np
 
-from ..elastic import registration_elastic
-from ..meshio import read_triangle_mesh, write_triangle_mesh
-from ..options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
-from ..result import ElasticRegistrationResult, LevelReport
-from ..rigid import registration_rigid
+from ..io.mesh import read_triangle_mesh, write_triangle_mesh
+from ..registration.elastic import registration_elastic
+from ..registration.options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
+from ..registration.result import ElasticRegistrationResult, LevelReport
+from ..registration.rigid import registration_rigid
 from ._common import check_outputs, emit, emit_json, float_list, int_list, write_json
 
 EPILOG = """examples:

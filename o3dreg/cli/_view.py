@@ -7,8 +7,8 @@ import os
 
 import numpy as np
 
-from ..distance import SurfaceDistanceQuery
-from ..meshio import read_triangle_mesh
+from ..io.mesh import read_triangle_mesh
+from ..registration.distance import SurfaceDistanceQuery
 from ._common import emit
 
 EPILOG = """examples:
@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
             args,
         )
     if args.screenshot:
-        from ..render import render_mesh
+        from ..app.render import render_mesh
 
         if os.path.exists(args.screenshot) and not args.overwrite:
             raise OSError(

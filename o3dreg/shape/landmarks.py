@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from ._geometry import barycentric
-from ._validation import as_mesh_arrays, as_points, check_positive
-from .meshio import atomic_write_text
+from .._geometry import barycentric
+from .._validation import as_mesh_arrays, as_points, check_positive
+from ..io.mesh import atomic_write_text
 
 __all__ = [
     "LandmarkPrediction",
@@ -144,7 +144,7 @@ class TemplateLandmarks:
             Points farther than this from the template surface raise ``ValueError`` (landmarks
             outside the template). Default 5 % of the template's bounding-box diagonal.
         """
-        from .distance import SurfaceDistanceQuery
+        from ..registration.distance import SurfaceDistanceQuery
 
         v, f = as_mesh_arrays(template, "template")
         pts = as_points(points, "points")
@@ -394,7 +394,7 @@ def predict_landmarks(
     -------
     LandmarkPrediction
     """
-    from .shapemodel import ShapeModel, fit_shape_model
+    from .model import ShapeModel, fit_shape_model
 
     if not isinstance(model, ShapeModel):
         raise TypeError(f"`model` must be a ShapeModel, got {type(model).__name__}")

@@ -32,18 +32,18 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation
 
-from .batch import BatchResult, register_batch
-from .cleaning import decimate, keep_largest_components, smooth_taubin
+from ..io.mesh import write_triangle_mesh
+from ..registration.batch import BatchResult, register_batch
+from ..registration.elastic import evaluate_elastic, registration_elastic
+from ..registration.options import DistanceEstimation
+from ..shape.landmarks import TemplateLandmarks, landmark_errors, predict_landmarks
+from ..shape.model import ShapeModel, build_shape_model
+from ..shape.quality import compactness, generalization, specificity
+from ..volume.cleaning import decimate, keep_largest_components, smooth_taubin
+from ..volume.isosurface import isosurface
+from ..volume.volume import Volume, read_volume
 from .datasets import headsq_path
-from .elastic import evaluate_elastic, registration_elastic
-from .isosurface import isosurface
-from .landmarks import TemplateLandmarks, landmark_errors, predict_landmarks
-from .meshio import write_triangle_mesh
-from .options import DistanceEstimation
-from .quality import compactness, generalization, specificity
-from .shapemodel import ShapeModel, build_shape_model
 from .synthetic import SmoothWarp
-from .volume import Volume, read_volume
 
 __all__ = ["DemoResult", "make_population", "run_demo"]
 

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ._validation import as_points, check_positive
+from .._validation import as_points, check_positive
 
 __all__ = ["FORMS", "SmoothWarp", "synthetic_form"]
 

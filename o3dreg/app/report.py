@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from .distance import SurfaceDistanceQuery
-from .meshio import atomic_write, atomic_write_text, to_open3d
+from ..io.mesh import atomic_write, atomic_write_text, to_open3d
+from ..registration.distance import SurfaceDistanceQuery
 
 logger = logging.getLogger("o3dreg")
 

@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from .meshio import atomic_write
-from .shapemodel import ShapeModel
+from ..io.mesh import atomic_write
+from .model import ShapeModel
 
 __all__ = ["read_statismo", "write_statismo"]
 

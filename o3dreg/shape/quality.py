@@ -13,10 +13,10 @@ from typing import Any
 
 import numpy as np
 
-from ._validation import check_positive
-from .meshio import atomic_write
+from .._validation import check_positive
+from ..io.mesh import atomic_write
+from .model import ShapeModel, _build
 from .procrustes import as_shape_array
-from .shapemodel import ShapeModel, _build
 
 __all__ = ["QualityCurve", "compactness", "generalization", "specificity"]
 
@@ -212,7 +212,7 @@ def specificity(
         if max_modes is None
         else min(model.number_of_modes, check_positive(max_modes, "max_modes", integer=True))
     )
-    from ._geometry import apply_transformation
+    from .._geometry import apply_transformation
     from .procrustes import _fit
 
     aligned = np.stack([apply_transformation(_fit(s, model.mean, model.scaling), s) for s in x])

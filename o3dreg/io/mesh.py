@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from ._validation import as_mesh_arrays, check_output_path
+from .._validation import as_mesh_arrays, check_output_path
 
 __all__ = [
     "MESH_SUFFIXES",

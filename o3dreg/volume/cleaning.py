@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from ._validation import as_mesh_arrays, as_points, check_positive
-from .meshio import to_open3d
+from .._validation import as_mesh_arrays, as_points, check_positive
+from ..io.mesh import to_open3d
 
 __all__ = [
     "Components",

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from ._geometry import apply_transformation
-from ._validation import as_points, check_positive
+from .._geometry import apply_transformation
+from .._validation import as_points, check_positive
 
 __all__ = ["ProcrustesResult", "as_shape_array", "generalized_procrustes", "procrustes_transform"]
 

@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from ._validation import check_positive
-from .meshio import to_open3d
+from .._validation import check_positive
+from ..io.mesh import to_open3d
 from .volume import Volume
 
 __all__ = ["isosurface"]

@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from ._validation import as_mesh_arrays
-from .meshio import atomic_write
+from .._validation import as_mesh_arrays
+from ..io.mesh import atomic_write
 
 __all__ = ["BACKENDS", "render_mesh"]
 

@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from ._archive import read_archive, write_archive
-from ._geometry import apply_transformation, barycentric
-from ._validation import as_mesh_arrays, as_points, as_transformation, check_positive
-from .meshio import to_open3d, write_triangle_mesh
+from .._geometry import apply_transformation, barycentric
+from .._validation import as_mesh_arrays, as_points, as_transformation, check_positive
+from ..io.archive import read_archive, write_archive
+from ..io.mesh import to_open3d, write_triangle_mesh
 from .procrustes import _fit, _generalized_procrustes, as_shape_array
 
 __all__ = [
@@ -664,8 +664,8 @@ def fit_shape_model(
     if init is not None:
         pose = as_transformation(init, "init")
         return _fit_model(model, vt, ft, pose, k, reg, max_iteration, tolerance)
-    from .distance import SurfaceDistanceQuery
-    from .rigid import registration_rigid
+    from ..registration.distance import SurfaceDistanceQuery
+    from ..registration.rigid import registration_rigid
 
     # Two starts: the rigid registration of the mean (moment-based guess + ICP) and a plain
     # translation of centroids (right when patients share the model's orientation, where the
@@ -697,7 +697,7 @@ def _fit_model(
     max_iteration: int,
     tolerance: float,
 ) -> ModelFit:
-    from .distance import SurfaceDistanceQuery
+    from ..registration.distance import SurfaceDistanceQuery
 
     query = SurfaceDistanceQuery(vt, ft)
     modes = model.modes[:k]

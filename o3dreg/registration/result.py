@@ -193,8 +193,8 @@ class ElasticRegistrationResult:
 
     def transform(self, points: Any) -> np.ndarray:
         """Map any source-space points (landmarks, other meshes' vertices) with ``T``."""
-        from ._geometry import apply_transformation
-        from ._validation import as_points
+        from .._geometry import apply_transformation
+        from .._validation import as_points
 
         pts = as_points(points, "points", allow_empty=True)
         moved = apply_transformation(self.transformation, pts)
@@ -228,9 +228,9 @@ class ElasticRegistrationResult:
             unsupported ones (a PLY file written with Open3D keeps them as ``red``, ``green``,
             ``blue`` vertex properties; ``supported == (red == green)``).
         """
-        from ._validation import as_mesh_arrays
+        from .._validation import as_mesh_arrays
+        from ..io.mesh import to_open3d
         from .distance import SurfaceDistanceQuery
-        from .meshio import to_open3d
 
         vertices = self.vertices
         if target is not None:

@@ -1,7 +1,7 @@
 """The elastic deformation of space: a hierarchy of trilinear lattices.
 
 ``T(x) = x + sum_k u_k(x)`` where ``u_k`` is the displacement field of level ``k`` (a
-:class:`~o3dreg.lattice.TrilinearLattice`; all levels share one box). Each level adds detail to the
+:class:`~o3dreg.registration.lattice.TrilinearLattice`; all levels share one box). Each level adds detail to the
 coarser ones, as in the multi-resolution scheme of Berar et al. (2005), Fig. 3, and the
 octree-splines of Szeliski and Lavallee (1996). The map applies to any points: template vertices,
 landmarks, other meshes.
@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from ._archive import read_archive, write_archive
-from ._validation import as_points
+from .._validation import as_points
+from ..io.archive import read_archive, write_archive
 from .lattice import TrilinearLattice
 
 __all__ = ["LatticeDeformation"]

@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from ._geometry import apply_transformation
-from ._validation import as_mesh_arrays, check_positive
-from .distance import SurfaceDistanceQuery
+from .._geometry import apply_transformation
+from .._validation import as_mesh_arrays, check_positive
+from ..registration.distance import SurfaceDistanceQuery
 from .procrustes import _generalized_procrustes, as_shape_array
 
 __all__ = ["SlidingResult", "slide_semilandmarks"]

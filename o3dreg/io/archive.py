@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from .meshio import atomic_write
+from .mesh import atomic_write
 
 
 def write_archive(

@@ -7,7 +7,7 @@ from typing import Any
 import igl
 import numpy as np
 
-from ._geometry import barycentric
+from .._geometry import barycentric
 
 __all__ = ["SurfaceDistanceQuery"]
 

@@ -192,7 +192,7 @@ class Volume:
         -------
         points : (n, 3) float64 ndarray
         """
-        from ._validation import as_points
+        from .._validation import as_points
 
         idx = as_points(index, "index", allow_empty=True)
         return self._index_to_world(idx)
@@ -203,7 +203,7 @@ class Volume:
 
     def world_to_index(self, points: Any) -> np.ndarray:
         """Continuous voxel indices ``(p, r, c)`` in array order of world points (n, 3) in mm."""
-        from ._validation import as_points
+        from .._validation import as_points
 
         pts = as_points(points, "points", allow_empty=True)
         ijk = (pts - self.origin) @ self.direction / self.spacing[::-1]

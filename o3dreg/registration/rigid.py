@@ -15,8 +15,8 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from ._geometry import apply_transformation
-from ._validation import as_mesh_arrays, as_transformation, check_positive
+from .._geometry import apply_transformation
+from .._validation import as_mesh_arrays, as_transformation, check_positive
 
 __all__ = ["moment_alignments", "registration_rigid", "surface_moments"]
 

@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from ._validation import as_mesh_arrays, as_transformation
-from .meshio import atomic_write_text, read_triangle_mesh, write_triangle_mesh
+from .._validation import as_mesh_arrays, as_transformation
+from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 
 __all__ = ["BatchResult", "PatientRecord", "register_batch"]
 

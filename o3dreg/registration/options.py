@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ._validation import check_positive, check_probability
+from .._validation import check_positive, check_probability
 
 ENERGIES = ("bending", "membrane")
 

@@ -17,10 +17,10 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from .._geometry import apply_transformation
+from .._validation import as_mesh_arrays, as_transformation, check_positive
 from ._cost import LevelProblem, Robustness
-from ._geometry import apply_transformation
 from ._solvers import solve
-from ._validation import as_mesh_arrays, as_transformation, check_positive
 from .deformation import LatticeDeformation
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
@@ -553,7 +553,7 @@ class _TargetLevelsOfDetail:
         # clustered once, the coarser copies cost a fraction of that.
         import open3d as o3d
 
-        from .meshio import to_open3d
+        from ..io.mesh import to_open3d
 
         mesh = None
         for voxel in sorted({v for v in voxels if v >= 2.0 * self.edge}):
@@ -578,7 +578,7 @@ def _drop_small_components(
     vertices: np.ndarray, faces: np.ndarray, fraction: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """The target without its connected components smaller than ``fraction`` of the largest."""
-    from .cleaning import _components
+    from ..volume.cleaning import _components
 
     components = _components(vertices, faces)
     big = components.vertex_counts >= fraction * components.vertex_counts[0]

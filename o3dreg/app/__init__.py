@@ -1,0 +1,1 @@
+"""Applications over the three stages: the demo, reports, pictures, bundled and synthetic data."""

@@ -1,0 +1,27 @@
+"""Stage 2: a template registered onto each patient (rigid start, trilinear lattices, eq. (3))."""
+
+from .batch import BatchResult, PatientRecord, register_batch
+from .deformation import LatticeDeformation
+from .elastic import evaluate_elastic, registration_elastic
+from .lattice import TrilinearLattice
+from .options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
+from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances
+from .rigid import registration_rigid
+
+__all__ = [
+    "BatchResult",
+    "DistanceEstimation",
+    "ElasticCriteria",
+    "ElasticLevel",
+    "ElasticRegistrationResult",
+    "LatticeDeformation",
+    "LevelReport",
+    "PatientRecord",
+    "SurfaceDistances",
+    "TrilinearLattice",
+    "default_levels",
+    "evaluate_elastic",
+    "register_batch",
+    "registration_elastic",
+    "registration_rigid",
+]
