@@ -1,10 +1,7 @@
 """``o3dreg build-model`` and ``o3dreg model {info, modes, fit}``: statistical shape models.
 
-A model folder holds ``template.ply`` (the template the model is defined on), ``model.npz``
-(:meth:`~o3dreg.ShapeModel.save`), ``model.h5`` (statismo layout), ``mean.ply`` and
-``modes/``, ``variance.txt`` (the paper's Table 4), ``quality/`` (tables and PNG plots),
-``registrations/`` (one semilandmark mesh, deformation and record per patient) and
-``report.json``.
+``build-model`` is a thin adapter over :func:`o3dreg.app.model_folder.build_model_folder`, which
+documents the model folder's layout.
 """
 
 from __future__ import annotations
@@ -17,9 +14,6 @@ import os
 import sys
 from typing import Any
 
-import numpy as np
-
-from ..io.mesh import atomic_write_text
 from ._common import int_list
 
 logger = logging.getLogger("o3dreg")
@@ -104,96 +98,44 @@ def _executor(args: argparse.Namespace) -> tuple[Any, Any]:
 
 
 def run_build(args: argparse.Namespace) -> int:
-    from ..io.mesh import read_triangle_mesh, write_triangle_mesh
-    from ..registration.batch import register_batch
-    from ..shape.model import build_shape_model
-    from ..shape.quality import compactness, generalization, specificity
-    from ..shape.statismo import write_statismo
+    from ..app.model_folder import build_model_folder
+    from ..io.mesh import read_triangle_mesh
 
     template = read_triangle_mesh(args.template, name="TEMPLATE")
-    out = args.output
-    os.makedirs(out, exist_ok=True)
-    template_path = os.path.join(out, "template.ply")
-    if os.path.exists(template_path):
-        previous = read_triangle_mesh(template_path)
-        same = np.array_equal(np.asarray(previous.triangles), np.asarray(template.triangles))
-        if not same and not args.force:
-            raise ValueError(
-                f"{out!r} holds a model of another template; use another folder or --force"
-            )
-    write_triangle_mesh(template_path, template, overwrite=True)
     executor, closer = _executor(args)
     try:
-        batch = register_batch(
+        folder = build_model_folder(
             template,
             args.targets,
-            os.path.join(out, "registrations"),
+            args.output,
             executor=executor,
             force=args.force,
             progress=not args.json and sys.stderr.isatty(),
             levels=_levels(args.levels),
+            scaling=args.scaling,
+            slide=args.slide,
         )
     finally:
         if hasattr(closer, "close"):  # a Dask client
             closer.close()
         elif closer is not None:
             closer.shutdown()
-    names, shapes = batch.shapes()
+    batch, model = folder.batch, folder.model
     if not args.json:
         print(batch.table())
-    if len(names) < 2:
+    if model is None:
         print(
-            f"o3dreg build-model: only {len(names)} patient(s) registered; a model needs at least 2",
+            f"o3dreg build-model: only {len(batch.registered)} patient(s) registered; "
+            "a model needs at least 2",
             file=sys.stderr,
         )
         return 1
-    faces = np.asarray(template.triangles)
-    slid = None
-    if args.slide:
-        from ..shape.sliding import slide_semilandmarks
-
-        surfaces = [read_triangle_mesh(r.source) for r in batch.registered]
-        slid = slide_semilandmarks(shapes, surfaces, scaling=args.scaling)
-        shapes = slid.shapes
-    model = build_shape_model(shapes, faces, names=names, scaling=args.scaling)
-    model.save(os.path.join(out, "model.npz"), overwrite=True)
-    write_statismo(os.path.join(out, "model.h5"), model, overwrite=True)
-    os.makedirs(os.path.join(out, "modes"), exist_ok=True)
-    model.write_meshes(os.path.join(out, "modes"), overwrite=True)
-    write_triangle_mesh(os.path.join(out, "mean.ply"), model.mesh(), overwrite=True)
-    atomic_write_text(
-        os.path.join(out, "variance.txt"), model.variance_table() + "\n", overwrite=True
-    )
-    quality_dir = os.path.join(out, "quality")
-    os.makedirs(quality_dir, exist_ok=True)
-    curves = [compactness(model), specificity(model, shapes, number_of_samples=100, seed=0)]
-    if len(names) >= 3:
-        curves.append(generalization(shapes, faces, scaling=args.scaling))
-    for curve in curves:
-        curve.plot(os.path.join(quality_dir, f"{curve.name}.png"), overwrite=True)
-        atomic_write_text(
-            os.path.join(quality_dir, f"{curve.name}.txt"), curve.table() + "\n", overwrite=True
-        )
-    report = {
-        "model_dir": out,
-        "patients": batch.as_dicts(),
-        "registered": list(names),
-        "failed": [r.name for r in batch.failed],
-        "variances": model.variance_records(),
-        "quality": {c.name: c.as_dict() for c in curves},
-        "sliding": None
-        if slid is None
-        else {"iterations": slid.iterations, "message": slid.message},
-    }
-    atomic_write_text(
-        os.path.join(out, "report.json"), json.dumps(report, indent=2) + "\n", overwrite=True
-    )
     if args.json:
-        print(json.dumps(report, indent=2))
+        print(json.dumps(folder.report, indent=2))
     else:
         print(model)
         print(model.variance_table())
-        for curve in curves[1:]:
+        for curve in folder.curves[1:]:
             print(curve.table())
         if batch.failed:
             print(
