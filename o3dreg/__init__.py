@@ -73,6 +73,8 @@ __all__ += [
 
 # --- shape models ---
 from .registration.batch import BatchResult, PatientRecord, register_batch  # noqa: E402
+from .shape.build import build_shape_model  # noqa: E402
+from .shape.fit import ModelFit, fit_shape_model  # noqa: E402
 from .shape.landmarks import (  # noqa: E402
     LandmarkPrediction,
     TemplateLandmarks,
@@ -82,13 +84,7 @@ from .shape.landmarks import (  # noqa: E402
     read_landmarks,
     write_landmarks,
 )
-from .shape.model import (  # noqa: E402
-    ModelFit,
-    ShapeModel,
-    ShapeProjection,
-    build_shape_model,
-    fit_shape_model,
-)
+from .shape.model import ShapeModel, ShapeProjection  # noqa: E402
 from .shape.procrustes import ProcrustesResult, generalized_procrustes, procrustes_transform  # noqa: E402
 from .shape.quality import QualityCurve, compactness, generalization, specificity  # noqa: E402
 from .shape.sliding import SlidingResult, slide_semilandmarks  # noqa: E402

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "as_faces",
     "as_mesh_arrays",
     "as_points",
     "as_transformation",
@@ -78,25 +79,10 @@ def as_mesh_arrays(
             f"got {_describe(mesh)}"
         )
     vertices = as_points(vertices_in, f"{name}.vertices")
-    faces_arr = np.asarray(faces_in)
-    if faces_arr.size == 0:
-        faces_arr = faces_arr.reshape(0, 3)
-    if not np.issubdtype(faces_arr.dtype, np.integer):
-        if np.issubdtype(faces_arr.dtype, np.floating) and np.all(np.mod(faces_arr, 1) == 0):
-            faces_arr = faces_arr.astype(np.int64)
-        else:
-            raise TypeError(f"`{name}.faces` must hold integers, got dtype {faces_arr.dtype}")
-    if faces_arr.ndim != 2 or faces_arr.shape[1] != 3:
-        raise ValueError(f"`{name}.faces` must have shape (m, 3), got {faces_arr.shape}")
-    faces = np.array(faces_arr, dtype=np.int64, order="C", copy=True)
+    faces = as_faces(faces_in, vertices.shape[0], f"{name}.faces")
     if faces.shape[0] < min_faces:
         raise ValueError(
             f"`{name}` must have at least {min_faces} triangle(s), got {faces.shape[0]}"
-        )
-    if faces.size and (faces.min() < 0 or faces.max() >= vertices.shape[0]):
-        raise ValueError(
-            f"`{name}.faces` must index vertices in [0, {vertices.shape[0] - 1}], "
-            f"got indices in [{faces.min()}, {faces.max()}]"
         )
     if faces.size:
         degenerate = _degenerate_faces(vertices, faces)
@@ -113,6 +99,30 @@ def as_mesh_arrays(
                     f"got {faces.shape[0]}"
                 )
     return vertices, faces
+
+
+def as_faces(faces: Any, number_of_vertices: int, name: str) -> np.ndarray:
+    """Return ``faces`` as a new ``(m, 3) int64`` array of indices in ``[0, number_of_vertices)``.
+
+    Degenerate triangles are kept (see :func:`as_mesh_arrays` to refuse or drop them).
+    """
+    faces_arr = np.asarray(faces)
+    if faces_arr.size == 0:
+        faces_arr = faces_arr.reshape(0, 3)
+    if not np.issubdtype(faces_arr.dtype, np.integer):
+        if np.issubdtype(faces_arr.dtype, np.floating) and np.all(np.mod(faces_arr, 1) == 0):
+            faces_arr = faces_arr.astype(np.int64)
+        else:
+            raise TypeError(f"`{name}` must hold integers, got dtype {faces_arr.dtype}")
+    if faces_arr.ndim != 2 or faces_arr.shape[1] != 3:
+        raise ValueError(f"`{name}` must have shape (m, 3), got {faces_arr.shape}")
+    out = np.array(faces_arr, dtype=np.int64, order="C", copy=True)
+    if out.size and (out.min() < 0 or out.max() >= number_of_vertices):
+        raise ValueError(
+            f"`{name}` must index vertices in [0, {number_of_vertices - 1}], "
+            f"got indices in [{out.min()}, {out.max()}]"
+        )
+    return out
 
 
 def _degenerate_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

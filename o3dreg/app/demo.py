@@ -36,8 +36,9 @@ from ..io.mesh import write_triangle_mesh
 from ..registration.batch import BatchResult, register_batch
 from ..registration.elastic import evaluate_elastic, registration_elastic
 from ..registration.options import DistanceEstimation
+from ..shape.build import build_shape_model
 from ..shape.landmarks import TemplateLandmarks, landmark_errors, predict_landmarks
-from ..shape.model import ShapeModel, build_shape_model
+from ..shape.model import ShapeModel
 from ..shape.quality import compactness, generalization, specificity
 from ..volume.cleaning import decimate, keep_largest_components, smooth_taubin
 from ..volume.isosurface import isosurface

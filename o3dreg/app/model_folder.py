@@ -23,7 +23,8 @@ import open3d as o3d
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 from ..registration.batch import BatchResult, register_batch
 from ..registration.options import ElasticLevel
-from ..shape.model import ShapeModel, build_shape_model
+from ..shape.build import build_shape_model
+from ..shape.model import ShapeModel
 from ..shape.quality import QualityCurve, compactness, generalization, specificity
 from ..shape.sliding import SlidingResult, slide_semilandmarks
 from ..shape.statismo import write_statismo

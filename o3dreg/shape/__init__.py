@@ -1,5 +1,7 @@
 """Stage 3: semilandmark meshes to shape models (Procrustes, sliding, PCA, fitting, quality)."""
 
+from .build import build_shape_model
+from .fit import ModelFit, fit_shape_model
 from .landmarks import (
     LandmarkPrediction,
     TemplateLandmarks,
@@ -9,7 +11,7 @@ from .landmarks import (
     read_landmarks,
     write_landmarks,
 )
-from .model import ModelFit, ShapeModel, ShapeProjection, build_shape_model, fit_shape_model
+from .model import ShapeModel, ShapeProjection
 from .procrustes import ProcrustesResult, generalized_procrustes, procrustes_transform
 from .quality import QualityCurve, compactness, generalization, specificity
 from .sliding import SlidingResult, slide_semilandmarks

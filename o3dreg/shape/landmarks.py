@@ -22,6 +22,9 @@ import numpy as np
 from .._geometry import barycentric
 from .._validation import as_mesh_arrays, as_points, check_positive
 from ..io.mesh import atomic_write_text
+from ..registration.distance import SurfaceDistanceQuery
+from .fit import fit_shape_model
+from .model import ShapeModel
 
 __all__ = [
     "LandmarkPrediction",
@@ -144,8 +147,6 @@ class TemplateLandmarks:
             Points farther than this from the template surface raise ``ValueError`` (landmarks
             outside the template). Default 5 % of the template's bounding-box diagonal.
         """
-        from ..registration.distance import SurfaceDistanceQuery
-
         v, f = as_mesh_arrays(template, "template")
         pts = as_points(points, "points")
         if max_distance is None:
@@ -394,8 +395,6 @@ def predict_landmarks(
     -------
     LandmarkPrediction
     """
-    from .model import ShapeModel, fit_shape_model
-
     if not isinstance(model, ShapeModel):
         raise TypeError(f"`model` must be a ShapeModel, got {type(model).__name__}")
     if not isinstance(landmarks, TemplateLandmarks):

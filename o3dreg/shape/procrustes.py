@@ -18,7 +18,13 @@ import numpy as np
 from .._geometry import apply_transformation
 from .._validation import as_points, check_positive
 
-__all__ = ["ProcrustesResult", "as_shape_array", "generalized_procrustes", "procrustes_transform"]
+__all__ = [
+    "ProcrustesResult",
+    "as_shape_array",
+    "fit_transformation",
+    "generalized_procrustes",
+    "procrustes_transform",
+]
 
 logger = logging.getLogger("o3dreg")
 
@@ -60,11 +66,15 @@ def _rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
 
 
-def _fit(
+def fit_transformation(
     source: np.ndarray, target: np.ndarray, scaling: bool, weights: np.ndarray | None = None
 ) -> np.ndarray:
     """Least-squares rigid (or similarity) map of ``source`` onto ``target``, optionally with
-    a non-negative weight per point pair; no reflection."""
+    a non-negative weight per point pair; no reflection.
+
+    The kernel of :func:`procrustes_transform` for arrays already checked (``(n, 3)`` float
+    arrays of the same shape; positive weights): no validation, for inner loops.
+    """
     if weights is None:
         mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
         a, b = source - mu_s, target - mu_t
@@ -118,7 +128,7 @@ def procrustes_transform(source: Any, target: Any, *, scaling: bool = False) -> 
         )
     if not isinstance(scaling, bool):
         raise TypeError(f"`scaling` must be a bool, got {type(scaling).__name__}")
-    return _fit(a, b, scaling)
+    return fit_transformation(a, b, scaling)
 
 
 @dataclass(frozen=True, eq=False)
@@ -229,7 +239,7 @@ def _generalized_procrustes(
     change = np.inf
     for iterations in range(1, max_iteration + 1):  # noqa: B007
         for i in range(k):
-            transforms[i] = _fit(x[i], mean, scaling)
+            transforms[i] = fit_transformation(x[i], mean, scaling)
             aligned[i] = apply_transformation(transforms[i], x[i])
         new_mean = aligned.mean(axis=0)
         new_mean -= new_mean.mean(axis=0)
@@ -245,7 +255,7 @@ def _generalized_procrustes(
             success = True
             break
     for i in range(k):
-        transforms[i] = _fit(x[i], mean, scaling)
+        transforms[i] = fit_transformation(x[i], mean, scaling)
         aligned[i] = apply_transformation(transforms[i], x[i])
     message = (
         f"mean converged in {iterations} iterations (relative change {change:.3g})"

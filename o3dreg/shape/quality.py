@@ -13,10 +13,12 @@ from typing import Any
 
 import numpy as np
 
+from .._geometry import apply_transformation
 from .._validation import check_positive
 from ..io.mesh import atomic_write
-from .model import ShapeModel, _build
-from .procrustes import as_shape_array
+from .build import build_shape_model
+from .model import ShapeModel
+from .procrustes import as_shape_array, fit_transformation
 
 __all__ = ["QualityCurve", "compactness", "generalization", "specificity"]
 
@@ -163,10 +165,10 @@ def generalization(
     errors = np.zeros((s, top + 1))
     for i in range(s):
         rest = np.delete(x, i, axis=0)
-        model = _build(rest, f, scaling, None, tuple(f"s{j}" for j in range(s - 1)), True)
+        model = build_shape_model(rest, f, scaling=scaling, names=[f"s{j}" for j in range(s - 1)])
         for m in range(top + 1):
             kk = min(m, model.number_of_modes)
-            errors[i, m] = model._project(x[i], kk, True).mean_error
+            errors[i, m] = model.project(x[i], number_of_modes=kk).mean_error
     logger.info("generalization: %s", ", ".join(f"{v:.3g}" for v in errors.mean(axis=0)))
     return QualityCurve(
         "generalization", np.arange(top + 1), errors.mean(axis=0), errors.std(axis=0)
@@ -212,10 +214,9 @@ def specificity(
         if max_modes is None
         else min(model.number_of_modes, check_positive(max_modes, "max_modes", integer=True))
     )
-    from .._geometry import apply_transformation
-    from .procrustes import _fit
-
-    aligned = np.stack([apply_transformation(_fit(s, model.mean, model.scaling), s) for s in x])
+    aligned = np.stack(
+        [apply_transformation(fit_transformation(s, model.mean, model.scaling), s) for s in x]
+    )
     rng = np.random.default_rng(seed)
     z = rng.standard_normal((count, model.number_of_modes))
     values, spreads = np.zeros(top), np.zeros(top)
@@ -225,7 +226,7 @@ def specificity(
         best = np.full(count, np.inf)
         for ref in aligned:
             for j in range(count):
-                t = _fit(ref, samples[j], model.scaling)
+                t = fit_transformation(ref, samples[j], model.scaling)
                 d = float(np.linalg.norm(apply_transformation(t, ref) - samples[j], axis=1).mean())
                 best[j] = min(best[j], d)
         values[m - 1], spreads[m - 1] = best.mean(), best.std()

@@ -20,7 +20,7 @@ import numpy as np
 from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays, check_positive
 from ..registration.distance import SurfaceDistanceQuery
-from .procrustes import _generalized_procrustes, as_shape_array
+from .procrustes import as_shape_array, generalized_procrustes
 
 __all__ = ["SlidingResult", "slide_semilandmarks"]
 
@@ -177,7 +177,7 @@ def _slide(
     success = False
     iterations = 0
     for iterations in range(1, max_iteration + 1):
-        gpa = _generalized_procrustes(current, scaling, 100, 1e-10)
+        gpa = generalized_procrustes(current, scaling=scaling)
         mean = gpa.shapes.mean(axis=0)
         distances.append(float(gpa.residuals.mean()))
         radius = float(np.sqrt(((mean - mean.mean(axis=0)) ** 2).sum(axis=1).mean()))
@@ -204,7 +204,7 @@ def _slide(
         if disp < tolerance * max(radius, 1e-300):
             success = True
             break
-    final = _generalized_procrustes(current, scaling, 100, 1e-10)
+    final = generalized_procrustes(current, scaling=scaling)
     distances.append(float(final.residuals.mean()))
     message = (
         f"converged in {iterations} iterations"

@@ -1,0 +1,80 @@
+"""Files of a shape model: the ``.npz`` archive of :meth:`ShapeModel.save` and the PLY meshes of
+the mean and the modes (:meth:`ShapeModel.write_meshes`).
+
+The statismo HDF5 layout is in :mod:`.statismo`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..io.archive import read_archive, write_archive
+from ..io.mesh import write_triangle_mesh
+
+if TYPE_CHECKING:  # the value type imports this module
+    from .model import ShapeModel
+
+__all__ = ["read_model_archive", "write_model_archive", "write_model_meshes"]
+
+_FORMAT = "o3dreg.ShapeModel"
+_VERSION = 1
+
+
+def write_model_archive(
+    model: ShapeModel, path: str | os.PathLike[str], *, overwrite: bool = False
+) -> str:
+    """Write the whole model (with the template triangles) to a ``.npz`` file, atomically."""
+    arrays: dict[str, Any] = {
+        "mean": model.mean,
+        "modes": model.modes,
+        "variances": model.variances,
+        "faces": model.faces,
+        "total_variance": np.array(model.total_variance),
+        "scores": model.scores,
+        "names": np.array(json.dumps(list(model.names))),
+        "scaling": np.array(model.scaling),
+        "noise_variance": np.array(model.noise_variance),
+    }
+    return write_archive(path, arrays, kind=_FORMAT, version=_VERSION, overwrite=overwrite)
+
+
+def read_model_archive(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The fields of a model written by :func:`write_model_archive`, as keyword arguments of
+    :class:`ShapeModel` (which validates them)."""
+    data = read_archive(path, kind=_FORMAT, version=_VERSION, what="ShapeModel")
+    return {
+        "mean": data["mean"],
+        "modes": data["modes"],
+        "variances": data["variances"],
+        "faces": data["faces"],
+        "total_variance": float(data["total_variance"]),
+        "scores": data["scores"],
+        "names": tuple(json.loads(str(data["names"]))),
+        "scaling": bool(data["scaling"]),
+        "noise_variance": float(data["noise_variance"]),
+    }
+
+
+def write_model_meshes(
+    model: ShapeModel,
+    folder: str | os.PathLike[str],
+    *,
+    modes: Any = None,
+    standard_deviations: Any = (-3.0, 3.0),
+    overwrite: bool = False,
+) -> list[str]:
+    """Write ``mean.ply`` and ``mode{i}_{c:+g}sd.ply`` (1-based ``i``) into ``folder``."""
+    folder = os.fspath(folder)
+    if not os.path.isdir(folder):
+        raise OSError(f"`folder`: {folder!r} is not a folder")
+    written = [
+        write_triangle_mesh(os.path.join(folder, "mean.ply"), model.mesh(), overwrite=overwrite)
+    ]
+    for (m, c), mesh in model.mode_meshes(modes, standard_deviations).items():
+        name = f"mode{m + 1}_{c:+g}sd.ply"
+        written.append(write_triangle_mesh(os.path.join(folder, name), mesh, overwrite=overwrite))
+    return written
