@@ -21,6 +21,8 @@ TOPICS = {
     "deformation": "Deformation of space",
     "lattice": "Deformation of space",
     "volume": "CT volumes and meshes",
+    "readers": "CT volumes and meshes",
+    "raw_slices": "CT volumes and meshes",
     "isosurface": "CT volumes and meshes",
     "cleaning": "CT volumes and meshes",
     "mesh": "CT volumes and meshes",

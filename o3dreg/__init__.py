@@ -55,7 +55,8 @@ from .volume.cleaning import (  # noqa: E402
     smooth_taubin,
 )
 from .volume.isosurface import isosurface  # noqa: E402
-from .volume.volume import Volume, read_raw_slices, read_volume  # noqa: E402
+from .volume.readers import read_raw_slices, read_volume  # noqa: E402
+from .volume.volume import Volume  # noqa: E402
 
 __all__ += [
     "Components",

@@ -42,7 +42,8 @@ from ..shape.model import ShapeModel
 from ..shape.quality import compactness, generalization, specificity
 from ..volume.cleaning import decimate, keep_largest_components, smooth_taubin
 from ..volume.isosurface import isosurface
-from ..volume.volume import Volume, read_volume
+from ..volume.readers import read_volume
+from ..volume.volume import Volume
 from .datasets import headsq_path
 from .synthetic import SmoothWarp
 

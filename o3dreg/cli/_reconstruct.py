@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         smooth_taubin,
     )
     from ..volume.isosurface import isosurface
-    from ..volume.volume import read_volume
+    from ..volume.readers import read_volume
 
     start = time.perf_counter()
     # Fail before any work: bad output suffix, missing folder, existing file.

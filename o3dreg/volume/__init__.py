@@ -10,7 +10,8 @@ from .cleaning import (
     smooth_taubin,
 )
 from .isosurface import isosurface
-from .volume import Volume, read_raw_slices, read_volume
+from .readers import read_raw_slices, read_volume
+from .volume import Volume
 
 __all__ = [
     "Components",

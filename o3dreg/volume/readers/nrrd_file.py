@@ -1,0 +1,157 @@
+"""NRRD files as :class:`Volume`: SimpleITK first, pynrrd for the headers SimpleITK rejects."""
+
+from __future__ import annotations
+
+import logging
+import os
+from typing import Any
+
+import numpy as np
+
+from ..volume import Volume
+from .raw_slices import read_raw_slices
+from .sitk_image import from_sitk, sitk_error
+
+__all__ = ["read_nrrd"]
+
+logger = logging.getLogger("o3dreg")
+
+# NRRD spaces and the sign flips that take them to LPS.
+_NRRD_SPACE_TO_LPS = {
+    "left-posterior-superior": (1.0, 1.0, 1.0),
+    "lps": (1.0, 1.0, 1.0),
+    "right-anterior-superior": (-1.0, -1.0, 1.0),
+    "ras": (-1.0, -1.0, 1.0),
+    "left-anterior-superior": (1.0, -1.0, 1.0),
+    "las": (1.0, -1.0, 1.0),
+}
+
+
+def read_nrrd(path: str) -> Volume:
+    import SimpleITK as sitk
+
+    try:
+        image = sitk.ReadImage(path)
+    except RuntimeError as exc:
+        logger.debug("SimpleITK could not read %s (%s); trying pynrrd", path, sitk_error(exc))
+    else:
+        volume = from_sitk(image, path)
+        logger.info("read %s: %r", path, volume)
+        return volume
+    volume = _read_nrrd_pynrrd(path)
+    logger.info("read %s with pynrrd: %r", path, volume)
+    return volume
+
+
+def _read_nrrd_pynrrd(path: str) -> Volume:
+    import nrrd
+
+    try:
+        header = nrrd.read_header(path)
+    except (nrrd.NRRDError, OSError, ValueError, UnicodeDecodeError) as exc:
+        raise OSError(f"`path`: could not read NRRD header {path!r}: {exc}") from exc
+    sizes = [int(s) for s in header.get("sizes", [])]
+    if len(sizes) != 3:
+        if len(sizes) == 2:
+            sizes = [*sizes, 1]
+        else:
+            raise ValueError(f"`path`: {path!r} is a {len(sizes)}D NRRD; a volume needs 3")
+    spacing_xyz, origin, direction = _nrrd_geometry(header, path)
+    spacing = spacing_xyz[::-1]
+    data_file = header.get("data file") or header.get("datafile")
+    slice_files = _nrrd_slice_files(data_file, path) if data_file else None
+    if slice_files is not None:
+        if header.get("encoding", "raw") != "raw":
+            raise ValueError(
+                f"`path`: {path!r} lists {len(slice_files)} data files with encoding "
+                f"{header.get('encoding')!r}; only raw encoding is supported for lists of files"
+            )
+        dtype = _nrrd_dtype(header, path)
+        return read_raw_slices(
+            slice_files,
+            shape=(sizes[1], sizes[0]),
+            dtype=dtype,
+            byte_order=header.get("endian", "little") if dtype.itemsize > 1 else "native",
+            spacing=spacing,
+            origin=origin,
+            direction=direction,
+        )
+    try:
+        data, _ = nrrd.read(path, index_order="C")
+    except (nrrd.NRRDError, OSError, ValueError) as exc:
+        raise OSError(f"`path`: could not read NRRD data of {path!r}: {exc}") from exc
+    if data.ndim == 2:
+        data = data[np.newaxis]
+    return Volume(np.ascontiguousarray(data), spacing, origin, direction)
+
+
+_NRRD_TYPES = {
+    "int8": "i1", "signed char": "i1", "uchar": "u1", "unsigned char": "u1", "uint8": "u1",
+    "short": "i2", "short int": "i2", "signed short": "i2", "int16": "i2",
+    "ushort": "u2", "unsigned short": "u2", "uint16": "u2",
+    "int": "i4", "signed int": "i4", "int32": "i4", "uint": "u4", "unsigned int": "u4",
+    "uint32": "u4", "longlong": "i8", "int64": "i8", "ulonglong": "u8", "uint64": "u8",
+    "float": "f4", "double": "f8",
+}  # fmt: skip
+
+
+def _nrrd_dtype(header: dict[str, Any], path: str) -> np.dtype:
+    name = str(header.get("type", "")).lower()
+    if name not in _NRRD_TYPES:
+        raise ValueError(f"`path`: {path!r} has unsupported NRRD type {name!r}")
+    return np.dtype(_NRRD_TYPES[name])
+
+
+def _nrrd_geometry(header: dict[str, Any], path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    space = str(header.get("space", "")).lower()
+    flips = np.asarray(_NRRD_SPACE_TO_LPS.get(space, (1.0, 1.0, 1.0)))
+    if space and space not in _NRRD_SPACE_TO_LPS:
+        logger.info("NRRD %s: space %r is not LPS, RAS or LAS; taken as LPS", path, space)
+    directions = header.get("space directions")
+    if directions is not None:
+        rows = [np.asarray(d, dtype=np.float64) for d in directions]
+        rows = [r for r in rows if r.ndim == 1 and r.size == 3 and np.all(np.isfinite(r))]
+        if len(rows) == 2:
+            rows.append(np.cross(rows[0], rows[1]) / np.linalg.norm(np.cross(rows[0], rows[1])))
+        if len(rows) != 3:
+            raise ValueError(f"`path`: {path!r} has unusable space directions {directions!r}")
+        matrix = np.stack(rows, axis=1) * flips[:, None]  # columns: i, j, k axes in world
+        spacing = np.linalg.norm(matrix, axis=0)
+        direction = matrix / spacing
+    else:
+        spacings = header.get("spacings")
+        spacing = np.asarray(spacings, dtype=np.float64)[:3] if spacings is not None else np.ones(3)
+        if spacing.size == 2:
+            spacing = np.append(spacing, 1.0)
+        spacing = np.where(np.isfinite(spacing) & (spacing > 0), np.abs(spacing), 1.0)
+        direction = np.eye(3)
+    origin_in = header.get("space origin")
+    origin = (
+        np.asarray(origin_in, dtype=np.float64)[:3] * flips
+        if origin_in is not None and np.all(np.isfinite(np.asarray(origin_in, dtype=float)))
+        else np.zeros(3)
+    )
+    return spacing, origin, direction
+
+
+def _nrrd_slice_files(data_file: Any, header_path: str) -> list[str] | None:
+    """Expand a ``data file`` field that lists several files; None when it names one file."""
+    folder = os.path.dirname(os.path.abspath(header_path))
+    if isinstance(data_file, (list, tuple)):
+        names = [str(d) for d in data_file]
+    else:
+        text = str(data_file).strip()
+        if text.upper().startswith("LIST"):
+            raise ValueError(
+                f"`path`: {header_path!r} uses 'data file: LIST'; write the file names in a "
+                "list and call read_raw_slices instead"
+            )
+        parts = text.split()
+        if len(parts) >= 4 and "%" in parts[0]:
+            start, stop, step = (int(p) for p in parts[1:4])
+            if step == 0:
+                raise ValueError(f"`path`: {header_path!r} has a data file step of 0")
+            names = [parts[0] % i for i in range(start, stop + (1 if step > 0 else -1), step)]
+        else:
+            return None
+    return [n if os.path.isabs(n) else os.path.join(folder, n) for n in names]
