@@ -220,6 +220,30 @@ def test_build_bad_input(pop):
         model.synthesize(np.ones(10))
 
 
+def test_model_faces_are_the_template_triangles_checked_and_kept(pop, tmp_path):
+    (_, tf), _, truths, _, _ = pop
+    # A triangle with a repeated corner is kept: the model's triangles are the template's, as
+    # given (a mesh written from the model has the template's triangle count and order).
+    faces = np.vstack([tf, [[0, 0, 1]]])
+    model = build_shape_model(truths, faces.astype(np.float64))  # whole floats are indices
+    assert model.faces.dtype == np.int64
+    np.testing.assert_array_equal(model.faces, faces)
+    back = ShapeModel.load(model.save(tmp_path / "model.npz"))
+    np.testing.assert_array_equal(back.faces, faces)
+    n = truths.shape[1]
+    bad = tf.copy()
+    bad[0, 0] = n
+    # The error names the parameter (`faces`, not a nested `faces.faces`) and the valid range.
+    with pytest.raises(ValueError, match=rf"^`faces` must index vertices in \[0, {n - 1}\]"):
+        build_shape_model(truths, bad)
+    with pytest.raises(ValueError, match=rf"^`faces` must index vertices in \[0, {n - 1}\]"):
+        ShapeModel(model.mean, model.modes, model.variances, bad, 1.0, model.scores)
+    with pytest.raises(TypeError, match="^`faces` must hold integers"):
+        build_shape_model(truths, tf + 0.5)
+    with pytest.raises(ValueError, match="^`faces` must have at least 1 triangle"):
+        ShapeModel(model.mean, model.modes, model.variances, tf[:0], 1.0, model.scores)
+
+
 def test_fit_recovers_pose_and_shape(pop):
     (_tv, tf), targets, truths, _, poses = pop
     model = build_shape_model(truths[:9], tf)

@@ -74,7 +74,7 @@ def add_parser(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .._validation import check_output_path, check_positive
-    from ..io.mesh import _suffix, write_triangle_mesh
+    from ..io.mesh import check_mesh_suffix, write_triangle_mesh
     from ..volume.cleaning import (
         connected_components,
         crop_mesh,
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     # Fail before any work: bad output suffix, missing folder, existing file.
-    _suffix(args.output, "--output")
+    check_mesh_suffix(args.output, "--output")
     if os.path.exists(args.output) and not args.overwrite:
         raise OSError(f"--output: {args.output!r} exists; pass --overwrite to replace it")
     check_output_path(args.output, "--output", overwrite=args.overwrite)

@@ -15,6 +15,7 @@ from .._validation import as_mesh_arrays, check_output_path
 __all__ = [
     "MESH_SUFFIXES",
     "atomic_write",
+    "check_mesh_suffix",
     "read_triangle_mesh",
     "to_open3d",
     "write_triangle_mesh",
@@ -24,7 +25,8 @@ __all__ = [
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")
 
 
-def _suffix(path: str, name: str) -> str:
+def check_mesh_suffix(path: str, name: str) -> str:
+    """The lower-case suffix of ``path``; ``ValueError`` naming ``name`` unless a mesh format."""
     suffix = os.path.splitext(path)[1].lower()
     if suffix not in MESH_SUFFIXES:
         raise ValueError(f"`{name}` must end with one of {', '.join(MESH_SUFFIXES)}, got {path!r}")
@@ -69,7 +71,7 @@ def read_triangle_mesh(
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`{name}` must be a path, got {type(path).__name__}")
     path = os.fspath(path)
-    _suffix(path, name)
+    check_mesh_suffix(path, name)
     if not os.path.isfile(path):
         raise OSError(f"`{name}`: no such file {path!r}")
     if not os.access(path, os.R_OK):
@@ -151,7 +153,7 @@ def write_triangle_mesh(
     """
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`{name}` must be a path, got {type(path).__name__}")
-    _suffix(os.fspath(path), name)
+    check_mesh_suffix(os.fspath(path), name)
     if isinstance(mesh, o3d.geometry.TriangleMesh):
         out = o3d.geometry.TriangleMesh(mesh)
     else:

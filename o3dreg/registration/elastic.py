@@ -578,9 +578,9 @@ def _drop_small_components(
     vertices: np.ndarray, faces: np.ndarray, fraction: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """The target without its connected components smaller than ``fraction`` of the largest."""
-    from ..volume.cleaning import _components
+    from ..volume.cleaning import mesh_components
 
-    components = _components(vertices, faces)
+    components = mesh_components(vertices, faces)
     big = components.vertex_counts >= fraction * components.vertex_counts[0]
     keep = big[components.labels]
     if keep.all():

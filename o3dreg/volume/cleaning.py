@@ -23,6 +23,7 @@ __all__ = [
     "crop_mesh",
     "decimate",
     "keep_largest_components",
+    "mesh_components",
     "remove_small_components",
     "smooth_taubin",
 ]
@@ -80,7 +81,7 @@ def connected_components(mesh: Any) -> Components:
         deterministic.
     """
     vertices, faces = as_mesh_arrays(mesh, "mesh", drop_degenerate=True)
-    return _components(vertices, faces)
+    return mesh_components(vertices, faces)
 
 
 def _triangle_labels(n_vertices: int, faces: np.ndarray) -> np.ndarray:
@@ -109,7 +110,9 @@ def _triangle_labels(n_vertices: int, faces: np.ndarray) -> np.ndarray:
     return rank[raw.ravel()].astype(np.int64)
 
 
-def _components(vertices: np.ndarray, faces: np.ndarray) -> Components:
+def mesh_components(vertices: np.ndarray, faces: np.ndarray) -> Components:
+    """:func:`connected_components` of arrays already checked (``(n, 3)`` float vertices,
+    ``(m, 3)`` int64 faces indexing them, no degenerate triangle): no validation."""
     raw = _triangle_labels(vertices.shape[0], faces)
     k = int(raw.max()) + 1 if raw.size else 0
     # Vertex count per component: count each (component, vertex) pair once (components may
@@ -171,7 +174,7 @@ def keep_largest_components(mesh: Any, n: int = 1) -> o3d.geometry.TriangleMesh:
     """
     count = check_positive(n, "n", integer=True)
     vertices, faces = as_mesh_arrays(mesh, "mesh", drop_degenerate=True)
-    components = _components(vertices, faces)
+    components = mesh_components(vertices, faces)
     out = _submesh(vertices, faces, components.labels < count)
     logger.info(
         "kept %d of %d component(s): %d vertices",
@@ -202,7 +205,7 @@ def remove_small_components(mesh: Any, min_vertices: int) -> o3d.geometry.Triang
     """
     threshold = check_positive(min_vertices, "min_vertices", integer=True)
     vertices, faces = as_mesh_arrays(mesh, "mesh", drop_degenerate=True)
-    components = _components(vertices, faces)
+    components = mesh_components(vertices, faces)
     large = components.vertex_counts >= threshold
     if not large.any():
         raise ValueError(

@@ -137,7 +137,7 @@ def _isosurface(
         raise RuntimeError(f"no surface found at level {level:g}: {exc}") from exc
     del sub
     index = verts.astype(np.float64) + offset
-    points = volume._index_to_world(index)
+    points = volume.index_to_world(index)
     faces = np.asarray(faces, dtype=np.int64)
     # scikit-image winds triangles inward in (plane, row, column) index space for bright
     # objects; the index -> world map may preserve or reverse orientation.

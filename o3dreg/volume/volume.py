@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from .._validation import as_points
+
 __all__ = ["Volume", "as_direction", "as_vector3"]
 
 # Tolerance on the orthonormality of direction cosines (files store them in float32 or text).
@@ -179,19 +181,12 @@ class Volume:
         -------
         points : (n, 3) float64 ndarray
         """
-        from .._validation import as_points
-
         idx = as_points(index, "index", allow_empty=True)
-        return self._index_to_world(idx)
-
-    def _index_to_world(self, idx: np.ndarray) -> np.ndarray:
         linear = self.direction * self.spacing[::-1]
         return idx[:, ::-1] @ linear.T + self.origin
 
     def world_to_index(self, points: Any) -> np.ndarray:
         """Continuous voxel indices ``(p, r, c)`` in array order of world points (n, 3) in mm."""
-        from .._validation import as_points
-
         pts = as_points(points, "points", allow_empty=True)
         ijk = (pts - self.origin) @ self.direction / self.spacing[::-1]
         return np.ascontiguousarray(ijk[:, ::-1])
@@ -213,5 +208,5 @@ class Volume:
         if any(h <= b for b, h in zip(lo, hi, strict=True)):
             raise ValueError(f"crop box {lo}..{hi} is empty for shape {self.array.shape}")
         sub = self.array[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
-        origin = self._index_to_world(np.array([lo], dtype=np.float64))[0]
+        origin = self.index_to_world(np.array([lo], dtype=np.float64))[0]
         return Volume(sub, self.spacing, origin, self.direction)
