@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from test_shapemodel import FAST_LEVELS, population
 
-from o3dreg import register_batch, write_triangle_mesh
+from o3dreg import register_batch, registration_elastic, write_triangle_mesh
+from o3dreg.registration.batch import save_registered
 
 
 @pytest.fixture(scope="module")
@@ -56,6 +57,19 @@ def test_batch_resumes_and_force_reregisters(small, tmp_path):
     assert again.records[0].distances == first.records[0].distances
     forced = register_batch(template, targets[:2], tmp_path, levels=FAST_LEVELS, force=True)
     assert not any(r.skipped for r in forced.records)
+
+
+def test_a_registration_saved_beforehand_is_not_made_again(small, tmp_path):
+    template, targets, _ = small
+    made = registration_elastic(template, targets[0], levels=FAST_LEVELS)
+    saved = save_registered(tmp_path, "patient000", made, 1.0, "<array>")
+    batch = register_batch(template, targets[:2], tmp_path, levels=FAST_LEVELS)
+    assert [r.skipped for r in batch.records] == [True, False]
+    assert batch.records[0].distances == saved.distances == made.distances.as_dict()
+    names, shapes = batch.shapes()
+    assert names == ("patient000", "patient001")
+    # The PLY holds the vertices to float precision.
+    np.testing.assert_allclose(shapes[0], made.vertices, atol=1e-5)
 
 
 def test_interrupt_keeps_finished_patients(small, tmp_path):

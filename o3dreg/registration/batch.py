@@ -214,6 +214,40 @@ def _write_json(path: str, data: Any) -> None:
     atomic_write_text(path, json.dumps(data, indent=2) + "\n", overwrite=True)
 
 
+def save_registered(
+    output_dir: str | os.PathLike[str], name: str, result: Any, seconds: float, source: str = ""
+) -> PatientRecord:
+    """Write one registered patient as :func:`register_batch` does (mesh, deformation, then the
+    record), so that a batch run on ``output_dir`` skips it: a registration already made
+    elsewhere (e.g. a comparison) is not made twice."""
+    output_dir = os.fspath(output_dir)
+    name = _safe_name(name)
+    write_triangle_mesh(
+        os.path.join(output_dir, f"{name}.ply"), result.semilandmark_mesh(), overwrite=True
+    )
+    result.deformation.save(os.path.join(output_dir, f"{name}.npz"), overwrite=True)
+    record = PatientRecord(
+        name=name,
+        status="registered",
+        success=bool(result.success),
+        message=str(result.message),
+        seconds=float(seconds),
+        distances=result.distances.as_dict(),
+        min_jacobian_determinant=float(result.min_jacobian_determinant),
+        transformation=tuple(float(v) for v in np.asarray(result.transformation).ravel()),
+        source=source,
+    )
+    logger.info(
+        "batch: %s registered in %.1f s (mean distances %.3g / %.3g)",
+        name,
+        seconds,
+        record.distances["source_to_target_mean"],
+        record.distances["target_to_source_mean"],
+    )
+    _write_json(os.path.join(output_dir, f"{name}.json"), record.as_dict())
+    return record
+
+
 def register_batch(
     template: Any,
     targets: Sequence[Any],
@@ -378,30 +412,9 @@ def _run_batch(
             record = PatientRecord(name, "failed", False, msg, source=source_of(i))
         else:
             assert outcome is not None
-            result, seconds = outcome
-            write_triangle_mesh(
-                os.path.join(output_dir, f"{name}.ply"), result.semilandmark_mesh(), overwrite=True
-            )
-            result.deformation.save(os.path.join(output_dir, f"{name}.npz"), overwrite=True)
-            record = PatientRecord(
-                name=name,
-                status="registered",
-                success=bool(result.success),
-                message=str(result.message),
-                seconds=float(seconds),
-                distances=result.distances.as_dict(),
-                min_jacobian_determinant=float(result.min_jacobian_determinant),
-                transformation=tuple(float(v) for v in np.asarray(result.transformation).ravel()),
-                source=source_of(i),
-            )
-            logger.info(
-                "batch: %s registered in %.1f s (mean distances %.3g / %.3g)",
-                name,
-                seconds,
-                record.distances["source_to_target_mean"],
-                record.distances["target_to_source_mean"],
-            )
-        _write_json(os.path.join(output_dir, f"{name}.json"), record.as_dict())
+            record = save_registered(output_dir, name, *outcome, source=source_of(i))
+        if record.status == "failed":
+            _write_json(os.path.join(output_dir, f"{name}.json"), record.as_dict())
         records[name] = record
         bar.set_postfix_str(f"last: {name} ({record.status})")
         bar.update(1)
