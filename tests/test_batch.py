@@ -8,7 +8,7 @@ import os
 
 import numpy as np
 import pytest
-from test_shapemodel import FAST_LEVELS, population
+from _helpers import FAST, population
 
 from o3dreg import register_batch, registration_elastic, write_triangle_mesh
 from o3dreg.registration.batch import save_registered
@@ -29,7 +29,7 @@ def test_batch_writes_each_patient_and_reports_failures(small, tmp_path):
     out = tmp_path / "out"
     seen = []
     result = register_batch(
-        template, [str(good), str(bad), targets[1]], out, levels=FAST_LEVELS, callback=seen.append
+        template, [str(good), str(bad), targets[1]], out, levels=FAST, callback=seen.append
     )
     assert [r.name for r in result.records] == ["good", "broken", "patient002"]
     assert [r.status for r in result.records] == ["registered", "failed", "registered"]
@@ -50,12 +50,12 @@ def test_batch_writes_each_patient_and_reports_failures(small, tmp_path):
 
 def test_batch_resumes_and_force_reregisters(small, tmp_path):
     template, targets, _ = small
-    first = register_batch(template, targets[:2], tmp_path, levels=FAST_LEVELS)
+    first = register_batch(template, targets[:2], tmp_path, levels=FAST)
     assert not any(r.skipped for r in first.records)
-    again = register_batch(template, targets[:2], tmp_path, levels=FAST_LEVELS)
+    again = register_batch(template, targets[:2], tmp_path, levels=FAST)
     assert all(r.skipped for r in again.records)
     assert again.records[0].distances == first.records[0].distances
-    forced = register_batch(template, targets[:2], tmp_path, levels=FAST_LEVELS, force=True)
+    forced = register_batch(template, targets[:2], tmp_path, levels=FAST, force=True)
     assert not any(r.skipped for r in forced.records)
 
 
@@ -79,19 +79,19 @@ def test_interrupt_keeps_finished_patients(small, tmp_path):
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        register_batch(template, targets, tmp_path, levels=FAST_LEVELS, callback=stop)
+        register_batch(template, targets, tmp_path, levels=FAST, callback=stop)
     assert (tmp_path / "patient000.json").is_file()
     assert not (tmp_path / "patient001.json").exists()
-    resumed = register_batch(template, targets, tmp_path, levels=FAST_LEVELS)
+    resumed = register_batch(template, targets, tmp_path, levels=FAST)
     assert [r.skipped for r in resumed.records] == [True, False, False]
 
 
 def test_thread_pool_executor_gives_same_records(small, tmp_path):
     template, targets, poses = small
-    serial = register_batch(template, targets, tmp_path / "a", levels=FAST_LEVELS, init=poses)
+    serial = register_batch(template, targets, tmp_path / "a", levels=FAST, init=poses)
     with cf.ThreadPoolExecutor(2) as pool:
         parallel = register_batch(
-            template, targets, tmp_path / "b", levels=FAST_LEVELS, init=poses, executor=pool
+            template, targets, tmp_path / "b", levels=FAST, init=poses, executor=pool
         )
     for a, b in zip(serial.records, parallel.records):
         assert a.name == b.name
@@ -111,7 +111,7 @@ def test_dask_distributed_executor(small, tmp_path):
             template,
             targets,
             tmp_path,
-            levels=FAST_LEVELS,
+            levels=FAST,
             init=poses,
             executor=client.get_executor(),
         )

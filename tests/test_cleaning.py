@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import pytest
+from _helpers import assert_untouched, snapshot
 
 from o3dreg import (
     Components,
@@ -33,16 +34,6 @@ def three_parts() -> o3d.geometry.TriangleMesh:
     return tiny + medium + big  # the largest last: the order must not matter
 
 
-def _snapshot(mesh):
-    return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy()
-
-
-def _unchanged(mesh, snapshot) -> bool:
-    return np.array_equal(np.asarray(mesh.vertices), snapshot[0]) and np.array_equal(
-        np.asarray(mesh.triangles), snapshot[1]
-    )
-
-
 def test_connected_components_sorted_by_size(three_parts):
     components = connected_components(three_parts)
     assert isinstance(components, Components)
@@ -54,7 +45,7 @@ def test_connected_components_sorted_by_size(three_parts):
 
 
 def test_keep_largest_components(three_parts):
-    before = _snapshot(three_parts)
+    before = snapshot(three_parts)
     one = keep_largest_components(three_parts)
     assert len(one.vertices) == 1742
     assert np.allclose(np.asarray(one.vertices).mean(axis=0), 0, atol=1e-9)
@@ -63,16 +54,16 @@ def test_keep_largest_components(three_parts):
     assert len(two.vertices) == 1742 + 182
     everything = keep_largest_components(three_parts, 10)
     assert len(everything.vertices) == len(three_parts.vertices)
-    assert _unchanged(three_parts, before)
+    assert_untouched(three_parts, before)
     with pytest.raises(ValueError, match="`n` must be a finite integer > 0, got 0"):
         keep_largest_components(three_parts, 0)
 
 
 def test_remove_small_components(three_parts):
-    before = _snapshot(three_parts)
+    before = snapshot(three_parts)
     out = remove_small_components(three_parts, 50)
     assert connected_components(out).vertex_counts.tolist() == [1742, 182]
-    assert _unchanged(three_parts, before)
+    assert_untouched(three_parts, before)
     with pytest.raises(ValueError, match=r"must not exceed the largest component \(1742"):
         remove_small_components(three_parts, 2000)
     with pytest.raises(TypeError, match="`min_vertices` must be a integer"):
@@ -80,7 +71,7 @@ def test_remove_small_components(three_parts):
 
 
 def test_crop_mesh_box_and_plane(three_parts):
-    before = _snapshot(three_parts)
+    before = snapshot(three_parts)
     boxed = crop_mesh(three_parts, box=[[20, -10, -10], [40, 10, 10]])
     assert len(boxed.vertices) == 182  # only the medium sphere
     # Separate along a plane: keep x >= 20 (where the normal points).
@@ -90,7 +81,7 @@ def test_crop_mesh_box_and_plane(three_parts):
     assert np.asarray(half.vertices)[:, 2].max() <= 0
     both = crop_mesh(three_parts, box=[[-50, -50, -50], [50, 50, 50]], plane=[[0, 0, 0], [1, 0, 0]])
     assert np.asarray(both.vertices)[:, 0].min() >= 0
-    assert _unchanged(three_parts, before)
+    assert_untouched(three_parts, before)
 
 
 def test_crop_mesh_rejects_bad_input(three_parts):
@@ -111,7 +102,7 @@ def test_smooth_taubin_removes_noise_and_keeps_size():
     noisy = o3d.geometry.TriangleMesh(
         o3d.utility.Vector3dVector(vertices), o3d.geometry.TriangleMesh(sphere).triangles
     )
-    before = _snapshot(noisy)
+    before = snapshot(noisy)
     smooth = smooth_taubin(noisy, 20)
     radius_noisy = np.linalg.norm(np.asarray(noisy.vertices) - (1, 2, 3), axis=1)
     radius_smooth = np.linalg.norm(np.asarray(smooth.vertices) - (1, 2, 3), axis=1)
@@ -119,7 +110,7 @@ def test_smooth_taubin_removes_noise_and_keeps_size():
     # Taubin's lambda/mu pair barely shrinks: the mean radius stays within 2 %.
     assert radius_smooth.mean() == pytest.approx(10.0, rel=0.02)
     assert np.array_equal(np.asarray(smooth.triangles), before[1])
-    assert _unchanged(noisy, before)
+    assert_untouched(noisy, before)
     again = smooth_taubin(noisy, 20)
     assert np.array_equal(np.asarray(again.vertices), np.asarray(smooth.vertices))
 
@@ -136,14 +127,14 @@ def test_smooth_taubin_rejects_bad_input():
 
 def test_decimate_to_vertex_count_deterministic():
     sphere = _sphere(10.0, (0, 0, 0), 60)  # 3482 vertices
-    before = _snapshot(sphere)
+    before = snapshot(sphere)
     out = decimate(sphere, 1000)
     assert 980 <= len(out.vertices) <= 1000
     assert out.is_edge_manifold(allow_boundary_edges=False)
     again = decimate(sphere, 1000)
     assert np.array_equal(np.asarray(out.vertices), np.asarray(again.vertices))
     assert np.array_equal(np.asarray(out.triangles), np.asarray(again.triangles))
-    assert _unchanged(sphere, before)
+    assert_untouched(sphere, before)
     small = decimate(sphere, 10_000)  # already below the target: a copy
     assert len(small.vertices) == len(sphere.vertices)
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_shapemodel import population
+from _helpers import population
 
 from o3dreg import write_landmarks, write_triangle_mesh
 from o3dreg.cli import main
@@ -31,12 +31,17 @@ def files(tmp_path_factory):
     return folder
 
 
+def build_model(files, patients, output, *options: str) -> int:
+    """``o3dreg build-model TEMPLATE PATIENTS... -o OUTPUT OPTIONS...`` on the fixture's files."""
+    return main(
+        ["build-model", str(files / "template.ply"), *patients, "-o", str(output), *options]
+    )
+
+
 def test_build_model_info_modes_fit(files, capsys):
     out = files / "model"
     targets = [str(files / f"p{i}.ply") for i in range(5)] + [str(files / "broken.ply")]
-    code = main(
-        ["build-model", str(files / "template.ply"), *targets, "-o", str(out), "--levels", "2,4,8"]
-    )
+    code = build_model(files, targets, out, "--levels", "2,4,8")
     assert code == 0
     text = capsys.readouterr().out
     assert "broken" in text and "failed" in text and "Variances %" in text
@@ -84,10 +89,7 @@ def test_build_model_info_modes_fit(files, capsys):
     assert (files / "pred.csv").is_file()
 
     # A second run resumes: every patient but the broken one is skipped.
-    assert (
-        main(["build-model", str(files / "template.ply"), *targets[:2], "-o", str(out), "--json"])
-        == 0
-    )
+    assert build_model(files, targets[:2], out, "--json") == 0
     rerun = json.loads(capsys.readouterr().out)
     assert [p["status"] for p in rerun["patients"]] == ["registered", "registered"]
 
@@ -96,32 +98,12 @@ def test_cli_errors(files, tmp_path, capsys):
     assert main(["model", "info", str(tmp_path)]) == 2
     assert "no model.npz" in capsys.readouterr().err
     out = tmp_path / "one"
-    code = main(
-        [
-            "build-model",
-            str(files / "template.ply"),
-            str(files / "p0.ply"),
-            "-o",
-            str(out),
-            "--levels",
-            "2",
-        ]
-    )
+    code = build_model(files, [str(files / "p0.ply")], out, "--levels", "2")
     assert code == 1
     assert "at least 2" in capsys.readouterr().err
     # A malformed --levels is refused by the argument parser: exit status 2, as for bad input.
     with pytest.raises(SystemExit) as exc:
-        main(
-            [
-                "build-model",
-                str(files / "template.ply"),
-                str(files / "p0.ply"),
-                "-o",
-                str(out),
-                "--levels",
-                "x",
-            ]
-        )
+        build_model(files, [str(files / "p0.ply")], out, "--levels", "x")
     assert exc.value.code == 2
     assert "expected comma-separated integers" in capsys.readouterr().err
 
@@ -161,20 +143,10 @@ def test_build_model_on_a_dask_scheduler_address(files, tmp_path, capsys):
     )
     with cluster:
         targets = [str(files / f"p{i}.ply") for i in range(3)]
-        code = main(
-            [
-                "build-model",
-                str(files / "template.ply"),
-                *targets,
-                "-o",
-                str(tmp_path / "model"),
-                "--levels",
-                "2,4",
-                "--scheduler",
-                cluster.scheduler_address,
-                "-q",
-            ]
-        )
+        code = build_model(
+            files, targets, tmp_path / "model", "--levels", "2,4",
+            "--scheduler", cluster.scheduler_address, "-q",
+        )  # fmt: skip
     assert code == 0
     report = json.loads((tmp_path / "model" / "report.json").read_text())
     assert len(report["registered"]) == 3

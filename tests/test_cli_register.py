@@ -22,23 +22,18 @@ def pair(tmp_path_factory):
     return folder
 
 
+def register(pair, output, *options: str, target: str = "patient.ply") -> int:
+    """``o3dreg register TEMPLATE TARGET -o OUTPUT OPTIONS...`` on the fixture's pair."""
+    template, patient = str(pair / "template.ply"), str(pair / target)
+    return main(["register", template, patient, "-o", str(output), *options])
+
+
 def test_register_writes_all_outputs(pair, tmp_path, capsys):
     out = tmp_path / "out.ply"
-    code = main(
-        [
-            "register",
-            str(pair / "template.ply"),
-            str(pair / "patient.ply"),
-            "-o",
-            str(out),
-            "--levels",
-            "2,4,8",
-            "--deformation",
-            str(tmp_path / "d.npz"),
-            "--report",
-            str(tmp_path / "r.json"),
-        ]
-    )
+    code = register(
+        pair, out, "--levels", "2,4,8",
+        "--deformation", str(tmp_path / "d.npz"), "--report", str(tmp_path / "r.json"),
+    )  # fmt: skip
     assert code == 0
     printed = capsys.readouterr().out
     assert "source -> target" in printed and "target -> source" in printed
@@ -51,19 +46,7 @@ def test_register_writes_all_outputs(pair, tmp_path, capsys):
 
 
 def test_json_output_and_no_symmetric(pair, tmp_path, capsys):
-    code = main(
-        [
-            "register",
-            str(pair / "template.ply"),
-            str(pair / "patient.ply"),
-            "-o",
-            str(tmp_path / "o.ply"),
-            "--json",
-            "--no-symmetric",
-            "--levels",
-            "2,4",
-        ]
-    )
+    code = register(pair, tmp_path / "o.ply", "--json", "--no-symmetric", "--levels", "2,4")
     data = json.loads(capsys.readouterr().out)
     assert code == 0 and data["levels"][0]["resolution"] == 2
 
@@ -71,60 +54,18 @@ def test_json_output_and_no_symmetric(pair, tmp_path, capsys):
 def test_refusals_leave_nothing(pair, tmp_path, capsys):
     out = tmp_path / "exists.ply"
     out.write_text("keep me")
-    assert (
-        main(["register", str(pair / "template.ply"), str(pair / "patient.ply"), "-o", str(out)])
-        == 2
-    )
+    assert register(pair, out) == 2
     assert out.read_text() == "keep me"
     assert "exists; pass --overwrite" in capsys.readouterr().err
-    assert (
-        main(
-            [
-                "register",
-                str(pair / "template.ply"),
-                str(tmp_path / "missing.ply"),
-                "-o",
-                str(tmp_path / "x.ply"),
-            ]
-        )
-        == 2
-    )
+    assert register(pair, tmp_path / "x.ply", target="missing.ply") == 2
     assert "no such file" in capsys.readouterr().err
-    assert (
-        main(
-            [
-                "register",
-                str(pair / "template.ply"),
-                str(pair / "patient.ply"),
-                "-o",
-                str(tmp_path / "y.ply"),
-                "--levels",
-                "2,4",
-                "--regularization",
-                "1,2,3",
-            ]
-        )
-        == 2
-    )
+    assert register(pair, tmp_path / "y.ply", "--levels", "2,4", "--regularization", "1,2,3") == 2
     assert "--regularization must give 1 or 2 values" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exists.ply"]
 
 
 def test_non_convergence_exit_code(pair, tmp_path):
-    code = main(
-        [
-            "register",
-            str(pair / "template.ply"),
-            str(pair / "patient.ply"),
-            "-o",
-            str(tmp_path / "o.ply"),
-            "--levels",
-            "2",
-            "--max-iteration",
-            "1",
-            "-q",
-        ]
-    )
+    code = register(pair, tmp_path / "o.ply", "--levels", "2", "--max-iteration", "1", "-q")
     assert code == 1
     assert (tmp_path / "o.ply").is_file()
 
@@ -138,24 +79,10 @@ def test_version_and_help(capsys):
 
 
 def test_robust_options_reach_the_registration(pair, tmp_path, capsys):
-    code = main(
-        [
-            "register",
-            str(pair / "template.ply"),
-            str(pair / "patient.ply"),
-            "-o",
-            str(tmp_path / "o.ply"),
-            "--levels",
-            "2,4",
-            "--loss",
-            "cauchy",
-            "--max-normal-angle",
-            "60",
-            "--parts",
-            "connected",
-            "--json",
-        ]
-    )
+    code = register(
+        pair, tmp_path / "o.ply", "--levels", "2,4",
+        "--loss", "cauchy", "--max-normal-angle", "60", "--parts", "connected", "--json",
+    )  # fmt: skip
     data = json.loads(capsys.readouterr().out)
     assert code in (0, 1)
     assert data["supported_vertices"] is not None and data["supported_vertices"] > 0

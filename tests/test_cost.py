@@ -2,10 +2,9 @@
 
 import numpy as np
 import pytest
+from _helpers import level_problem
 
 from o3dreg.app.synthetic import synthetic_form
-from o3dreg.registration._cost import LevelProblem
-from o3dreg.registration.distance import SurfaceDistanceQuery
 from o3dreg.registration.elastic import lattice_box
 from o3dreg.registration.lattice import TrilinearLattice
 
@@ -26,16 +25,13 @@ def make_problem(
     points = source[0] * 0.9
     origin, size = lattice_box([points, target[0]])
     lattice = TrilinearLattice.zeros(origin, size, (resolution,) * 3)
-    return LevelProblem(
+    return level_problem(
         points,
-        np.zeros_like(points),
+        target,
         lattice,
-        np.ones(points.shape[0], dtype=bool),
-        SurfaceDistanceQuery(*target),
-        target[0],
-        symmetric_weight,
-        regularization,
-        energy,
+        symmetric_weight=symmetric_weight,
+        regularization=regularization,
+        energy=energy,
     )
 
 
@@ -71,16 +67,8 @@ def test_cost_terms_add_up(meshes):
 def test_symmetric_cost_is_zero_for_identical_meshes(meshes):
     target = meshes[1]
     origin, size = lattice_box([target[0]])
-    problem = LevelProblem(
-        target[0],
-        np.zeros_like(target[0]),
-        TrilinearLattice.zeros(origin, size, (4, 4, 4)),
-        np.ones(target[0].shape[0], dtype=bool),
-        SurfaceDistanceQuery(*target),
-        target[0],
-        1.0,
-        1.0,
-    )
+    lattice = TrilinearLattice.zeros(origin, size, (4, 4, 4))
+    problem = level_problem(target[0], target, lattice, regularization=1.0)
     ev = problem.evaluate(np.zeros(problem.number_of_unknowns))
     # Every target vertex is its own nearest template vertex: barycentres are the vertices.
     assert ev.cost_distance < 1e-20
@@ -92,30 +80,14 @@ def test_bending_energy_is_free_for_affine_motion(meshes):
     # With every node free, an affine node field has zero second differences everywhere.
     lattice = make_problem(*meshes).lattice
     nodes = lattice.node_positions()
-    all_free = LevelProblem(
-        nodes,
-        np.zeros_like(nodes),
-        lattice,
-        np.ones(lattice.number_of_nodes, dtype=bool),
-        SurfaceDistanceQuery(*meshes[1]),
-        None,
-        0.0,
-        1.0,
-        "bending",
+    all_free = level_problem(
+        nodes, meshes[1], lattice, symmetric_weight=0.0, regularization=1.0, energy="bending"
     )
     a = np.array([[0.1, 0.2, 0.0], [0.0, -0.1, 0.3], [0.05, 0.0, 0.1]])
     ev = all_free.evaluate((nodes @ a.T + 2.0).ravel())
     assert ev.cost_regularization < 1e-20
     # ... while the membrane energy charges the same stretch.
-    membrane = LevelProblem(
-        nodes,
-        np.zeros_like(nodes),
-        lattice,
-        np.ones(lattice.number_of_nodes, dtype=bool),
-        SurfaceDistanceQuery(*meshes[1]),
-        None,
-        0.0,
-        1.0,
-        "membrane",
+    membrane = level_problem(
+        nodes, meshes[1], lattice, symmetric_weight=0.0, regularization=1.0, energy="membrane"
     )
     assert membrane.evaluate((nodes @ a.T + 2.0).ravel()).cost_regularization > 1.0

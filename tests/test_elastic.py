@@ -3,7 +3,7 @@
 import numpy as np
 import open3d as o3d
 import pytest
-from _helpers import assert_untouched, mesh_of, snapshot
+from _helpers import FAST, assert_untouched, mesh_of, snapshot
 
 from o3dreg import (
     DistanceEstimation,
@@ -15,8 +15,6 @@ from o3dreg import (
     registration_elastic,
 )
 from o3dreg.app.synthetic import SmoothWarp, synthetic_form
-
-FAST = [ElasticLevel(2, 0.1), ElasticLevel(4, 0.1), ElasticLevel(8, 0.1)]
 
 
 def warped(mesh, warp):

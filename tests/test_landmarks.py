@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from test_shapemodel import population
+from _helpers import population
 
 from o3dreg import (
     TemplateLandmarks,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_shapemodel import population
+from _helpers import population
 
 from o3dreg import build_shape_model, compactness, generalization, specificity
 

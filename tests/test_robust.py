@@ -4,14 +4,13 @@ vertex-order independence, and the new options' validation."""
 import numpy as np
 import open3d as o3d
 import pytest
+from _helpers import FAST
 
 from o3dreg import DistanceEstimation, ElasticLevel, registration_elastic
 from o3dreg.app.synthetic import SmoothWarp, synthetic_form
 from o3dreg.registration._cost import robust_weights
 from o3dreg.registration.distance import SurfaceDistanceQuery
 from o3dreg.registration.elastic import canonical_mesh, flipped_triangles
-
-FAST = [ElasticLevel(2, 0.1), ElasticLevel(4, 0.1), ElasticLevel(8, 0.1)]
 
 
 def arrays(mesh):

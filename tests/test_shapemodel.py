@@ -1,11 +1,7 @@
 """Shape model: PCA of a known linear population, synthesis, projection, fitting, persistence.
 
-The synthetic population (also used by the batch, sliding and landmark tests) is generated from
-a known linear model: a mean surface (an asymmetric egg with a nose, ~30 mm) deformed by three
-known smooth displacement fields with standard deviations 4, 2 and 1 mm (RMS over the template),
-then put in a random pose. Each subject's *target* surface is an independent, finer remeshing
-(a randomly rotated sphere tessellation) of that subject, so a registration must find the
-correspondences; the *truth* is the template's vertices moved by the same fields.
+The population (:func:`_helpers.population`) comes from a known linear model with three modes of
+standard deviations 4, 2 and 1 mm, each subject in a random pose and remeshed independently.
 """
 
 from __future__ import annotations
@@ -13,77 +9,17 @@ from __future__ import annotations
 import os
 
 import numpy as np
-import open3d as o3d
 import pytest
+from _helpers import FAST, population, unit_fields, unit_sphere
 from scipy.spatial.transform import Rotation
 
 from o3dreg import (
-    ElasticLevel,
     ShapeModel,
     build_shape_model,
     fit_shape_model,
     procrustes_transform,
     register_batch,
 )
-
-SD = np.array([4.0, 2.0, 1.0])
-FAST_LEVELS = [ElasticLevel(2), ElasticLevel(4), ElasticLevel(8)]
-
-
-def _base_map(p: np.ndarray) -> np.ndarray:
-    q = p * [39.0, 30.0, 24.0]
-    nose = np.exp(-((p - [0.0, 1.0, 0.3]) ** 2).sum(1) / 0.15)
-    q += 10.0 * nose[:, None] * [0.0, 1.0, 0.0]
-    q[:, 0] += 6.0 * np.clip(p[:, 2], 0, None) ** 2
-    return q
-
-
-def _sphere(resolution: int, rotation: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    m = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=resolution)
-    v = np.asarray(m.vertices).copy()
-    if rotation is not None:
-        v = v @ rotation.T
-    return v, np.asarray(m.triangles).astype(np.int64)
-
-
-def _fields(x: np.ndarray) -> list[np.ndarray]:
-    zero = np.zeros(len(x))
-    stretch = np.stack([x[:, 0] / 39.0, zero, zero], 1)
-    top = np.exp(-((x - [0, 0, 24]) ** 2).sum(1) / (2 * 12.0**2))[:, None] * [0.0, 0.0, 1.0]
-    side = np.exp(-((x - [30, 0, 0]) ** 2).sum(1) / (2 * 12.0**2))[:, None] * [0.0, 1.0, 0.0]
-    return [stretch, top, side]
-
-
-def unit_fields(x: np.ndarray, template: np.ndarray) -> list[np.ndarray]:
-    """The three fields at ``x``, each scaled to unit RMS over the template vertices."""
-    norms = [np.sqrt((f**2).sum(1).mean()) for f in _fields(template)]
-    return [f / n for f, n in zip(_fields(x), norms)]
-
-
-def population(
-    count: int, seed: int = 0, template_resolution: int = 12, target_resolution: int = 30
-):
-    """``(template (V, F), targets [(V, F)], truths (count, n, 3), coefficients, poses)``."""
-    rng = np.random.default_rng(seed)
-    tv, tf = _sphere(template_resolution)
-    template = _base_map(tv)
-    b = rng.standard_normal((count, 3)) * SD
-    truths, targets, poses = [], [], []
-    for i in range(count):
-
-        def phi(x: np.ndarray, i: int = i) -> np.ndarray:
-            return x + sum(b[i, k] * f for k, f in enumerate(unit_fields(x, template)))
-
-        sv, sf = _sphere(
-            target_resolution, Rotation.random(random_state=seed * 1000 + i).as_matrix()
-        )
-        pose = np.eye(4)
-        pose[:3, :3] = Rotation.from_rotvec(rng.normal(size=3) * 0.15).as_matrix()
-        pose[:3, 3] = rng.normal(size=3) * 5
-        targets.append((phi(_base_map(sv)) @ pose[:3, :3].T + pose[:3, 3], sf))
-        truths.append(phi(template))
-        poses.append(pose)
-    return (template, tf), targets, np.stack(truths), b, poses
 
 
 def principal_cosines(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -189,7 +125,7 @@ def test_save_load_roundtrip_and_template_check(pop, tmp_path):
     assert back.names == model.names and back.total_variance == model.total_variance
     with pytest.raises(OSError, match="exists"):
         model.save(path)
-    other_v, other_f = _sphere(10)
+    other_v, other_f = unit_sphere(10)
     with pytest.raises(ValueError, match="not this model's template"):
         ShapeModel.load(path, template=(other_v, other_f))
     flipped = tf[:, ::-1].copy()
@@ -266,7 +202,7 @@ def test_registered_population_recovers_variance_ratios_and_modes(pop, tmp_path)
     # Start each registration from the true rigid pose (per-patient ``init``): Open3D's ICP
     # in the default rigid initialisation is not bit-for-bit deterministic across runs, and
     # this test is about the elastic correspondences, PCA and pose removal by Procrustes.
-    batch = register_batch((tv, tf), targets, tmp_path, levels=FAST_LEVELS, init=np.stack(poses))
+    batch = register_batch((tv, tf), targets, tmp_path, levels=FAST, init=np.stack(poses))
     assert len(batch.registered) == len(targets)
     _, shapes = batch.shapes()
     model = build_shape_model(shapes, tf)

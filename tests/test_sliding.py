@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_shapemodel import FAST_LEVELS, population
+from _helpers import FAST, population
 
 from o3dreg import build_shape_model, register_batch, slide_semilandmarks
 from o3dreg.registration.distance import SurfaceDistanceQuery
@@ -14,7 +14,7 @@ from o3dreg.registration.distance import SurfaceDistanceQuery
 def registered(tmp_path_factory):
     (tv, tf), targets, _truths, _, poses = population(6, seed=5, template_resolution=8)
     batch = register_batch(
-        (tv, tf), targets, tmp_path_factory.mktemp("reg"), levels=FAST_LEVELS, init=np.stack(poses)
+        (tv, tf), targets, tmp_path_factory.mktemp("reg"), levels=FAST, init=np.stack(poses)
     )
     return tf, targets, batch.shapes()[1]
 

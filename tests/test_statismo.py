@@ -5,7 +5,7 @@ from __future__ import annotations
 import h5py
 import numpy as np
 import pytest
-from test_shapemodel import population
+from _helpers import population
 
 from o3dreg import build_shape_model, read_statismo, write_statismo
 
