@@ -61,9 +61,9 @@ def test_batch_resumes_and_force_reregisters(small, tmp_path):
 
 def test_a_registration_saved_beforehand_is_not_made_again(small, tmp_path):
     template, targets, _ = small
-    made = registration_elastic(template, targets[0], levels=FAST_LEVELS)
+    made = registration_elastic(template, targets[0], levels=FAST)
     saved = save_registered(tmp_path, "patient000", made, 1.0, "<array>")
-    batch = register_batch(template, targets[:2], tmp_path, levels=FAST_LEVELS)
+    batch = register_batch(template, targets[:2], tmp_path, levels=FAST)
     assert [r.skipped for r in batch.records] == [True, False]
     assert batch.records[0].distances == saved.distances == made.distances.as_dict()
     names, shapes = batch.shapes()
