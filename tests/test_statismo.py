@@ -1,6 +1,8 @@
-"""statismo / scalismo HDF5 interchange: layout, dtypes, round trip, version 0.8."""
+"""statismo / scalismo HDF5 interchange: layout compared with a file scalismo wrote, round trip."""
 
 from __future__ import annotations
+
+import os
 
 import h5py
 import numpy as np
@@ -8,6 +10,8 @@ import pytest
 from _helpers import population
 
 from o3dreg import build_shape_model, read_statismo, write_statismo
+
+REFERENCE = os.path.join(os.path.dirname(__file__), "data", "statismo", "scalismo-asm-model.h5")
 
 
 @pytest.fixture(scope="module")
@@ -17,23 +21,88 @@ def model():
     return build_shape_model(truths + rng.normal(size=truths.shape) * 0.1, tf)
 
 
-def test_layout_follows_statismo(model, tmp_path):
-    path = write_statismo(tmp_path / "m.h5", model)
-    n, k = model.number_of_points, model.number_of_modes
+def _layout(path):
+    """{path: description} of every group, dataset and attribute: kind, dtype, rank."""
+    out = {}
     with h5py.File(path, "r") as h5:
-        assert int(h5["version/majorVersion"][()]) == 0 and int(h5["version/minorVersion"][()]) == 9
+
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                tid = obj.id.get_type()
+                if obj.dtype.kind == "S":
+                    kind = ("string", tid.get_strpad(), tid.get_cset(), obj.shape)
+                else:
+                    kind = ("array", obj.dtype.str, obj.ndim)
+                out[name] = kind
+            else:
+                out[name] = ("group",)
+            for attr in obj.attrs:
+                aid = h5py.h5a.open(obj.id, attr.encode())
+                atype = aid.get_type()
+                out[f"{name}@{attr}"] = ("string", atype.get_strpad(), aid.shape)
+
+        h5.visititems(visit)
+    return out
+
+
+def test_layout_matches_a_file_scalismo_wrote(model, tmp_path):
+    path = write_statismo(tmp_path / "m.h5", model)
+    ours, reference = _layout(path), _layout(REFERENCE)
+    # Every group, dataset and attribute scalismo wrote is there, with its dtype and rank.
+    for key, kind in reference.items():
+        assert key in ours, key
+        assert ours[key] == kind, (key, ours[key], kind)
+    # What o3dreg adds: scores, names and parameters in statismo's own places.
+    extra = set(ours) - set(reference)
+    assert {"modelinfo/scores", "modelinfo/modelBuilder-0/parameters/TotalVariance"} <= extra
+    for key in extra:
+        assert key.startswith("modelinfo/"), key
+
+
+def test_every_dataset_statismo_and_scalismo_read(model, tmp_path):
+    path = write_statismo(tmp_path / "m.h5", model)
+    n, k, m = model.number_of_points, model.number_of_modes, model.faces.shape[0]
+    with h5py.File(path, "r") as h5:
+        # statismo HDF5Utils::readInt / scalismo readInt: int32 scalars.
+        for name, value in (("majorVersion", 0), ("minorVersion", 9)):
+            ds = h5[f"version/{name}"]
+            assert ds.shape == () and ds.dtype == np.int32 and ds[()] == value
+        # readVector / readArrayFloat: float32 vectors; readMatrix / readNDArrayFloat: float32 2-D.
         assert h5["model/mean"].shape == (3 * n,) and h5["model/mean"].dtype == np.float32
-        assert h5["model/pcaBasis"].shape == (3 * n, k) and h5["model/pcaBasis"].dtype == np.float32
+        assert h5["model/pcaBasis"].shape == (3 * n, k)
+        assert h5["model/pcaBasis"].dtype == np.float32
         assert h5["model/pcaVariance"].shape == (k,)
-        assert h5["model/noiseVariance"].shape == ()
+        assert h5["model/pcaVariance"].dtype == np.float32
+        assert h5["model/noiseVariance"].dtype == np.float32
+        assert h5["model/noiseVariance"].size == 1
         assert h5["representer/points"].shape == (3, n)
-        assert h5["representer/cells"].shape == (3, model.faces.shape[0])
-        assert h5["representer"].attrs["datasetType"] == b"POLYGON_MESH"
-        assert h5["representer"].attrs["name"] == b"itkStandardMeshRepresenter"
+        assert h5["representer/points"].dtype == np.float32
+        # scalismo's readNDArrayInt casts to signed 32-bit: uint32 would fail there.
+        assert h5["representer/cells"].shape == (3, m)
+        assert h5["representer/cells"].dtype == np.int32
+        np.testing.assert_array_equal(h5["representer/cells"][()].T, model.faces)
+        rep = h5["representer"].attrs
+        assert rep["datasetType"][0] == b"POLYGON_MESH"
+        assert rep["name"][0] == b"itkStandardMeshRepresenter"
+        # statismo BuilderInfo::Load opens these and reads every child as a string.
+        builder = h5["modelinfo/modelBuilder-0"]
+        for name in ("builderName", "buildTime"):
+            assert builder[name].dtype.kind == "S"
+        for group in ("dataInfo", "parameters"):
+            assert isinstance(builder[group], h5py.Group)
+            for child in builder[group].values():
+                assert isinstance(child, h5py.Dataset) and child.dtype.kind == "S"
+        assert len(builder["dataInfo"]) == len(model.names)
+        # ModelInfo::Load reads scores as a (k, s) float matrix.
+        assert h5["modelinfo/scores"].shape == (k, model.scores.shape[0])
         basis = h5["model/pcaBasis"][()].astype(np.float64)
         # Version 0.9 stores the orthonormal basis (float32 precision).
         np.testing.assert_allclose(basis.T @ basis, np.eye(k), atol=1e-5)
         np.testing.assert_allclose(h5["model/mean"][()][:3], model.mean[0], rtol=1e-6)
+        # Strings are null-terminated fixed-length ASCII, with the terminator's byte.
+        tid = builder["builderName"].id.get_type()
+        assert tid.get_strpad() == h5py.h5t.STR_NULLTERM
+        assert tid.get_size() == len(b"o3dreg.build_shape_model") + 1
 
 
 def test_roundtrip_and_version_08(model, tmp_path):
@@ -44,6 +113,9 @@ def test_roundtrip_and_version_08(model, tmp_path):
     np.testing.assert_allclose(back.modes, model.modes, atol=1e-6)
     np.testing.assert_allclose(back.scores, model.scores, rtol=1e-4, atol=1e-3)
     np.testing.assert_array_equal(back.faces, model.faces)
+    assert back.names == model.names
+    assert back.scaling == model.scaling
+    assert back.total_variance == pytest.approx(model.total_variance, rel=1e-12)
     # statismo 0.8 stored U D (scaled basis); it is read back to the same model.
     with h5py.File(path, "r+") as h5:
         h5["version/minorVersion"][()] = 8
@@ -53,15 +125,68 @@ def test_roundtrip_and_version_08(model, tmp_path):
     np.testing.assert_allclose(old.modes, model.modes, atol=1e-5)
 
 
+def test_reads_the_model_scalismo_wrote():
+    model = read_statismo(REFERENCE)
+    assert model.number_of_points == 1400 and model.number_of_modes == 50
+    assert model.faces.shape == (2800, 3)
+    with h5py.File(REFERENCE, "r") as h5:
+        mean = h5["model/mean"][()].astype(np.float64).reshape(-1, 3)
+        basis = h5["model/pcaBasis"][()].astype(np.float64)
+        variances = h5["model/pcaVariance"][()].astype(np.float64)
+        cells = h5["representer/cells"][()]
+    np.testing.assert_array_equal(model.mean, mean)
+    np.testing.assert_array_equal(model.faces, cells.T)
+    # This model is a low-rank Gaussian process: its stored basis holds eigenfunctions sampled
+    # at the points (column norms^2 ~ 1,380, not 1), so the modes are re-orthonormalised.
+    assert np.abs(basis.T @ basis - np.eye(50)).max() > 1.0
+    np.testing.assert_allclose(model.basis.T @ model.basis, np.eye(50), atol=1e-10)
+    assert np.all(np.diff(model.variances) <= 0)
+    # ... describing the same distribution: equal covariance U diag(var) U^T, probed with random
+    # vectors (the 4,200 x 4,200 matrices are not formed). float32 basis: relative 1e-5.
+    probes = np.random.default_rng(0).normal(size=(3 * 1400, 5))
+    stored = basis @ (variances[:, None] * (basis.T @ probes))
+    ours = model.basis @ (model.variances[:, None] * (model.basis.T @ probes))
+    np.testing.assert_allclose(ours, stored, rtol=1e-6, atol=1e-6 * np.abs(stored).max())
+    # Total variance: trace of the covariance.
+    assert model.variances.sum() == pytest.approx((variances * (basis**2).sum(axis=0)).sum())
+    assert model.scores.shape == (0, 50) and model.noise_variance == 0.0
+
+
+def test_a_model_scalismo_wrote_survives_a_round_trip(tmp_path):
+    model = read_statismo(REFERENCE)
+    back = read_statismo(write_statismo(tmp_path / "again.h5", model))
+    # Written once more as float32: orthonormal to float32 precision, so read as stored.
+    np.testing.assert_array_equal(back.mean, model.mean)
+    np.testing.assert_allclose(back.basis, model.basis, atol=1e-6)
+    np.testing.assert_allclose(back.variances, model.variances, rtol=1e-6)
+    np.testing.assert_array_equal(back.faces, model.faces)
+
+
 def test_statismo_bad_input(model, tmp_path):
     path = write_statismo(tmp_path / "m.h5", model)
     with pytest.raises(OSError, match="exists"):
         write_statismo(path, model)
     with pytest.raises(ValueError, match=".h5"):
         write_statismo(tmp_path / "m.npz", model)
+    with pytest.raises(TypeError, match="ShapeModel"):
+        write_statismo(tmp_path / "n.h5", (model.mean, model.faces))
     with h5py.File(tmp_path / "empty.h5", "w") as h5:
         h5.create_group("model")
     with pytest.raises(ValueError, match="not a statismo shape model"):
         read_statismo(tmp_path / "empty.h5")
     with pytest.raises(ValueError, match="not this model's template"):
         read_statismo(path, template=(model.mean, model.faces[::-1].copy()))
+
+
+def test_a_scaled_basis_is_the_same_model(model, tmp_path):
+    # U c with variances var / c^2 is the same distribution; its scores a (standardised) too.
+    path = write_statismo(tmp_path / "m.h5", model)
+    c = np.linspace(2.0, 3.0, model.number_of_modes)
+    with h5py.File(path, "r+") as h5:
+        h5["model/pcaBasis"][...] = h5["model/pcaBasis"][()] * c
+        h5["model/pcaVariance"][...] = h5["model/pcaVariance"][()] / c**2
+    back = read_statismo(path)
+    np.testing.assert_allclose(back.variances, model.variances, rtol=1e-5)
+    signs = np.sign(np.sum(back.basis * model.basis, axis=0))
+    np.testing.assert_allclose(back.basis * signs, model.basis, atol=1e-5)
+    np.testing.assert_allclose(back.scores * signs, model.scores, rtol=1e-4, atol=1e-3)

@@ -1,32 +1,50 @@
 """Export and import of shape models in the statismo / scalismo HDF5 layout (h5py).
 
-The layout written (statismo format version 0.9, as ``StatisticalModel::Save`` and scalismo's
-``StatisticalModelIO`` write it):
+The layout written is the one scalismo's ``StatismoIO.writeStatismoPDM`` writes and statismo's
+``StatismoIO::LoadStatisticalModel`` / ``ModelInfo::Load`` and scalismo's ``readStatismoPDM``
+read (statismo format version 0.9):
 
-========================== ======================= ===============================================
-path                       type                    content
-========================== ======================= ===============================================
-``/version/majorVersion``  int32 scalar            0
-``/version/minorVersion``  int32 scalar            9 (pcaBasis holds the *orthonormal* basis)
-``/model/mean``            float32 ``(3n,)``       x1, y1, z1, x2, ...
-``/model/pcaBasis``        float32 ``(3n, k)``     orthonormal columns ``U`` (version 0.8 stored
-                                                   ``U D``, ``D = sqrt(variance)``)
-``/model/pcaVariance``     float32 ``(k,)``        variances
-``/model/noiseVariance``   float32 scalar          isotropic noise variance
-``/representer``           group, attributes       ``name`` = ``itkStandardMeshRepresenter``,
-                                                   ``version`` = ``0.1``, ``datasetType`` =
-                                                   ``POLYGON_MESH``
-``/representer/points``    float32 ``(3, n)``      reference (mean) vertices, one column each
-``/representer/cells``     uint32 ``(3, m)``       triangles, one column each
-``/modelinfo/scores``      float32 ``(k, s)``      training coefficients (statismo stores the
-                                                   standardised scores ``alpha / sqrt(var)``)
-``/modelinfo/build-time``  string                  time stamp
-========================== ======================= ===============================================
+============================================= ================= ==================================
+path                                          type              content
+============================================= ================= ==================================
+``/version/majorVersion``                     int32 scalar      0
+``/version/minorVersion``                     int32 scalar      9 (pcaBasis holds the
+                                                                *orthonormal* basis ``U``; 0.8
+                                                                stored ``U D``)
+``/model/mean``                               float32 (3n,)     x1, y1, z1, x2, ...
+``/model/pcaBasis``                           float32 (3n, k)   orthonormal columns
+``/model/pcaVariance``                        float32 (k,)      variances
+``/model/noiseVariance``                      float32 (1,)      isotropic noise variance
+``/representer`` (attributes)                 string (1,)       ``name`` =
+                                                                ``itkStandardMeshRepresenter``,
+                                                                ``datasetType`` =
+                                                                ``POLYGON_MESH``,
+                                                                ``version/majorVersion`` = ``0``,
+                                                                ``version/minorVersion`` = ``9``
+``/representer/points``                       float32 (3, n)    reference (mean) vertices, one
+                                                                column each
+``/representer/cells``                        int32 (3, m)      triangles, one column each
+                                                                (scalismo reads signed 32-bit)
+``/modelinfo/build-time``                     string (1,)       time stamp
+``/modelinfo/scores``                         float32 (k, s)    standardised training scores
+                                                                ``alpha / sqrt(var)`` (written
+                                                                when the model has scores)
+``/modelinfo/modelBuilder-0/builderName``     string (1,)       ``o3dreg.build_shape_model``
+``/modelinfo/modelBuilder-0/buildTime``       string (1,)       time stamp
+``/modelinfo/modelBuilder-0/dataInfo/URI_i``  string (1,)       name of training shape ``i``
+``/modelinfo/modelBuilder-0/parameters/*``    string (1,)       ``NoiseVariance``,
+                                                                ``TotalVariance``, ``Scaling``
+============================================= ================= ==================================
+
+statismo reads every entry of ``dataInfo`` and ``parameters`` as a string, so only strings are
+written there. Strings are fixed-length, ASCII, null-terminated, as statismo's ``HDF5Utils``
+writes them.
 """
 
 from __future__ import annotations
 
 import datetime
+import logging
 import os
 from typing import Any
 
@@ -37,6 +55,10 @@ from .model import ShapeModel
 
 __all__ = ["read_statismo", "write_statismo"]
 
+BUILDER_NAME = "o3dreg.build_shape_model"
+
+_log = logging.getLogger("o3dreg")
+
 
 def _h5py() -> Any:
     try:
@@ -46,10 +68,48 @@ def _h5py() -> Any:
     return h5py
 
 
+def _fixed_string(text: str) -> np.ndarray:
+    """A one-element fixed-length ASCII string with room for the terminating zero."""
+    data = text.encode("ascii", errors="replace")
+    return np.array([data], dtype=f"S{len(data) + 1}")
+
+
+def _write_string(group: Any, name: str, text: str) -> None:
+    h5py = _h5py()
+    value = _fixed_string(text)
+    tid = h5py.h5t.C_S1.copy()
+    tid.set_size(value.dtype.itemsize)
+    tid.set_strpad(h5py.h5t.STR_NULLTERM)
+    space = h5py.h5s.create_simple((1,))
+    dset = h5py.h5d.create(group.id, name.encode(), tid, space)
+    dset.write(h5py.h5s.ALL, h5py.h5s.ALL, value, mtype=tid)
+
+
+def _write_string_attribute(group: Any, name: str, text: str) -> None:
+    h5py = _h5py()
+    value = _fixed_string(text)
+    tid = h5py.h5t.C_S1.copy()
+    tid.set_size(value.dtype.itemsize)
+    tid.set_strpad(h5py.h5t.STR_NULLTERM)
+    space = h5py.h5s.create_simple((1,))
+    attr = h5py.h5a.create(group.id, name.encode(), tid, space)
+    attr.write(value, mtype=tid)
+
+
+def _read_string(value: Any) -> str:
+    arr = np.asarray(value).reshape(-1)
+    item = arr[0] if arr.size else b""
+    if isinstance(item, bytes):
+        return item.split(b"\0", 1)[0].decode("utf-8", errors="replace")
+    return str(item)
+
+
 def write_statismo(
     path: str | os.PathLike[str], model: ShapeModel, *, overwrite: bool = False
 ) -> str:
     """Write ``model`` as a statismo HDF5 file (readable by statismo and scalismo), atomically.
+
+    The layout is described in the module documentation; it is the layout scalismo writes.
 
     Parameters
     ----------
@@ -76,9 +136,12 @@ def write_statismo(
     path = os.fspath(path)
     if not path.lower().endswith((".h5", ".hdf5")):
         raise ValueError(f"`path` must end with .h5, got {path!r}")
+    if model.faces.size and model.faces.max() > np.iinfo(np.int32).max:
+        raise ValueError("`model` has more vertices than statismo's int32 cells can index")
     h5py = _h5py()
     sd = model.standard_deviations
     safe = np.where(sd > 0, sd, 1.0)
+    stamp = datetime.datetime.now().strftime("%a %b %d %H:%M:%S %Y")
 
     def write(tmp: str) -> None:
         with h5py.File(tmp, "w") as h5:
@@ -89,31 +152,85 @@ def write_statismo(
             grp.create_dataset("mean", data=model.mean.reshape(-1).astype(np.float32))
             grp.create_dataset("pcaBasis", data=model.basis.astype(np.float32))
             grp.create_dataset("pcaVariance", data=model.variances.astype(np.float32))
-            grp.create_dataset("noiseVariance", data=np.float32(model.noise_variance))
+            grp.create_dataset(
+                "noiseVariance", data=np.array([model.noise_variance], dtype=np.float32)
+            )
             rep = h5.create_group("representer")
-            rep.attrs["name"] = np.bytes_("itkStandardMeshRepresenter")
-            rep.attrs["version"] = np.bytes_("0.1")
-            rep.attrs["datasetType"] = np.bytes_("POLYGON_MESH")
+            _write_string_attribute(rep, "name", "itkStandardMeshRepresenter")
+            _write_string_attribute(rep, "version/majorVersion", "0")
+            _write_string_attribute(rep, "version/minorVersion", "9")
+            _write_string_attribute(rep, "datasetType", "POLYGON_MESH")
             rep.create_dataset("points", data=model.mean.T.astype(np.float32))
-            rep.create_dataset("cells", data=model.faces.T.astype(np.uint32))
+            rep.create_dataset("cells", data=model.faces.T.astype(np.int32))
             info = h5.create_group("modelinfo")
-            info.create_dataset("scores", data=(model.scores / safe).T.astype(np.float32))
-            info.create_dataset("build-time", data=np.bytes_(datetime.datetime.now().isoformat()))
-            info.create_dataset("total-variance", data=np.float64(model.total_variance))
-            info.create_dataset("scaling", data=np.int32(model.scaling))
+            _write_string(info, "build-time", stamp)
+            if model.scores.shape[0] > 0 and model.number_of_modes > 0:
+                info.create_dataset("scores", data=(model.scores / safe).T.astype(np.float32))
             builder = info.create_group("modelBuilder-0")
-            builder.create_dataset("builderName", data=np.bytes_("o3dreg.build_shape_model"))
-            builder.create_dataset("buildTime", data=np.bytes_(datetime.datetime.now().isoformat()))
+            _write_string(builder, "builderName", BUILDER_NAME)
+            _write_string(builder, "buildTime", stamp)
+            data_info = builder.create_group("dataInfo")
+            for i, name in enumerate(model.names):
+                _write_string(data_info, f"URI_{i}", name)
+            parameters = builder.create_group("parameters")
+            _write_string(parameters, "NoiseVariance", repr(float(model.noise_variance)))
+            _write_string(parameters, "TotalVariance", repr(float(model.total_variance)))
+            _write_string(parameters, "Scaling", "1" if model.scaling else "0")
 
     return atomic_write(path, write, overwrite=overwrite)
+
+
+def _builder_entries(h5: Any, group: str) -> dict[str, str]:
+    """The string entries of ``modelinfo/modelBuilder-0/<group>`` (empty when absent)."""
+    key = f"modelinfo/modelBuilder-0/{group}"
+    if key not in h5:
+        return {}
+    return {name: _read_string(h5[key][name][()]) for name in h5[key]}
+
+
+def _orthonormal_modes(
+    basis: np.ndarray, variances: np.ndarray, standardised: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Orthonormal modes, variances and scores ``alpha`` of the stored model.
+
+    A file's shape is ``mean + U diag(sqrt(var)) a`` with ``a ~ N(0, I)``. statismo's PCA
+    builder stores an orthonormal ``U``; a Gaussian-process model (scalismo's low-rank GP, a
+    Nyström approximation) stores eigenfunctions sampled at the points, which are neither of
+    unit norm nor exactly orthogonal. The same distribution is then written with orthonormal
+    modes from the SVD ``U diag(sqrt(var)) = Q S R^T``: modes ``Q``, variances ``S^2``,
+    scores ``S R^T a``.
+    """
+    k = variances.size
+    sd = np.sqrt(np.clip(variances, 0, None))
+    gram = basis.T @ basis
+    # The file holds float32: columns that are orthonormal to that precision are kept as they
+    # are, so a model statismo or o3dreg wrote reads back unchanged.
+    if k == 0 or np.abs(gram - np.eye(k)).max() <= 1e-4:
+        return basis, variances, standardised * sd
+    q, s, rt = np.linalg.svd(basis * sd, full_matrices=False)
+    _log.info(
+        "statismo basis is not orthonormal (max |U^T U - I| = %.3g): modes re-orthonormalised, "
+        "same distribution",
+        float(np.abs(gram - np.eye(k)).max()),
+    )
+    # SVD signs are arbitrary: make each mode's largest component positive (reproducible).
+    signs = np.sign(q[np.abs(q).argmax(axis=0), np.arange(k)])
+    signs[signs == 0] = 1.0
+    q, rt = q * signs, rt * signs[:, None]
+    return q, s**2, (standardised @ rt.T) * s
 
 
 def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> ShapeModel:
     """Read a statismo / scalismo polygon-mesh shape model.
 
-    Versions 0.8 (``pcaBasis`` = ``U D``) and 0.9 (orthonormal ``U``) are read; a scalar or
+    Versions 0.8 (``pcaBasis`` = ``U D``) and 0.9 (``U``) are read; a scalar or
     one-element ``noiseVariance`` is accepted. Scores are read from ``/modelinfo/scores`` when
-    present (otherwise the model has no training scores).
+    present (otherwise the model has no training scores); names from the first model builder's
+    ``dataInfo``. An active shape model written by scalismo is read as its shape model (the
+    intensity profiles are ignored). A basis that is not orthonormal (a Gaussian-process model
+    stores eigenfunctions sampled at the points) is turned into orthonormal modes describing the
+    same distribution (the SVD of ``U diag(sqrt(var))``), so the variances are in the input's
+    units squared, as for a model built by :func:`build_shape_model`.
 
     Parameters
     ----------
@@ -138,28 +255,28 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
         raise OSError(f"`path`: {path!r} is not a readable HDF5 file ({exc})") from exc
     with h5:
         try:
-            major = int(np.asarray(h5["version/majorVersion"])) if "version" in h5 else 0
-            minor = int(np.asarray(h5["version/minorVersion"])) if "version" in h5 else 8
+            major = int(np.asarray(h5["version/majorVersion"]).reshape(-1)[0]) if "version" in h5 else 0
+            minor = int(np.asarray(h5["version/minorVersion"]).reshape(-1)[0]) if "version" in h5 else 8
             mean = np.asarray(h5["model/mean"], dtype=np.float64).reshape(-1, 3)
             basis = np.asarray(h5["model/pcaBasis"], dtype=np.float64)
             variances = np.asarray(h5["model/pcaVariance"], dtype=np.float64).reshape(-1)
-            noise = float(np.asarray(h5["model/noiseVariance"], dtype=np.float64).reshape(-1)[0])
+            noise_arr = np.asarray(h5["model/noiseVariance"], dtype=np.float64).reshape(-1)
+            noise = float(noise_arr[0]) if noise_arr.size else 0.0
             cells = np.asarray(h5["representer/cells"])
             scores_t = (
                 np.asarray(h5["modelinfo/scores"], dtype=np.float64)
                 if "modelinfo/scores" in h5
                 else None
             )
-            total = (
-                float(np.asarray(h5["modelinfo/total-variance"]))
-                if "modelinfo/total-variance" in h5
-                else float(variances.sum())
-            )
-            scaling = (
-                bool(int(np.asarray(h5["modelinfo/scaling"])))
-                if "modelinfo/scaling" in h5
-                else False
-            )
+            parameters = _builder_entries(h5, "parameters")
+            data_info = _builder_entries(h5, "dataInfo")
+            # Files o3dreg wrote before the parameters group held these.
+            if "modelinfo/total-variance" in h5:
+                parameters.setdefault(
+                    "TotalVariance", str(float(np.asarray(h5["modelinfo/total-variance"])))
+                )
+            if "modelinfo/scaling" in h5:
+                parameters.setdefault("Scaling", str(int(np.asarray(h5["modelinfo/scaling"]))))
         except KeyError as exc:
             raise ValueError(
                 f"`path`: {path!r} is not a statismo shape model (missing {exc})"
@@ -177,9 +294,21 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
     if cells.ndim != 2 or 3 not in cells.shape:
         raise ValueError(f"`path`: representer/cells has shape {cells.shape}; triangles expected")
     faces = cells.T if cells.shape[0] == 3 else cells
-    scores = np.zeros((0, k))
-    if scores_t is not None and scores_t.ndim == 2 and scores_t.shape[0] == k:
-        scores = scores_t.T * sd
+    standardised = np.zeros((0, k))
+    # statismo writes a 1 x 1 zero matrix when a model has no scores.
+    if scores_t is not None and scores_t.ndim == 2 and scores_t.shape[0] == k and k > 0:
+        standardised = scores_t.T
+    basis, variances, scores = _orthonormal_modes(basis, variances, standardised)
+    uris = [data_info.get(f"URI_{i}") for i in range(scores.shape[0])]
+    names = (
+        tuple(str(u) for u in uris)
+        if all(u is not None for u in uris)
+        else tuple(f"shape{i:03d}" for i in range(scores.shape[0]))
+    )
+    try:
+        total = float(parameters["TotalVariance"])
+    except (KeyError, ValueError):
+        total = float(variances.sum())
     model = ShapeModel(
         mean=mean,
         modes=basis.T.reshape(k, -1, 3),
@@ -187,8 +316,8 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
         faces=faces.astype(np.int64),
         total_variance=total,
         scores=scores,
-        names=tuple(f"shape{i:03d}" for i in range(scores.shape[0])),
-        scaling=scaling,
+        names=names,
+        scaling=parameters.get("Scaling", "0").strip() in ("1", "true", "True"),
         noise_variance=noise,
     )
     if template is not None:
