@@ -255,8 +255,12 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
         raise OSError(f"`path`: {path!r} is not a readable HDF5 file ({exc})") from exc
     with h5:
         try:
-            major = int(np.asarray(h5["version/majorVersion"]).reshape(-1)[0]) if "version" in h5 else 0
-            minor = int(np.asarray(h5["version/minorVersion"]).reshape(-1)[0]) if "version" in h5 else 8
+            major = (
+                int(np.asarray(h5["version/majorVersion"]).reshape(-1)[0]) if "version" in h5 else 0
+            )
+            minor = (
+                int(np.asarray(h5["version/minorVersion"]).reshape(-1)[0]) if "version" in h5 else 8
+            )
             mean = np.asarray(h5["model/mean"], dtype=np.float64).reshape(-1, 3)
             basis = np.asarray(h5["model/pcaBasis"], dtype=np.float64)
             variances = np.asarray(h5["model/pcaVariance"], dtype=np.float64).reshape(-1)
