@@ -52,7 +52,7 @@ def test_read_errors(tmp_path):
     with pytest.raises(OSError, match="no such file"):
         read_triangle_mesh(tmp_path / "missing.ply")
     with pytest.raises(ValueError, match="must end with one of"):
-        read_triangle_mesh(tmp_path / "mesh.vtk")
+        read_triangle_mesh(tmp_path / "mesh.xyz")
     empty = tmp_path / "empty.ply"
     empty.write_text("ply\nformat ascii 1.0\nend_header\n")
     with pytest.raises(OSError, match="could not be read as a triangle mesh"):

@@ -27,7 +27,11 @@ def add_parser(subparsers: Any) -> None:
     )
     parser.add_argument("input", metavar="INPUT", help="volume file or DICOM folder")
     parser.add_argument(
-        "-o", "--output", required=True, metavar="OUT", help="mesh file (.ply, .obj, .stl, .off)"
+        "-o",
+        "--output",
+        required=True,
+        metavar="OUT",
+        help="mesh file (.ply, .obj, .stl, .off, .glb, .vtk, .vtp)",
     )
     parser.add_argument(
         "--threshold",

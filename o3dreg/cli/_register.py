@@ -36,7 +36,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("source", help="template mesh that moves (.ply, .obj, .stl, .off)")
+    p.add_argument(
+        "source", help="template mesh that moves (.ply, .obj, .stl, .off, .glb, .vtk, .vtp)"
+    )
     p.add_argument("target", help="patient mesh it is matched to")
     p.add_argument("-o", "--output", required=True, help="semilandmark mesh to write")
     p.add_argument(

@@ -28,7 +28,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("meshes", nargs="+", help="mesh files (.ply, .obj, .stl, .off)")
+    p.add_argument(
+        "meshes", nargs="+", help="mesh files (.ply, .obj, .stl, .off, .glb, .vtk, .vtp)"
+    )
     p.add_argument(
         "--distance-to",
         metavar="TARGET",

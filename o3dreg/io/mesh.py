@@ -11,6 +11,7 @@ import numpy as np
 import open3d as o3d
 
 from .._validation import as_mesh_arrays, check_output_path
+from . import formats
 
 __all__ = [
     "MESH_SUFFIXES",
@@ -21,8 +22,9 @@ __all__ = [
     "write_triangle_mesh",
 ]
 
-#: File suffixes Open3D reads and writes as triangle meshes.
-MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")
+#: File suffixes read and written as triangle meshes (Open3D's, plus VTK polydata: see
+#: :mod:`o3dreg.io.formats`).
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb", ".vtk", ".vtp")
 
 
 def check_mesh_suffix(path: str, name: str) -> str:
@@ -53,7 +55,9 @@ def read_triangle_mesh(
     Parameters
     ----------
     path : str or path-like
-        A ``.ply``, ``.obj``, ``.stl``, ``.off``, ``.gltf`` or ``.glb`` file.
+        A ``.ply``, ``.obj``, ``.stl``, ``.off``, ``.gltf``, ``.glb``, ``.vtk`` (legacy VTK
+        polydata) or ``.vtp`` (VTK XML polydata) file. STL corners with identical coordinates
+        are merged (STL stores each triangle's corners separately).
     name : str, optional
         The parameter name used in error messages.
 
@@ -76,7 +80,7 @@ def read_triangle_mesh(
         raise OSError(f"`{name}`: no such file {path!r}")
     if not os.access(path, os.R_OK):
         raise OSError(f"`{name}`: file {path!r} is not readable")
-    mesh = o3d.io.read_triangle_mesh(path)  # type: ignore[arg-type]  # stubs say PathLike only
+    mesh = formats.read_mesh(path, check_mesh_suffix(path, name))
     if len(mesh.vertices) == 0 or len(mesh.triangles) == 0:
         raise OSError(
             f"`{name}`: {path!r} could not be read as a triangle mesh "
@@ -153,7 +157,7 @@ def write_triangle_mesh(
     """
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`{name}` must be a path, got {type(path).__name__}")
-    check_mesh_suffix(os.fspath(path), name)
+    suffix = check_mesh_suffix(os.fspath(path), name)
     if isinstance(mesh, o3d.geometry.TriangleMesh):
         out = o3d.geometry.TriangleMesh(mesh)
     else:
@@ -162,7 +166,7 @@ def write_triangle_mesh(
         out.compute_vertex_normals()
     return atomic_write(
         path,
-        lambda tmp: o3d.io.write_triangle_mesh(tmp, out, write_ascii=write_ascii),  # type: ignore[arg-type]
+        lambda tmp: formats.write_mesh(tmp, out, suffix, write_ascii=write_ascii),
         overwrite=overwrite,
         name=name,
     )

@@ -1,0 +1,295 @@
+"""Mesh file formats: round trips per suffix, STL corners merged, GLB read back, VTK polydata.
+
+The VTK fixtures are written byte by byte here, following the published formats (VTK File
+Formats, legacy and XML; VTK 9 legacy 5.1 ``OFFSETS`` / ``CONNECTIVITY``; zlib-compressed
+appended data with its block header), independently of o3dreg's writers.
+"""
+
+from __future__ import annotations
+
+import base64
+import logging
+import struct
+import zlib
+
+import numpy as np
+import open3d as o3d
+import pytest
+from _helpers import assert_untouched, mesh_of, snapshot
+
+from o3dreg import read_triangle_mesh, write_triangle_mesh
+from o3dreg.io.formats import merge_identical_vertices
+from o3dreg.io.mesh import MESH_SUFFIXES
+
+
+def _same_triangles(back, vertices, faces):
+    """``back`` has the same vertices (any order, float32 precision) and oriented triangles."""
+    from scipy.spatial import cKDTree
+
+    got = np.asarray(back.vertices)
+    distance, index = cKDTree(vertices).query(got)
+    # float32 files (STL, glTF, OFF/PLY text with 6-7 digits): 1e-5 of the 10 mm radius.
+    assert distance.max() < 1e-4
+    assert len(set(index.tolist())) == len(vertices)
+    mapped = index[np.asarray(back.triangles)]
+
+    def canonical(tris):
+        return sorted(tuple(np.roll(t, -int(np.argmin(t)))) for t in tris.tolist())
+
+    assert canonical(mapped) == canonical(np.asarray(faces))
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return o3d.geometry.TriangleMesh.create_sphere(radius=10.0, resolution=12)
+
+
+@pytest.mark.parametrize("ascii", [False, True])
+@pytest.mark.parametrize("suffix", MESH_SUFFIXES)
+def test_every_suffix_round_trips(sphere, tmp_path, suffix, ascii):
+    snap = snapshot(sphere)
+    path = write_triangle_mesh(tmp_path / f"m{suffix}", sphere, write_ascii=ascii)
+    back = read_triangle_mesh(path)
+    assert_untouched(sphere, snap)
+    # Same vertex and triangle counts (STL corners merged back), same triangles up to float32.
+    assert len(back.vertices) == len(sphere.vertices)
+    assert len(back.triangles) == len(sphere.triangles)
+    _same_triangles(back, *snap)
+
+
+def test_stl_corners_are_merged(sphere, tmp_path):
+    # Open3D reads STL as three vertices per triangle: keep_largest_components then kept one.
+    path = str(tmp_path / "open3d.stl")
+    mesh = o3d.geometry.TriangleMesh(sphere)
+    mesh.compute_triangle_normals()
+    assert o3d.io.write_triangle_mesh(path, mesh)
+    assert len(o3d.io.read_triangle_mesh(path).vertices) > len(sphere.vertices)
+    back = read_triangle_mesh(path)
+    assert len(back.vertices) == len(sphere.vertices)
+    # One connected surface again: every vertex is shared by several triangles.
+    clusters, _, _ = back.cluster_connected_triangles()
+    assert len(set(np.asarray(clusters).tolist())) == 1
+
+
+def test_merge_keeps_first_seen_order():
+    v = np.array([[1.0, 0, 0], [0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0]])
+    f = np.array([[0, 1, 3], [2, 4, 3]])
+    merged, faces = merge_identical_vertices(v, f)
+    np.testing.assert_array_equal(merged, [[1, 0, 0], [0, 0, 0], [0, 1, 0]])
+    np.testing.assert_array_equal(faces, [[0, 1, 2], [0, 1, 2]])
+
+
+def test_stl_from_a_ply_with_vertex_normals(sphere, tmp_path):
+    mesh = o3d.geometry.TriangleMesh(sphere)
+    mesh.compute_vertex_normals()
+    ply = str(tmp_path / "n.ply")
+    o3d.io.write_triangle_mesh(ply, mesh)
+    read = read_triangle_mesh(ply)
+    assert read.has_vertex_normals() and not read.has_triangle_normals()
+    back = read_triangle_mesh(write_triangle_mesh(tmp_path / "n.stl", read))
+    assert len(back.vertices) == len(sphere.vertices)
+    assert not read.has_triangle_normals()  # the caller's mesh is not given normals
+
+
+def test_glb_is_valid_gltf(sphere, tmp_path):
+    path = write_triangle_mesh(tmp_path / "m.glb", sphere)
+    data = open(path, "rb").read()
+    magic, version, length = struct.unpack_from("<4sII", data)
+    assert (magic, version, length) == (b"glTF", 2, len(data))
+    json_len, json_type = struct.unpack_from("<I4s", data, 12)
+    assert json_type == b"JSON" and json_len % 4 == 0
+    bin_len, bin_type = struct.unpack_from("<I4s", data, 20 + json_len)
+    assert bin_type == b"BIN\0" and 28 + json_len + bin_len == len(data)
+    trimesh = pytest.importorskip("trimesh")
+    scene = trimesh.load(path)
+    geometry = next(iter(scene.geometry.values())) if hasattr(scene, "geometry") else scene
+    assert len(geometry.faces) == len(sphere.triangles)
+
+
+# --- VTK fixtures written by hand --------------------------------------------------------------
+
+SQUARE = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0]])
+
+
+def _legacy_42_ascii():
+    # A quad (split into a fan), a strip of two triangles, a line and a vertex (skipped).
+    return (
+        b"# vtk DataFile Version 4.2\nhand made\nASCII\nDATASET POLYDATA\n"
+        b"POINTS 6 float\n0 0 0 1 0 0 1 1 0\n0 1 0 2 0 0 2 1 0\n"
+        b"METADATA\nINFORMATION 0\n\n"
+        b"VERTICES 1 2\n1 0\nLINES 1 3\n2 0 1\n"
+        b"POLYGONS 1 5\n4 0 1 2 3\n"
+        b"TRIANGLE_STRIPS 1 5\n4 1 4 2 5\n"
+        b"POINT_DATA 6\nSCALARS s float 1\nLOOKUP_TABLE default\n0 1 2 3 4 5\n"
+    )
+
+
+def _legacy_51(binary):
+    offsets, connectivity = np.array([0, 3, 6]), np.array([0, 1, 2, 0, 2, 3])
+    head = b"# vtk DataFile Version 5.1\nvtk output\n" + (b"BINARY\n" if binary else b"ASCII\n")
+    head += b"DATASET POLYDATA\nPOINTS 4 double\n"
+    if binary:
+        body = SQUARE[:4].astype(">f8").tobytes() + b"\n"
+        body += b"POLYGONS 3 6\nOFFSETS vtktypeint64\n" + offsets.astype(">i8").tobytes()
+        body += b"\nCONNECTIVITY vtktypeint64\n" + connectivity.astype(">i8").tobytes() + b"\n"
+    else:
+        body = b" ".join(str(x).encode() for x in SQUARE[:4].ravel()) + b"\n"
+        body += b"POLYGONS 3 6\nOFFSETS vtktypeint64\n0 3 6\nCONNECTIVITY vtktypeint64\n"
+        body += b"0 1 2 0 2 3\n"
+    return head + body + b"CELL_DATA 2\n"
+
+
+def test_legacy_vtk_42_ascii_with_fans_strips_and_attributes(tmp_path, caplog):
+    path = tmp_path / "a.vtk"
+    path.write_bytes(_legacy_42_ascii())
+    with caplog.at_level(logging.WARNING, logger="o3dreg"):
+        mesh = read_triangle_mesh(path)
+    assert "split into triangle fans" in caplog.text
+    assert len(mesh.vertices) == 6
+    # Quad 0-1-2-3 -> (0,1,2), (0,2,3); strip 1-4-2-5 -> (1,4,2), (2,4,5) (the second flipped).
+    np.testing.assert_array_equal(
+        np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3], [1, 4, 2], [2, 4, 5]]
+    )
+    normals = np.asarray(mesh.compute_triangle_normals().triangle_normals)
+    np.testing.assert_allclose(normals, [[0, 0, 1]] * 4)  # consistently oriented
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_legacy_vtk_51_offsets_and_connectivity(tmp_path, binary):
+    path = tmp_path / "b.vtk"
+    path.write_bytes(_legacy_51(binary))
+    mesh = read_triangle_mesh(path)
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), SQUARE[:4])
+    np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
+
+
+def test_legacy_vtk_42_binary_int32_cells(tmp_path):
+    cells = np.array([3, 0, 1, 2, 3, 0, 2, 3], dtype=">i4")
+    data = (
+        b"# vtk DataFile Version 3.0\nx\nBINARY\nDATASET POLYDATA\nPOINTS 4 float\n"
+        + SQUARE[:4].astype(">f4").tobytes()
+        + b"\nPOLYGONS 2 8\n"
+        + cells.tobytes()
+        + b"\n"
+    )
+    path = tmp_path / "c.vtk"
+    path.write_bytes(data)
+    mesh = read_triangle_mesh(path)
+    np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
+
+
+def _vtp(arrays_xml, appended=b"", header="UInt32", compressor=None, encoding="raw"):
+    attrs = f'type="PolyData" version="1.0" byte_order="LittleEndian" header_type="{header}"'
+    if compressor:
+        attrs += f' compressor="{compressor}"'
+    out = f'<?xml version="1.0"?>\n<VTKFile {attrs}>\n<PolyData>\n'.encode()
+    out += b'<Piece NumberOfPoints="4" NumberOfPolys="2">\n' + arrays_xml + b"</Piece>\n"
+    out += b"</PolyData>\n"
+    if appended:
+        out += f'<AppendedData encoding="{encoding}">\n_'.encode() + appended
+        out += b"\n</AppendedData>\n"
+    return out + b"</VTKFile>\n"
+
+
+def _arrays_xml(fmt, points, conn, offs):
+    return (
+        f'<Points><DataArray type="Float32" NumberOfComponents="3" format="{fmt}"{points}'
+        f"</Points>\n<Polys>"
+        f'<DataArray type="Int32" Name="connectivity" format="{fmt}"{conn}'
+        f'<DataArray type="Int32" Name="offsets" format="{fmt}"{offs}'
+        f"</Polys>\n"
+    ).encode()
+
+
+ARRAYS = (
+    SQUARE[:4].astype("<f4"),
+    np.array([0, 1, 2, 0, 2, 3], dtype="<i4"),
+    np.array([3, 6], dtype="<i4"),
+)
+
+
+def test_vtp_ascii(tmp_path):
+    bodies = [">" + " ".join(str(x) for x in a.ravel()) + "</DataArray>" for a in ARRAYS]
+    path = tmp_path / "a.vtp"
+    path.write_bytes(_vtp(_arrays_xml("ascii", *bodies)))
+    mesh = read_triangle_mesh(path)
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), SQUARE[:4])
+    np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
+
+
+def test_vtp_inline_binary_header_and_data_encoded_apart(tmp_path):
+    # VTK's inline binary: the UInt32 byte count and the data are two base64 streams.
+    def encode(a):
+        raw = a.tobytes()
+        header = base64.b64encode(struct.pack("<I", len(raw)))
+        return ">" + (header + base64.b64encode(raw)).decode() + "</DataArray>"
+
+    path = tmp_path / "b.vtp"
+    path.write_bytes(_vtp(_arrays_xml("binary", *(encode(a) for a in ARRAYS))))
+    mesh = read_triangle_mesh(path)
+    np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
+
+
+def test_vtp_appended_raw_zlib_uint64(tmp_path):
+    # VTK 9's default writer: appended raw data, zlib blocks, UInt64 headers
+    # [number of blocks, block size, last block size, compressed sizes...].
+    blob, offsets = b"", []
+    for a in ARRAYS:
+        raw = a.tobytes()
+        packed = zlib.compress(raw)
+        offsets.append(len(blob))
+        blob += struct.pack("<4Q", 1, len(raw), len(raw), len(packed)) + packed
+    bodies = [f' offset="{o}"/>' for o in offsets]
+    xml = _arrays_xml("appended", *bodies)
+    path = tmp_path / "c.vtp"
+    path.write_bytes(_vtp(xml, blob, header="UInt64", compressor="vtkZLibDataCompressor"))
+    mesh = read_triangle_mesh(path)
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), SQUARE[:4])
+    np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
+
+
+def test_vtp_appended_base64(tmp_path):
+    blob, offsets = b"", []
+    for a in ARRAYS:
+        raw = a.tobytes()
+        offsets.append(len(blob))
+        blob += base64.b64encode(struct.pack("<I", len(raw))) + base64.b64encode(raw)
+    bodies = [f' offset="{o}"/>' for o in offsets]
+    path = tmp_path / "d.vtp"
+    path.write_bytes(_vtp(_arrays_xml("appended", *bodies), blob, encoding="base64"))
+    mesh = read_triangle_mesh(path)
+    np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
+
+
+def test_vtk_files_that_are_not_triangle_polydata(tmp_path):
+    grid = tmp_path / "grid.vtk"
+    grid.write_bytes(b"# vtk DataFile Version 4.2\nx\nASCII\nDATASET UNSTRUCTURED_GRID\n")
+    with pytest.raises(OSError, match="only DATASET POLYDATA is read, got UNSTRUCTURED_GRID"):
+        read_triangle_mesh(grid)
+    text = tmp_path / "text.vtk"
+    text.write_text("hello\n")
+    with pytest.raises(OSError, match="not a legacy VTK file"):
+        read_triangle_mesh(text)
+    points = tmp_path / "points.vtk"
+    points.write_bytes(
+        b"# vtk DataFile Version 4.2\nx\nASCII\nDATASET POLYDATA\nPOINTS 1 float\n0 0 0\n"
+    )
+    with pytest.raises(OSError, match="holds no triangle mesh"):
+        read_triangle_mesh(points)
+    bad = tmp_path / "bad.vtk"
+    bad.write_bytes(_legacy_51(False).replace(b"0 1 2 0 2 3", b"0 1 2 0 2 9"))
+    with pytest.raises(OSError, match="outside"):
+        read_triangle_mesh(bad)
+    image = tmp_path / "image.vtp"
+    image.write_bytes(b'<?xml version="1.0"?><VTKFile type="ImageData"></VTKFile>')
+    with pytest.raises(OSError, match="only VTKFile type='PolyData'"):
+        read_triangle_mesh(image)
+
+
+def test_arrays_written_as_vtk(tmp_path):
+    mesh = mesh_of(SQUARE[:4], [[0, 1, 2], [0, 2, 3]])
+    for suffix in (".vtk", ".vtp"):
+        back = read_triangle_mesh(write_triangle_mesh(tmp_path / f"s{suffix}", mesh))
+        # Binary, float64 points: exact.
+        np.testing.assert_array_equal(np.asarray(back.vertices), SQUARE[:4])
+        np.testing.assert_array_equal(np.asarray(back.triangles), [[0, 1, 2], [0, 2, 3]])
