@@ -75,12 +75,12 @@ def read_triangle_mesh(
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`{name}` must be a path, got {type(path).__name__}")
     path = os.fspath(path)
-    check_mesh_suffix(path, name)
+    suffix = check_mesh_suffix(path, name)
     if not os.path.isfile(path):
         raise OSError(f"`{name}`: no such file {path!r}")
     if not os.access(path, os.R_OK):
         raise OSError(f"`{name}`: file {path!r} is not readable")
-    mesh = formats.read_mesh(path, check_mesh_suffix(path, name))
+    mesh = formats.read_mesh(path, suffix)
     if len(mesh.vertices) == 0 or len(mesh.triangles) == 0:
         raise OSError(
             f"`{name}`: {path!r} could not be read as a triangle mesh "
