@@ -94,6 +94,20 @@ _STENCILS = _stencils()
 
 
 @dataclass
+class _Geometry:
+    """What one evaluation measured at ``u``, before any weighting."""
+
+    u: np.ndarray
+    moved: np.ndarray
+    distances: np.ndarray
+    closest: np.ndarray
+    gradients: np.ndarray
+    faces: np.ndarray
+    target_distances: np.ndarray | None
+    nearest: np.ndarray | None
+
+
+@dataclass
 class Evaluation:
     """Residuals, Jacobian blocks and cost terms at one ``u``."""
 
@@ -109,6 +123,8 @@ class Evaluation:
     symmetric_scale: np.ndarray | None = None
     weights: np.ndarray | None = None
     support: np.ndarray | None = None
+    target_weights: np.ndarray | None = None
+    geometry: _Geometry | None = None
 
     @property
     def jacobian(self) -> sp.csr_matrix:
@@ -191,10 +207,11 @@ class LevelProblem:
         self._robust = rb.loss != "linear" or rb.max_distance_factor is not None
         self.sigma = self.sigma_symmetric = 1.0
         if self._robust:
-            # Scales from the data at the level start (u = 0), over the accepted correspondences.
+            # Scales from the data at the level start (u = 0), over the correspondences the
+            # other masks accept (the distance mask itself is measured in these scales).
             floor = 0.01 * float(lattice.cell_size.min())
             dist, face, closest = target.closest(self.base)
-            keep = self._masks(self.base, dist, face, closest)
+            keep = self._masks(self.base, dist, face, closest, distance=False)
             self.sigma = rb.loss_scale or robust_scale(dist[keep], floor)
             if self.target_points is not None:
                 e, _ = cKDTree(self.base[keep] if keep.any() else self.base).query(
@@ -206,16 +223,22 @@ class LevelProblem:
             self._fold = self._fold_samples(prior, active)
 
     def _masks(
-        self, y: np.ndarray, dist: np.ndarray, face: np.ndarray, closest: np.ndarray
+        self,
+        y: np.ndarray,
+        dist: np.ndarray,
+        face: np.ndarray,
+        closest: np.ndarray,
+        distance: bool = True,
     ) -> np.ndarray:
-        """0/1 support of each point: not beyond the open boundary, compatible normal, near."""
+        """0/1 support of each point: not beyond the open boundary, compatible normal, and
+        (with ``distance``) within ``max_distance_factor`` robust scales."""
         keep = np.ones(y.shape[0], dtype=bool)
         if self._reject_boundary:
             keep &= ~self.target.beyond_boundary(y, face, closest)
         if self._cos_max is not None and self.normals is not None:
             cos = (self.normals * self.target.face_normals[face]).sum(axis=1)
             keep &= cos >= self._cos_max
-        if self.robust.max_distance_factor is not None and hasattr(self, "sigma"):
+        if distance and self.robust.max_distance_factor is not None:
             keep &= dist <= self.robust.max_distance_factor * self.sigma
         return keep
 
@@ -314,17 +337,62 @@ class LevelProblem:
         d[self.free_nodes] = u.reshape(-1, 3)
         return self.lattice.with_displacements(d)
 
-    def evaluate(self, u: np.ndarray) -> Evaluation:
+    def evaluate(self, u: np.ndarray, weights_of: Evaluation | None = None) -> Evaluation:
+        """Residuals and Jacobian blocks at ``u``.
+
+        The robust weights and 0/1 masks are those of ``u`` itself, or, with ``weights_of``,
+        those of that earlier evaluation: Levenberg-Marquardt compares a trial step with the
+        current point under the current weights (one weighted least-squares problem per
+        linearisation, as in iteratively reweighted least squares). Measured under their own
+        weights, a step that brings more template points into support would count their
+        distances as a cost increase and be rejected, although it moved towards the data.
+        """
         y = self.moved(u)
-        n = y.shape[0]
         dist, closest, grad, face = self.target.gradient(y, return_faces=True)
-        support = None
-        sw = None
+        e = nearest = None
+        if self.target_points is not None:
+            e, nearest = self._assign(y)
+        geometry = _Geometry(u, y, dist, closest, grad, face, e, nearest)
+        if weights_of is None:
+            weights = self._weights(geometry)
+        else:
+            weights = (weights_of.weights, weights_of.support, weights_of.target_weights)
+        return self._assemble(geometry, *weights)
+
+    def reweighted(self, ev: Evaluation) -> Evaluation:
+        """``ev`` with the weights and masks of its own point (no new distance query)."""
+        assert ev.geometry is not None
+        return self._assemble(ev.geometry, *self._weights(ev.geometry))
+
+    def _weights(
+        self, g: _Geometry
+    ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+        """Per-point weights (robust weight times support), support masks and per-target-point
+        weights of the barycentre term at the geometry ``g``; ``None`` where unweighted."""
+        if not (self._reject_boundary or self._cos_max is not None or self._robust):
+            return None, None, None
+        support = self._masks(g.moved, g.distances, g.faces, g.closest)
+        w = robust_weights(g.distances, self.robust.loss, self._c * self.sigma) * support
+        v = None
+        if self._robust and g.target_distances is not None:
+            e = g.target_distances
+            v = robust_weights(e, self.robust.loss, self._c * self.sigma_symmetric)
+            if self.robust.max_distance_factor is not None:
+                v = v * (e <= self.robust.max_distance_factor * self.sigma_symmetric)
+        return w, support, v
+
+    def _assemble(
+        self,
+        g: _Geometry,
+        weights: np.ndarray | None,
+        support: np.ndarray | None,
+        target_weights: np.ndarray | None,
+    ) -> Evaluation:
+        y, dist, grad = g.moved, g.distances, g.gradients
+        n = y.shape[0]
         ra = dist
-        if self._reject_boundary or self._cos_max is not None or self._robust:
-            support = self._masks(y, dist, face, closest)
-            w = robust_weights(dist, self.robust.loss, self._c * self.sigma) * support
-            sw = np.sqrt(w)
+        if weights is not None:
+            sw = np.sqrt(weights)
             ra = sw * dist
             grad = grad * sw[:, None]
         # (a) point-to-surface distances: row i has grad_i (x) W_i.
@@ -344,14 +412,11 @@ class LevelProblem:
         scale = None
         if self.target_points is not None:
             # (b) barycentre of the target vertices whose nearest template vertex is i.
-            # Leaves of 32 points: measured 22% faster than the default 16 for 30k queries into
-            # a 3k-point tree; the queries arrive in Morton order (see elastic._target_subsample).
-            e, nearest = self._assign(y)
+            assert g.nearest is not None
+            nearest = g.nearest
             counts = np.bincount(nearest, minlength=n)
-            if self._robust:
-                v = robust_weights(e, self.robust.loss, self._c * self.sigma_symmetric)
-                if self.robust.max_distance_factor is not None:
-                    v = v * (e <= self.robust.max_distance_factor * self.sigma_symmetric)
+            if target_weights is not None:
+                v = target_weights
                 vsum = np.bincount(nearest, v, minlength=n)
                 sums = np.stack(
                     [
@@ -383,14 +448,14 @@ class LevelProblem:
             blocks.append(sp.diags(np.repeat(scale, 3), format="csr") @ self._Wx)
             residuals.append(rb)
             cost_sym = float(rb @ rb)
-        rc = self._Jreg @ u
+        rc = self._Jreg @ g.u
         blocks.append(self._Jreg)
         residuals.append(rc)
         r = np.concatenate(residuals)
         cost_d = float(ra @ ra)
         cost_r = float(rc @ rc)
         return Evaluation(
-            u=u,
+            u=g.u,
             residuals=r,
             blocks=blocks,
             cost=cost_d + cost_sym + cost_r,
@@ -400,8 +465,10 @@ class LevelProblem:
             distances=dist,
             moved=y,
             symmetric_scale=scale,
-            weights=None if sw is None else sw * sw,
+            weights=weights,
             support=support,
+            target_weights=target_weights,
+            geometry=g,
         )
 
     def _assign(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

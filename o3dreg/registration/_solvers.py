@@ -59,6 +59,10 @@ def _solve_spd(A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
     return np.asarray(x)
 
 
+#: Damping beyond which no step is tried: the step is then ~1e-12 of a gradient step.
+_MU_MAX = 1e12
+
+
 def _cell(problem: LevelProblem) -> float:
     return float(problem.lattice.cell_size.min())
 
@@ -82,23 +86,38 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
     while iterations < criteria.max_iteration:
         A, g = problem.normal_equations(ev)
         diag = A.diagonal()
+        if not (np.all(np.isfinite(g)) and np.all(np.isfinite(diag))):
+            message = "non-finite gradient or normal equations: stopped"
+            success = False
+            break
         diag = np.maximum(diag, 1e-12 * max(float(diag.max()), 1e-300))
         if mu is None:
             mu = 1e-3
         accepted = False
+        non_finite = 0
         while not accepted:
             delta = _solve_spd(A + sp.diags(mu * diag, format="csr"), -g)
             if not np.all(np.isfinite(delta)):
-                mu *= 10.0
+                # A stronger damping makes the system better conditioned; past mu_max the
+                # problem itself is broken: stop and say so (never loop, never raise).
+                non_finite += 1
+                mu *= nu
+                nu *= 2.0
+                if mu > _MU_MAX:
+                    break
                 continue
             predicted = -(g @ delta) - 0.5 * delta @ (A @ delta)
             if 2.0 * predicted < criteria.relative_cost * ev.cost:
                 # Even the model promises less than the tolerance: stop without evaluating.
                 break
-            trial = problem.evaluate(u + delta)
+            # The trial is measured under the current weights and masks (see
+            # LevelProblem.evaluate): the same weighted least-squares cost as ``ev``.
+            trial = problem.evaluate(u + delta, weights_of=ev)
             evaluations += 1
             actual = 0.5 * (ev.cost - trial.cost)
-            rho = actual / predicted if predicted > 0 else -1.0
+            rho = actual / predicted if predicted > 0 and np.isfinite(trial.cost) else -1.0
+            if not np.isfinite(trial.cost):
+                non_finite += 1
             trial_det = det
             if guard and rho > 0:
                 # Folding guard: a step that brings det(dT/dx) below the threshold (and below
@@ -114,21 +133,25 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
             else:
                 mu *= nu
                 nu *= 2.0
-                if mu > 1e12:
+                if mu > _MU_MAX:
                     break
         if not accepted:
-            message = (
-                "no step decreases the cost (mu > 1e12)"
-                if mu > 1e12
-                else "predicted relative decrease < relative_cost"
-            )
-            success = True
+            if mu > _MU_MAX and non_finite:
+                message = f"non-finite step or cost ({non_finite} tries): stopped"
+                success = False
+            elif mu > _MU_MAX:
+                message = "no step decreases the cost (mu > 1e12)"
+                success = True
+            else:
+                message = "predicted relative decrease < relative_cost"
+                success = True
             break
         iterations += 1
         decrease = (ev.cost - trial.cost) / max(ev.cost, 1e-300)
         step = float(np.sqrt((delta.reshape(-1, 3) ** 2).sum(axis=1)).max()) / cell
         u = u + delta
-        ev = trial
+        # Iteratively reweighted: the accepted point gets its own weights and masks.
+        ev = problem.reweighted(trial)
         det = trial_det
         if decrease < criteria.relative_cost:
             message = f"relative cost decrease {decrease:.2e} < relative_cost"
