@@ -17,7 +17,11 @@ from .io.mesh import read_triangle_mesh, write_triangle_mesh  # noqa: E402
 __all__ = ["__version__", "read_triangle_mesh", "write_triangle_mesh"]
 
 # --- elastic registration -----------------------------------------------------------------------
-from .registration.deformation import LatticeDeformation  # noqa: E402
+from .registration.deformation import (  # noqa: E402
+    LatticeDeformation,
+    PartitionedDeformation,
+    load_deformation,
+)
 from .registration.elastic import evaluate_elastic, registration_elastic  # noqa: E402
 from .registration.lattice import TrilinearLattice  # noqa: E402
 from .registration.options import (  # noqa: E402
@@ -36,10 +40,12 @@ __all__ += [
     "ElasticRegistrationResult",
     "LatticeDeformation",
     "LevelReport",
+    "PartitionedDeformation",
     "SurfaceDistances",
     "TrilinearLattice",
     "default_levels",
     "evaluate_elastic",
+    "load_deformation",
     "registration_elastic",
     "registration_rigid",
 ]

@@ -15,6 +15,7 @@ from o3dreg import (
     registration_elastic,
 )
 from o3dreg.app.synthetic import SmoothWarp, synthetic_form
+from o3dreg.registration.lattice import TrilinearLattice
 
 
 def warped(mesh, warp):
@@ -240,3 +241,15 @@ def test_barycentre_correction_reduces_the_drift(bunny_case):
         )
         errors[correction] = np.linalg.norm(result.vertices - truth, axis=1).mean()
     assert errors[True] < 0.95 * errors[False]
+
+
+def test_sizes_are_checked_before_allocation():
+    # ElasticLevel(1000) is 1001^3 nodes (about 150 GB to set up): refused when it is made.
+    with pytest.raises(ValueError, match=r"`resolution` must be at most 128 .* got 1000"):
+        ElasticLevel(1000)
+    ElasticLevel(128)  # the limit itself is accepted (nothing is allocated here)
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=10.0, resolution=6)
+    with pytest.raises(ValueError, match=r"`levels` must hold at most 16 levels .*got 17"):
+        registration_elastic(sphere, sphere, init=np.eye(4), levels=[ElasticLevel(2)] * 17)
+    with pytest.raises(ValueError, match=r"`shape` must have at most .* nodes"):
+        TrilinearLattice.zeros(np.zeros(3), np.ones(3), (1000, 1000, 1000))

@@ -6,7 +6,15 @@ import open3d as o3d
 import pytest
 from _helpers import FAST
 
-from o3dreg import DistanceEstimation, ElasticLevel, registration_elastic
+from o3dreg import (
+    DistanceEstimation,
+    ElasticLevel,
+    LatticeDeformation,
+    PartitionedDeformation,
+    evaluate_elastic,
+    load_deformation,
+    registration_elastic,
+)
 from o3dreg.app.synthetic import SmoothWarp, synthetic_form
 from o3dreg.registration._cost import robust_weights
 from o3dreg.registration.distance import SurfaceDistanceQuery
@@ -280,3 +288,71 @@ def test_small_target_components_can_be_ignored(bunny_template, bunny_target):
     assert err(plain) > 10 * err(clean) + 0.05
     with pytest.raises(ValueError, match="min_target_component"):
         DistanceEstimation(min_target_component=0.0)
+
+
+def test_max_distance_factor_keeps_the_correspondences_it_should():
+    # A sphere of radius 40 onto one of radius 50: every template vertex starts 10 mm from the
+    # target, so every distance is within a few robust scales of the median and none may be
+    # dropped. The factor used to be measured in input units (sigma read as 1.0 while the scale
+    # was computed), which dropped all 402 vertices and left the template where it was.
+    small = synthetic_form("sphere", 400)
+    big = synthetic_form("sphere", 2000)
+    big.scale(1.25, center=(0.0, 0.0, 0.0))
+    levels = [ElasticLevel(2), ElasticLevel(4)]
+    method = DistanceEstimation(max_distance_factor=3.0)
+    result = registration_elastic(
+        small, big, init=np.eye(4), levels=levels, estimation_method=method
+    )
+    assert result.success
+    assert result.supported is not None and result.supported.all()
+    # Same accuracy as without the factor (within 5%: the same problem, no correspondence lost).
+    plain = registration_elastic(small, big, init=np.eye(4), levels=levels)
+    assert result.distances.source_to_target_mean < 0.2
+    assert result.distances.source_to_target_mean < 1.05 * plain.distances.source_to_target_mean
+
+
+def test_a_multi_part_deformation_is_one_map_that_saves_and_reproduces(tmp_path):
+    tv, tf, _ = two_plates(4.0)
+    dv, df, dsplit = two_plates(2.0)
+    dv[:dsplit, 0] -= 3.0
+    dv[dsplit:, 0] += 3.0
+    levels = [ElasticLevel(2), ElasticLevel(4)]
+    result = registration_elastic(
+        (tv, tf), (dv, df), init=np.eye(4), levels=levels, parts="connected"
+    )
+    assert isinstance(result.deformation, PartitionedDeformation)
+    # The registered vertices are the map applied to the template (both parts, not only the
+    # largest one: saving only that one put the other plate 12 mm off).
+    np.testing.assert_allclose(result.transform(tv), result.vertices, atol=1e-9)
+    path = tmp_path / "parts.npz"
+    result.deformation.save(path)
+    back = load_deformation(path)
+    assert isinstance(back, PartitionedDeformation)
+    probe = np.vstack([tv, tv + np.random.default_rng(0).normal(scale=2.0, size=tv.shape)])
+    np.testing.assert_array_equal(back.transform(probe), result.transform(probe))
+    np.testing.assert_array_equal(PartitionedDeformation.load(path).transform(tv), result.vertices)
+    with pytest.raises(ValueError, match="PartitionedDeformation"):
+        LatticeDeformation.load(path)
+    # evaluate_elastic with the (reloaded) map measures exactly what the registration reported.
+    again = evaluate_elastic((tv, tf), (dv, df), result.transformation, back)
+    assert again == result.distances
+
+
+def test_the_cli_writes_the_map_of_every_part(tmp_path):
+    from o3dreg.cli import main
+    from o3dreg.io.mesh import to_open3d
+
+    tv, tf, _ = two_plates(4.0)
+    dv, df, dsplit = two_plates(2.0)
+    dv[:dsplit, 0] -= 3.0
+    dv[dsplit:, 0] += 3.0
+    o3d.io.write_triangle_mesh(str(tmp_path / "t.ply"), to_open3d(tv, tf))
+    o3d.io.write_triangle_mesh(str(tmp_path / "p.ply"), to_open3d(dv, df))
+    args = ["register", str(tmp_path / "t.ply"), str(tmp_path / "p.ply")]
+    args += ["-o", str(tmp_path / "o.ply"), "--levels", "2,4", "--no-rigid", "--quiet"]
+    main([*args, "--parts", "connected", "--deformation", str(tmp_path / "d.npz")])
+    written = np.asarray(o3d.io.read_triangle_mesh(str(tmp_path / "o.ply")).vertices)
+    template = np.asarray(o3d.io.read_triangle_mesh(str(tmp_path / "t.ply")).vertices)
+    # The saved map reproduces the written mesh (to the PLY's float precision).
+    moved = load_deformation(tmp_path / "d.npz").transform(template)
+    np.testing.assert_allclose(moved, written, atol=1e-4)

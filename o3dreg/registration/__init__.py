@@ -1,7 +1,7 @@
 """Stage 2: a template registered onto each patient (rigid start, trilinear lattices, eq. (3))."""
 
 from .batch import BatchResult, PatientRecord, register_batch
-from .deformation import LatticeDeformation
+from .deformation import LatticeDeformation, PartitionedDeformation, load_deformation
 from .elastic import evaluate_elastic, registration_elastic
 from .lattice import TrilinearLattice
 from .options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
@@ -16,11 +16,13 @@ __all__ = [
     "ElasticRegistrationResult",
     "LatticeDeformation",
     "LevelReport",
+    "PartitionedDeformation",
     "PatientRecord",
     "SurfaceDistances",
     "TrilinearLattice",
     "default_levels",
     "evaluate_elastic",
+    "load_deformation",
     "register_batch",
     "registration_elastic",
     "registration_rigid",

@@ -136,7 +136,7 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
                 if mu > _MU_MAX:
                     break
         if not accepted:
-            if mu > _MU_MAX and non_finite:
+            if non_finite:
                 message = f"non-finite step or cost ({non_finite} tries): stopped"
                 success = False
             elif mu > _MU_MAX:

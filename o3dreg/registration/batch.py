@@ -3,7 +3,7 @@
 Each finished patient is written to the output folder as soon as it completes (atomic writes):
 
 * ``NAME.ply``: the semilandmark mesh (template triangles on the registered vertices);
-* ``NAME.npz``: the elastic deformation (:meth:`~o3dreg.LatticeDeformation.save`);
+* ``NAME.npz``: the elastic deformation (read it with :func:`~o3dreg.load_deformation`);
 * ``NAME.json``: the record (status, distances both ways, convergence, time, rigid
   transformation), written last, so its presence with ``"status": "registered"`` marks the
   patient as done.

@@ -10,21 +10,24 @@ landmarks, other meshes.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import reduce
 from math import gcd
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .._validation import as_points
 from ..io.archive import read_archive, write_archive
 from .lattice import TrilinearLattice
 
-__all__ = ["LatticeDeformation"]
+__all__ = ["LatticeDeformation", "PartitionedDeformation", "load_deformation"]
 
 _FORMAT = "o3dreg.LatticeDeformation"
 _VERSION = 1
+_PARTITIONED_FORMAT = "o3dreg.PartitionedDeformation"
+_PARTITIONED_VERSION = 1
 
 
 def _lcm(a: int, b: int) -> int:
@@ -161,26 +164,192 @@ class LatticeDeformation:
     # -- persistence ----------------------------------------------------------------------------
     def save(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> str:
         """Write the deformation to a ``.npz`` file (atomically)."""
-        arrays: dict[str, Any] = {"number_of_levels": np.array(len(self.levels))}
-        for k, lat in enumerate(self.levels):
-            arrays[f"level{k}_origin"] = lat.origin
-            arrays[f"level{k}_size"] = lat.size
-            arrays[f"level{k}_shape"] = np.asarray(lat.shape)
-            arrays[f"level{k}_displacements"] = lat.displacements
-        return write_archive(path, arrays, kind=_FORMAT, version=_VERSION, overwrite=overwrite)
+        return write_archive(
+            path, _lattice_arrays(self, ""), kind=_FORMAT, version=_VERSION, overwrite=overwrite
+        )
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> LatticeDeformation:
-        """Read a deformation written by :meth:`save`."""
-        data = read_archive(path, kind=_FORMAT, version=_VERSION, what="LatticeDeformation")
-        levels = []
-        for k in range(int(data["number_of_levels"])):
-            levels.append(
-                TrilinearLattice(
-                    data[f"level{k}_origin"].astype(np.float64),
-                    data[f"level{k}_size"].astype(np.float64),
-                    tuple(int(s) for s in data[f"level{k}_shape"]),  # type: ignore[arg-type]
-                    data[f"level{k}_displacements"].astype(np.float64),
-                )
+        """Read a deformation written by :meth:`save` (see also :func:`load_deformation`)."""
+        try:
+            data = read_archive(path, kind=_FORMAT, version=_VERSION, what="LatticeDeformation")
+        except ValueError as exc:
+            if _holds(path, _PARTITIONED_FORMAT):
+                raise ValueError(
+                    f"`path`: {os.fspath(path)!r} holds a PartitionedDeformation (one map per "
+                    "part): read it with PartitionedDeformation.load or load_deformation"
+                ) from exc
+            raise
+        return _lattice_from(data, "")
+
+
+def _lattice_arrays(deformation: LatticeDeformation, prefix: str) -> dict[str, Any]:
+    arrays: dict[str, Any] = {f"{prefix}number_of_levels": np.array(len(deformation.levels))}
+    for k, lat in enumerate(deformation.levels):
+        arrays[f"{prefix}level{k}_origin"] = lat.origin
+        arrays[f"{prefix}level{k}_size"] = lat.size
+        arrays[f"{prefix}level{k}_shape"] = np.asarray(lat.shape)
+        arrays[f"{prefix}level{k}_displacements"] = lat.displacements
+    return arrays
+
+
+def _lattice_from(data: dict[str, np.ndarray], prefix: str) -> LatticeDeformation:
+    levels = []
+    for k in range(int(data[f"{prefix}number_of_levels"])):
+        levels.append(
+            TrilinearLattice(
+                data[f"{prefix}level{k}_origin"].astype(np.float64),
+                data[f"{prefix}level{k}_size"].astype(np.float64),
+                tuple(int(s) for s in data[f"{prefix}level{k}_shape"]),  # type: ignore[arg-type]
+                data[f"{prefix}level{k}_displacements"].astype(np.float64),
             )
-        return cls(tuple(levels))
+        )
+    return LatticeDeformation(tuple(levels))
+
+
+def _holds(path: Any, kind: str) -> bool:
+    """Whether ``path`` is a readable archive of ``kind`` (for error messages)."""
+    try:
+        with np.load(os.fspath(path), allow_pickle=False) as data:
+            return "format" in data and str(data["format"]) == kind
+    except (OSError, ValueError, TypeError):
+        return False
+
+
+@dataclass(frozen=True, eq=False)
+class PartitionedDeformation:
+    """One map of space made of one :class:`LatticeDeformation` per part of the template.
+
+    A point moves with the deformation of the part of its nearest site (the rigidly aligned
+    template vertices, labelled by part): the map of ``registration_elastic(...,
+    parts='connected')``, where each connected component of the template has its own lattice
+    hierarchy. Each part's map is continuous; the whole is not across the surfaces equidistant
+    from two parts.
+
+    Attributes
+    ----------
+    parts : tuple of LatticeDeformation
+        One map per part.
+    sites : (k, 3) ndarray
+        Points that route the map (in the space the deformation applies to).
+    labels : (k,) int ndarray
+        The part of each site, in ``[0, len(parts))``.
+    """
+
+    parts: tuple[LatticeDeformation, ...]
+    sites: np.ndarray = field(repr=False)
+    labels: np.ndarray = field(repr=False)
+
+    def __post_init__(self) -> None:
+        parts = tuple(self.parts)
+        if not parts:
+            raise ValueError("`parts` must hold at least one LatticeDeformation, got none")
+        for part in parts:
+            if not isinstance(part, LatticeDeformation):
+                raise TypeError(
+                    f"`parts` must hold LatticeDeformation objects, got {type(part).__name__}"
+                )
+        sites = as_points(self.sites, "sites").copy()
+        labels = np.asarray(self.labels)
+        if labels.shape != (sites.shape[0],) or not np.issubdtype(labels.dtype, np.integer):
+            raise ValueError(
+                f"`labels` must be {sites.shape[0]} integers (one per site), "
+                f"got {labels.dtype} array of shape {labels.shape}"
+            )
+        if labels.min() < 0 or labels.max() >= len(parts):
+            raise ValueError(
+                f"`labels` must be in [0, {len(parts)}), got values in "
+                f"[{labels.min()}, {labels.max()}]"
+            )
+        object.__setattr__(self, "parts", parts)
+        object.__setattr__(self, "sites", sites)
+        object.__setattr__(self, "labels", labels.astype(np.int64))
+        object.__setattr__(self, "_tree", cKDTree(sites))
+
+    def __repr__(self) -> str:
+        return (
+            f"PartitionedDeformation(parts={len(self.parts)}, sites={self.sites.shape[0]}, "
+            f"max_displacement={self.max_displacement:.4g})"
+        )
+
+    @property
+    def max_displacement(self) -> float:
+        """Largest bound over the parts (see :attr:`LatticeDeformation.max_displacement`)."""
+        return max(part.max_displacement for part in self.parts)
+
+    def part_of(self, points: Any) -> np.ndarray:
+        """The part each point moves with (that of its nearest site), ``(n,)``."""
+        pts = as_points(points, "points", allow_empty=True)
+        if pts.shape[0] == 0:
+            return np.zeros(0, dtype=np.int64)
+        return self.labels[self._tree.query(pts)[1]]  # type: ignore[attr-defined]
+
+    def _per_part(self, points: Any, value: str, shape: tuple[int, ...]) -> np.ndarray:
+        pts = as_points(points, "points", allow_empty=True)
+        part = self.part_of(pts)
+        out = np.zeros((pts.shape[0], *shape))
+        for k, deformation in enumerate(self.parts):
+            sel = part == k
+            if sel.any():
+                out[sel] = getattr(deformation, value)(pts[sel])
+        return out
+
+    def displacement(self, points: Any) -> np.ndarray:
+        """``T(x) - x`` at ``points (n, 3)``."""
+        return self._per_part(points, "displacement", (3,))
+
+    def transform(self, points: Any) -> np.ndarray:
+        """Apply the map: ``T(points)`` as a new ``(n, 3)`` array (the input is not modified)."""
+        pts = as_points(points, "points", allow_empty=True)
+        return pts + self.displacement(pts)
+
+    def jacobian(self, points: Any) -> np.ndarray:
+        """``dT/dx`` at ``points``, ``(n, 3, 3)``: each part's own."""
+        return self._per_part(points, "jacobian", (3, 3))
+
+    def jacobian_determinant(self, points: Any) -> np.ndarray:
+        """``det(dT/dx)`` at ``points``."""
+        return np.linalg.det(self.jacobian(points))
+
+    def save(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> str:
+        """Write the map (every part, the sites and labels) to a ``.npz`` file (atomically)."""
+        arrays: dict[str, Any] = {
+            "number_of_parts": np.array(len(self.parts)),
+            "sites": self.sites,
+            "labels": self.labels,
+        }
+        for k, part in enumerate(self.parts):
+            arrays.update(_lattice_arrays(part, f"part{k}_"))
+        return write_archive(
+            path,
+            arrays,
+            kind=_PARTITIONED_FORMAT,
+            version=_PARTITIONED_VERSION,
+            overwrite=overwrite,
+        )
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> PartitionedDeformation:
+        """Read a map written by :meth:`save`."""
+        data = read_archive(
+            path,
+            kind=_PARTITIONED_FORMAT,
+            version=_PARTITIONED_VERSION,
+            what="PartitionedDeformation",
+        )
+        parts = tuple(_lattice_from(data, f"part{k}_") for k in range(int(data["number_of_parts"])))
+        return cls(parts, data["sites"].astype(np.float64), data["labels"].astype(np.int64))
+
+
+def load_deformation(path: str | os.PathLike[str]) -> LatticeDeformation | PartitionedDeformation:
+    """Read any deformation o3dreg writes (``o3dreg register --deformation``, batch folders).
+
+    Returns
+    -------
+    LatticeDeformation or PartitionedDeformation
+        Whichever the file holds (a :class:`PartitionedDeformation` for registrations with
+        ``parts='connected'`` of a template with several parts).
+    """
+    if _holds(path, _PARTITIONED_FORMAT):
+        return PartitionedDeformation.load(path)
+    return LatticeDeformation.load(path)

@@ -21,10 +21,16 @@ from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays, as_transformation, check_positive
 from ._cost import LevelProblem, Robustness
 from ._solvers import solve
-from .deformation import LatticeDeformation
+from .deformation import LatticeDeformation, PartitionedDeformation
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
-from .options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
+from .options import (
+    MAX_LEVELS,
+    DistanceEstimation,
+    ElasticCriteria,
+    ElasticLevel,
+    default_levels,
+)
 from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances
 from .rigid import registration_rigid
 from .sampling import morton_order, spatial_subsample
@@ -67,6 +73,11 @@ def _check_levels(levels: Any) -> list[ElasticLevel]:
     for k, lev in enumerate(levels):
         if not isinstance(lev, ElasticLevel):
             raise TypeError(f"`levels[{k}]` must be an ElasticLevel, got {type(lev).__name__}")
+    if len(levels) > MAX_LEVELS:
+        raise ValueError(
+            f"`levels` must hold at most {MAX_LEVELS} levels (each keeps its lattice in the "
+            f"deformation), got {len(levels)}"
+        )
     return list(levels)
 
 
@@ -98,8 +109,8 @@ def registration_elastic(
         The rigid (or similarity) transformation of the source. Default ``None``: computed by
         :func:`~o3dreg.registration_rigid` (moment-based guess refined by ICP).
     levels : list of ElasticLevel, optional
-        The hierarchy, coarse to fine. Default :func:`~o3dreg.default_levels` (2, 4, 8, 16 cells
-        per axis).
+        The hierarchy, coarse to fine, at most 16 levels. Default :func:`~o3dreg.default_levels`
+        (2, 4, 8, 16 cells per axis).
     estimation_method : DistanceEstimation, optional
         What is minimised. Default ``DistanceEstimation(symmetric=True)``.
     criteria : ElasticCriteria, optional
@@ -116,9 +127,9 @@ def registration_elastic(
         alignment, against the target vertices whose nearest rigidly aligned source vertex
         belongs to it (target triangles whose three corners go to the same component). Nearby
         but distinct structures are then not dragged together by one map of space. The result's
-        ``deformation`` is that of the largest component; ``part_labels`` and
-        ``part_deformations`` hold all of them, and :meth:`ElasticRegistrationResult.transform`
-        maps each point with the deformation of its nearest source vertex's component.
+        ``deformation`` is then a :class:`~o3dreg.PartitionedDeformation`: it maps each point
+        with the deformation of its nearest (rigidly aligned) source vertex's component, and
+        saves and loads as one file; ``part_labels`` and ``part_deformations`` hold the parts.
 
     Returns
     -------
@@ -399,17 +410,18 @@ def _register_parts(
         if result.supported is not None:
             supported[sel] = result.supported
         history.extend(result.history)
+        # One component: the recursive call registers it jointly (a LatticeDeformation).
+        assert isinstance(result.deformation, LatticeDeformation)
         deformations.append(result.deformation)
         det = min(det, result.min_jacobian_determinant)
         cell_det = min(cell_det, result.min_cell_jacobian_determinant)
         if not result.success:
             failures.append(f"part {part}: {result.message}")
-    sizes = np.bincount(labels, minlength=count)
     query = SurfaceDistanceQuery(vt, ft)
     success = not failures
     return ElasticRegistrationResult(
         transformation=rigid,
-        deformation=deformations[int(np.argmax(sizes))],
+        deformation=PartitionedDeformation(tuple(deformations), points, labels),
         vertices=moved,
         faces=fs,
         distances=_distances(moved, fs, query, vt),
@@ -681,7 +693,7 @@ def evaluate_elastic(
     source: Any,
     target: Any,
     transformation: Any = None,
-    deformation: LatticeDeformation | None = None,
+    deformation: LatticeDeformation | PartitionedDeformation | None = None,
 ) -> SurfaceDistances:
     """Measure an alignment with the metric of :func:`registration_elastic`.
 
@@ -691,8 +703,9 @@ def evaluate_elastic(
         Not modified.
     transformation : (4, 4) array_like, optional
         Rigid part applied first. Default identity.
-    deformation : LatticeDeformation, optional
-        Elastic part applied after ``transformation``. Default none.
+    deformation : LatticeDeformation or PartitionedDeformation, optional
+        Elastic part applied after ``transformation`` (a result's ``deformation``, or one read by
+        :func:`~o3dreg.load_deformation`). Default none.
 
     Returns
     -------
@@ -703,9 +716,12 @@ def evaluate_elastic(
     vs, fs = as_mesh_arrays(source, "source")
     vt, ft = canonical_mesh(*as_mesh_arrays(target, "target", drop_degenerate=True))
     t = np.eye(4) if transformation is None else as_transformation(transformation, "transformation")
-    if deformation is not None and not isinstance(deformation, LatticeDeformation):
+    if deformation is not None and not isinstance(
+        deformation, (LatticeDeformation, PartitionedDeformation)
+    ):
         raise TypeError(
-            f"`deformation` must be a LatticeDeformation, got {type(deformation).__name__}"
+            "`deformation` must be a LatticeDeformation or PartitionedDeformation, "
+            f"got {type(deformation).__name__}"
         )
     moved = apply_transformation(t, vs)
     if deformation is not None:

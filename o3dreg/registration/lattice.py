@@ -27,6 +27,9 @@ def corner_offsets() -> np.ndarray:
 
 _CORNERS = corner_offsets()
 
+#: Most nodes of one lattice: 257^3, 0.4 GB of displacements (a 256-cell refinement).
+MAX_NODES = 257**3
+
 
 @dataclass(frozen=True, eq=False)
 class TrilinearLattice:
@@ -55,6 +58,12 @@ class TrilinearLattice:
         shape = tuple(int(s) for s in shape)
         if len(shape) != 3 or min(shape) < 1:
             raise ValueError(f"`shape` must be 3 positive cell counts, got {shape}")
+        count = int(np.prod([s + 1 for s in shape], dtype=np.float64))
+        if count > MAX_NODES:
+            raise ValueError(
+                f"`shape` must have at most {MAX_NODES} nodes (24 bytes of displacements each), "
+                f"got {shape}: {count} nodes"
+            )
         nodes = tuple(s + 1 for s in shape) + (3,)
         return cls(
             np.asarray(origin, dtype=np.float64).copy(),

@@ -22,6 +22,16 @@ __all__ = [
 #: Solvers a level may use (see :mod:`o3dreg._solvers`).
 SOLVERS = ("lm", "trf", "lm-dense")
 
+#: Most cells per axis of one level. Setting a level up holds about 150 bytes per lattice node
+#: (node indices of every finite-difference stencil, the displacements): ~0.3 GB for 128 cells
+#: (129^3 nodes), 2.6 GB for 256, 150 GB for 1000. Finer lattices than this are also far finer
+#: than any template's sampling (a 4k-vertex template has about one vertex per cell at 16).
+MAX_RESOLUTION = 128
+
+#: Most levels in one hierarchy: each is a full optimisation and keeps its lattice in the
+#: deformation (24 bytes per node: 0.8 GB for 16 levels of 128 cells).
+MAX_LEVELS = 16
+
 
 @dataclass(frozen=True)
 class ElasticCriteria:
@@ -67,7 +77,7 @@ class ElasticLevel:
     ----------
     resolution : int
         Cells per axis of this level's cubic lattice (the paper's elementary cubes; ``2**k`` for an
-        octree hierarchy).
+        octree hierarchy), at most :data:`MAX_RESOLUTION` (128: memory).
     regularization : float
         Weight ``lambda`` of the regularisation ``P(p)`` of this level's node displacements ``u``:
         the cost adds ``lambda * N * mean_s |(D u)_s|^2`` over the finite-difference stencils ``s``
@@ -122,6 +132,12 @@ class ElasticLevel:
 
     def __post_init__(self) -> None:
         check_positive(self.resolution, "resolution", integer=True)
+        if self.resolution > MAX_RESOLUTION:
+            raise ValueError(
+                f"`resolution` must be at most {MAX_RESOLUTION} cells per axis (memory: about "
+                f"150 bytes per lattice node, {self.resolution + 1}^3 nodes requested), "
+                f"got {self.resolution}"
+            )
         if self.min_jacobian_determinant is not None:
             d = check_positive(
                 self.min_jacobian_determinant, "min_jacobian_determinant", allow_zero=True

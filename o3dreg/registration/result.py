@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from .deformation import LatticeDeformation
+from .deformation import LatticeDeformation, PartitionedDeformation
 
 __all__ = ["ElasticRegistrationResult", "LevelReport", "SurfaceDistances"]
 
@@ -127,8 +127,9 @@ class ElasticRegistrationResult:
     ----------
     transformation : (4, 4) ndarray
         The total rigid (or similarity) part, ``init`` included.
-    deformation : LatticeDeformation
-        The elastic map applied after ``transformation``.
+    deformation : LatticeDeformation or PartitionedDeformation
+        The elastic map applied after ``transformation`` (partitioned: one lattice hierarchy per
+        part, with ``parts='connected'``).
     vertices : (n, 3) ndarray
         The source vertices mapped by ``T``.
     faces : (m, 3) ndarray
@@ -159,15 +160,14 @@ class ElasticRegistrationResult:
     part_labels : (n,) int ndarray or None
         With ``parts='connected'``: the connected component of each source vertex.
     part_deformations : tuple of LatticeDeformation
-        With ``parts='connected'``: one deformation per component (``deformation`` is the
-        largest component's).
+        With ``parts='connected'``: one deformation per component (``deformation.parts``).
     part_sites : (n, 3) ndarray or None
         With ``parts='connected'``: the rigidly aligned source vertices, which route each point
         of :meth:`transform` to the component of its nearest site.
     """
 
     transformation: np.ndarray
-    deformation: LatticeDeformation
+    deformation: LatticeDeformation | PartitionedDeformation
     vertices: np.ndarray = field(repr=False)
     faces: np.ndarray = field(repr=False)
     distances: SurfaceDistances
@@ -198,18 +198,7 @@ class ElasticRegistrationResult:
 
         pts = as_points(points, "points", allow_empty=True)
         moved = apply_transformation(self.transformation, pts)
-        if self.part_labels is None or self.part_sites is None or not self.part_deformations:
-            return self.deformation.transform(moved)
-        from scipy.spatial import cKDTree
-
-        out = moved.copy()
-        if moved.shape[0]:
-            part = self.part_labels[cKDTree(self.part_sites).query(moved)[1]]
-            for k, deformation in enumerate(self.part_deformations):
-                sel = part == k
-                if sel.any():
-                    out[sel] = deformation.transform(moved[sel])
-        return out
+        return self.deformation.transform(moved)
 
     def semilandmark_mesh(self, target: Any = None) -> o3d.geometry.TriangleMesh:
         """The template's triangles on the registered vertex positions.
