@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import logging
 import os
+import re
+import socket
 import tempfile
 from collections.abc import Callable
 from typing import Any
@@ -21,6 +24,8 @@ __all__ = [
     "to_open3d",
     "write_triangle_mesh",
 ]
+
+logger = logging.getLogger("o3dreg")
 
 #: File suffixes read and written as triangle meshes (Open3D's, plus VTK polydata: see
 #: :mod:`o3dreg.io.formats`).
@@ -104,20 +109,41 @@ def atomic_write(
     *,
     overwrite: bool = False,
     name: str = "path",
+    verify: Callable[[str], None] | None = None,
 ) -> str:
     """Call ``writer(tmp)`` on a temporary file beside ``path``, then move it into place.
 
-    Nothing is left at ``path`` when ``writer`` fails or returns ``False``.
+    The temporary file is flushed to disk and, when given, ``verify(tmp)`` checks it (raising
+    ``OSError`` for an incomplete file) before it is renamed to ``path``. Nothing is left at
+    ``path`` when ``writer`` fails or returns ``False``, when the disk fills up or when
+    ``verify`` rejects the file; the temporary file is removed on every exit that runs Python
+    code (exceptions, SIGINT, and SIGTERM in the command line). Temporary files left by a killed
+    process (SIGKILL, power loss) are hidden (``.NAME.HOST-PID.XXXX.partSUFFIX``) and removed by
+    the next write to the same ``path`` once their process is gone.
     """
     path = check_output_path(path, name, overwrite=overwrite)
     folder = os.path.dirname(os.path.abspath(path))
     base, suffix = os.path.splitext(os.path.basename(path))
-    fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=f".part{suffix}", dir=folder)
+    _remove_stale_parts(folder, base, suffix)
+    try:
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{base}.{_HOST}-{os.getpid()}.", suffix=f".part{suffix}", dir=folder
+        )
+    except OSError as exc:
+        raise OSError(
+            f"`{name}`: cannot write {path!r}: {exc.strerror or exc} (folder {folder!r})"
+        ) from None
     os.close(fd)
     try:
-        ok = writer(tmp)
+        try:
+            ok = writer(tmp)
+        except OSError as exc:  # the message would name the hidden temporary file
+            raise OSError(f"`{name}`: writing {path!r} failed: {exc.strerror or exc}") from exc
         if ok is False or not os.path.exists(tmp) or os.path.getsize(tmp) == 0:
             raise OSError(f"`{name}`: writing {path!r} failed")
+        _flush_to_disk(tmp, path, name)
+        if verify is not None:
+            verify(tmp)
         # mkstemp creates the file 0600; give the result the permissions of a normal file.
         umask = os.umask(0)
         os.umask(umask)
@@ -127,6 +153,71 @@ def atomic_write(
         if os.path.exists(tmp):
             os.unlink(tmp)
     return path
+
+
+# Host name as it appears in temporary names (no dots: they separate the name's fields).
+_HOST = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())[:32] or "host"
+
+
+def _flush_to_disk(tmp: str, path: str, name: str) -> None:
+    """fsync ``tmp``: a full disk or a failing device shows here, not after the rename."""
+    try:
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        raise OSError(f"`{name}`: writing {path!r} failed: {exc.strerror or exc}") from exc
+
+
+def _remove_stale_parts(folder: str, base: str, suffix: str) -> None:
+    """Remove temporary files of ``base + suffix`` whose writer on this host has died."""
+    pattern = re.compile(
+        rf"^\.{re.escape(base)}\.{re.escape(_HOST)}-(\d+)\.[^.]+\.part{re.escape(suffix)}$"
+    )
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return
+    for entry in names:
+        match = pattern.match(entry)
+        if match is None or _process_alive(int(match.group(1))):
+            continue
+        try:
+            os.unlink(os.path.join(folder, entry))
+            logger.info("removed %s, left by an interrupted write", entry)
+        except OSError:
+            pass  # another writer removed it, or the folder is read-only: harmless either way
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # alive, owned by another user
+    return True
+
+
+def _check_mesh_file(
+    tmp: str, path: str, name: str, vertices: int, triangles: int, exact_vertices: bool
+) -> None:
+    """Read a written mesh back: a writer that stopped early (full disk) is found here.
+
+    Open3D's PLY writer reports success after "RPly: Error closing up", leaving a truncated
+    file; reading it back and comparing the counts is the only check that works for every format.
+    """
+    # Quiet: Open3D's warnings about a truncated file would name the hidden temporary file.
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        back = o3d.io.read_triangle_mesh(tmp)
+    got_v, got_t = len(back.vertices), len(back.triangles)
+    if got_t != triangles or (exact_vertices and got_v != vertices):
+        raise OSError(
+            f"`{name}`: writing {path!r} failed: the file reads back as {got_v} vertices and "
+            f"{got_t} triangles, {vertices} and {triangles} were written (disk full?)"
+        )
 
 
 def write_triangle_mesh(
@@ -164,9 +255,22 @@ def write_triangle_mesh(
         out = to_open3d(*as_mesh_arrays(mesh, "mesh"))
     if not out.has_vertex_normals():
         out.compute_vertex_normals()
+    vertices, triangles = len(out.vertices), len(out.triangles)
+
+    def verify(tmp: str) -> None:
+        # Python's own writers (VTK, VTP, STL, GLB) raise on a full disk; Open3D's do not.
+        # glTF may split vertices: compare triangles only there.
+        if suffix in (".ply", ".obj", ".off", ".gltf"):
+            _check_mesh_file(
+                tmp, os.fspath(path), name, vertices, triangles, suffix != ".gltf"
+            )
+
     return atomic_write(
         path,
         lambda tmp: formats.write_mesh(tmp, out, suffix, write_ascii=write_ascii),
         overwrite=overwrite,
         name=name,
+        verify=verify,
+    )
+
     )

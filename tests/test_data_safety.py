@@ -1,0 +1,198 @@
+"""Data safety (issue 12): nothing half-written, nothing stale, nothing overwritten.
+
+Each test reproduces one fault a user met (full disk, overwrites, stale resume files, corrupt
+inputs, tracebacks, signals) and checks the documented outcome.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import open3d as o3d
+import pytest
+
+from o3dreg.io.mesh import read_triangle_mesh, write_triangle_mesh
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def sphere(n: int = 20) -> o3d.geometry.TriangleMesh:
+    return o3d.geometry.TriangleMesh.create_sphere(radius=10.0, resolution=n)
+
+
+def python(code: str, *args: str, cwd: Path | None = None, **kw) -> subprocess.CompletedProcess:
+    """Run ``code`` in a fresh interpreter using this checkout of o3dreg."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code), *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=cwd,
+        timeout=300,
+        **kw,
+    )
+
+
+def cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return python(
+        "import sys; from o3dreg.cli import main; sys.exit(main(sys.argv[1:]))", *args, cwd=cwd
+    )
+
+
+def parts(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if ".part" in p.name)
+
+
+# -- 1. full disk ------------------------------------------------------------------------------
+
+
+def _small_tmpfs_works() -> str | None:
+    """None when this machine lets us mount a small tmpfs in a private mount namespace."""
+    if shutil.which("unshare") is None:
+        return "no unshare command"
+    if os.geteuid() != 0:
+        return "mounting a tmpfs needs root (unshare -m)"
+    probe = subprocess.run(
+        ["unshare", "-m", "--propagation", "private", "sh", "-c",
+         "d=$(mktemp -d) && mount -t tmpfs -o size=40k tmpfs $d && umount $d && rmdir $d"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    return None if probe.returncode == 0 else f"cannot mount a tmpfs: {probe.stderr.strip()}"
+
+
+def on_full_disk(
+    tmp_path: Path, code: str, size: str = "40k", options: str = ""
+) -> subprocess.CompletedProcess:
+    """Run ``code`` with ``FULL`` (env) a folder on a ``size`` tmpfs seen by that process only."""
+    reason = _small_tmpfs_works()
+    if reason:
+        pytest.skip(reason)
+    full = tmp_path / "full"
+    full.mkdir()
+    script = tmp_path / "script.py"
+    script.write_text(textwrap.dedent(code))
+    shell = (
+        f"mount -t tmpfs -o size={size}{options} tmpfs {full} && "
+        f"{sys.executable} {script}; rc=$?; ls -a {full} > {tmp_path / 'listing.txt'}; exit $rc"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "FULL": str(full)}
+    return subprocess.run(
+        ["unshare", "-m", "--propagation", "private", "sh", "-c", shell],
+        capture_output=True, text=True, env=env, timeout=300,
+    )  # fmt: skip
+
+
+def test_write_on_a_full_disk_leaves_nothing(tmp_path):
+    # A 40 kB tmpfs holds about 40 kB of a 65 kB binary PLY: Open3D's writer says success.
+    done = on_full_disk(
+        tmp_path,
+        """
+        import os, sys
+        import open3d as o3d
+        from o3dreg.io.mesh import write_triangle_mesh
+        mesh = o3d.geometry.TriangleMesh.create_sphere(radius=10.0, resolution=40)
+        try:
+            write_triangle_mesh(os.path.join(os.environ["FULL"], "r.ply"), mesh)
+        except OSError as exc:
+            print("OSError", exc)
+            sys.exit(3)
+        sys.exit(0)
+        """,
+    )
+    listing = (tmp_path / "listing.txt").read_text().split()
+    assert done.returncode == 3, done.stdout + done.stderr
+    message = next(line for line in done.stdout.splitlines() if line.startswith("OSError"))
+    assert "r.ply" in message and ".part" not in message  # names the output
+    assert sorted(listing) == [".", ".."]  # neither the output nor a temporary file
+
+
+def test_cli_on_a_full_disk_exits_2_and_writes_nothing(tmp_path):
+    write_triangle_mesh(tmp_path / "t.ply", sphere(12))
+    write_triangle_mesh(tmp_path / "p.ply", sphere(40))
+    done = on_full_disk(
+        tmp_path,
+        f"""
+        import os, sys
+        from o3dreg.cli import main
+        full = os.environ["FULL"]
+        sys.exit(main([
+            "register", "{tmp_path / "p.ply"}", "{tmp_path / "t.ply"}", "-o", full + "/r.ply",
+            "--levels", "2", "--max-iteration", "2", "--report", full + "/r.json", "-q"]))
+        """,
+    )
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr
+    assert sorted((tmp_path / "listing.txt").read_text().split()) == [".", ".."]
+
+
+def test_read_only_folder_names_the_output(tmp_path):
+    done = on_full_disk(
+        tmp_path,
+        """
+        import os, sys
+        import open3d as o3d
+        from o3dreg.io.mesh import write_triangle_mesh
+        try:
+            write_triangle_mesh(os.path.join(os.environ["FULL"], "r.ply"),
+                                o3d.geometry.TriangleMesh.create_sphere())
+        except OSError as exc:
+            print("OSError", exc)
+        """,
+        options=",ro",
+    )
+    message = next(line for line in done.stdout.splitlines() if line.startswith("OSError"))
+    assert (
+        "r.ply" in message
+        and ".part" not in message
+        and "/tmp" not in message.split("r.ply")[0][-3:]
+    )
+    assert "Read-only" in message
+
+
+def test_stale_part_files_of_dead_writers_are_removed(tmp_path):
+    # A SIGKILL during a write leaves the hidden temporary file: the next write removes it, and
+    # leaves alone the file of a writer still running (here: this process).
+    from o3dreg.io import mesh as meshio
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / f".r.{meshio._HOST}-{dead.pid}.abcd1234.part.ply"
+    live = tmp_path / f".r.{meshio._HOST}-{os.getpid()}.abcd1234.part.ply"
+    other = tmp_path / f".s.{meshio._HOST}-{dead.pid}.abcd1234.part.ply"
+    for p in (stale, live, other):
+        p.write_bytes(b"ply\nformat binary_little_endian 1.0\n")
+    write_triangle_mesh(tmp_path / "r.ply", sphere())
+    assert parts(tmp_path) == sorted([live.name, other.name])
+    assert len(read_triangle_mesh(tmp_path / "r.ply").triangles) == len(sphere().triangles)
+
+
+def test_sigkill_during_a_write_leaves_only_a_hidden_file_cleaned_next_time(tmp_path):
+    # Kill the writer while the file is being written (a slow writer).
+    code = """
+    import sys, time
+    from o3dreg.io.mesh import atomic_write
+    def slow(tmp):
+        with open(tmp, "w") as fh:
+            fh.write("partial")
+            fh.flush()
+            print("writing", flush=True)
+            time.sleep(60)
+    atomic_write(sys.argv[1], slow)
+    """
+    proc = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(code), str(tmp_path / "r.ply")],
+        stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )  # fmt: skip
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "writing"
+    proc.kill()
+    proc.wait()
+    assert not (tmp_path / "r.ply").exists()
+    assert len(parts(tmp_path)) == 1 and parts(tmp_path)[0].startswith(".r.")
+    write_triangle_mesh(tmp_path / "r.ply", sphere())
+    assert parts(tmp_path) == []
