@@ -42,7 +42,7 @@ def test_build_model_info_modes_fit(files, capsys):
     out = files / "model"
     targets = [str(files / f"p{i}.ply") for i in range(5)] + [str(files / "broken.ply")]
     code = build_model(files, targets, out, "--levels", "2,4,8")
-    assert code == 0
+    assert code == 1  # the model is built, but one patient failed
     text = capsys.readouterr().out
     assert "broken" in text and "failed" in text and "Variances %" in text
     for name in (
@@ -88,8 +88,11 @@ def test_build_model_info_modes_fit(files, capsys):
     assert result["mean_error"] < 3.0
     assert (files / "pred.csv").is_file()
 
-    # A second run resumes: every patient but the broken one is skipped.
-    assert build_model(files, targets[:2], out, "--json") == 0
+    # A second run resumes: every patient but the broken one is skipped. The folder holds a
+    # model: rebuilding it needs --overwrite.
+    assert build_model(files, targets[:2], out, "--json", "--levels", "2,4,8") == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert build_model(files, targets[:2], out, "--json", "--levels", "2,4,8", "--overwrite") == 0
     rerun = json.loads(capsys.readouterr().out)
     assert [p["status"] for p in rerun["patients"]] == ["registered", "registered"]
 

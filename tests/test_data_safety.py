@@ -13,6 +13,7 @@ import sys
 import textwrap
 from pathlib import Path
 
+import numpy as np
 import open3d as o3d
 import pytest
 
@@ -196,3 +197,119 @@ def test_sigkill_during_a_write_leaves_only_a_hidden_file_cleaned_next_time(tmp_
     assert len(parts(tmp_path)) == 1 and parts(tmp_path)[0].startswith(".r.")
     write_triangle_mesh(tmp_path / "r.ply", sphere())
     assert parts(tmp_path) == []
+
+
+# -- 2. overwrites -----------------------------------------------------------------------------
+
+
+def run_main(capsys, *argv: str) -> tuple[int, str]:
+    from o3dreg.cli import main
+
+    try:
+        code = main(list(argv))
+    except SystemExit as exc:  # argparse
+        code = int(exc.code or 0)
+    return code, capsys.readouterr().err
+
+
+@pytest.fixture
+def meshes(tmp_path):
+    write_triangle_mesh(tmp_path / "t.ply", sphere(8))
+    write_triangle_mesh(tmp_path / "p.ply", sphere(10))
+    return tmp_path
+
+
+def test_register_outputs_checked_before_any_work(meshes, capsys):
+    # SOURCE does not exist: every output error below is found before reading any input.
+    missing, p = str(meshes / "absent.ply"), str(meshes / "p.ply")
+    out = str(meshes / "r.ply")
+    code, err = run_main(capsys, "register", missing, p, "-o", str(meshes / "r.xyz"))
+    assert code == 2 and "--output must end with one of" in err
+    code, err = run_main(capsys, "register", missing, p, "-o", out, "--report", out + ".txt")
+    assert code == 2 and "--report must end with .json" in err
+    code, err = run_main(capsys, "register", missing, p, "-o", out, "--deformation", out)
+    assert code == 2 and "--deformation must end with .npz" in err
+    (meshes / "o.ply").write_bytes(b"")
+    code, err = run_main(capsys, "register", missing, p, "-o", str(meshes / "o.ply"))
+    assert code == 2 and "pass --overwrite" in err
+    code, err = run_main(capsys, "register", missing, p, "-o", out, "--report", str(meshes))
+    assert code == 2 and "must end with .json" in err
+    # With --overwrite an output equal to an input is still refused; the input is untouched.
+    before = (meshes / "p.ply").read_bytes()
+    code, err = run_main(capsys, "register", str(meshes / "t.ply"), p, "-o", p, "--overwrite")
+    assert code == 2 and "an output never replaces an input" in err
+    assert (meshes / "p.ply").read_bytes() == before
+    # All checks pass: now the missing input is reported.
+    code, err = run_main(capsys, "register", missing, p, "-o", out, "--report", out + ".json")
+    assert code == 2 and "SOURCE" in err
+
+
+def test_two_outputs_never_share_a_path():
+    from o3dreg.cli._common import check_outputs
+
+    with pytest.raises(ValueError, match="--report and --deformation name the same file"):
+        check_outputs({"--report": "/tmp/a.x", "--deformation": "/tmp/./a.x"}, True)
+    with pytest.raises(ValueError, match="is the input TARGET"):
+        check_outputs({"--output": "/tmp/b/../a.ply"}, True, inputs={"TARGET": "/tmp/a.ply"})
+
+
+def test_reconstruct_output_never_replaces_its_input(tmp_path, capsys):
+    scan = tmp_path / "scan.ply"  # any file: the check comes before reading it
+    scan.write_bytes(b"data")
+    code, err = run_main(capsys, "reconstruct", str(scan), "-o", str(scan), "--threshold", "1",
+                         "--overwrite")  # fmt: skip
+    assert code == 2 and "never replaces an input" in err and scan.read_bytes() == b"data"
+
+
+def test_model_fit_output_rules(tmp_path, capsys):
+    landmarks = tmp_path / "lm.mrk.json"
+    landmarks.write_text("{}")
+    args = ["model", "fit", str(tmp_path / "no-model"), str(tmp_path / "p.ply"),
+            "--landmarks", str(landmarks)]  # fmt: skip
+    code, err = run_main(capsys, *args, "-o", str(landmarks), "--overwrite")
+    assert code == 2 and "--landmarks" in err and landmarks.read_text() == "{}"
+    (tmp_path / "pred.csv").write_text("keep")
+    code, err = run_main(capsys, *args, "-o", str(tmp_path / "pred.csv"))
+    assert code == 2 and "pass --overwrite" in err and (tmp_path / "pred.csv").read_text() == "keep"
+
+
+@pytest.fixture
+def model_dir(tmp_path):
+    from o3dreg.shape.build import build_shape_model
+
+    base = sphere(6)
+    v = np.asarray(base.vertices)
+    rng = np.random.default_rng(0)
+    shapes = np.stack(
+        [v * (1 + 0.1 * rng.normal()) + 0.3 * rng.normal(size=v.shape) for _ in range(4)]
+    )
+    model = build_shape_model(shapes, np.asarray(base.triangles))
+    folder = tmp_path / "model"
+    folder.mkdir()
+    model.save(folder / "model.npz")
+    write_triangle_mesh(folder / "template.ply", base)
+    return folder
+
+
+def test_model_modes_overwrite_rules_and_finite_sd(model_dir, tmp_path, capsys):
+    out = tmp_path / "modes"
+    args = ["model", "modes", str(model_dir), "--modes", "1", "-o", str(out)]
+    assert run_main(capsys, *args)[0] == 0
+    stamp = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    code, err = run_main(capsys, *args)
+    assert code == 2 and "pass --overwrite" in err
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == stamp
+    assert run_main(capsys, *args, "--overwrite")[0] == 0
+    for bad in ("nan", "inf"):
+        code, err = run_main(capsys, "model", "modes", str(model_dir), "--sd", bad,
+                             "-o", str(tmp_path / "m2"))  # fmt: skip
+        assert code == 2 and "finite" in err
+    assert not (tmp_path / "m2").exists()
+
+
+def test_build_model_refuses_to_replace_a_model_before_any_work(model_dir, capsys):
+    before = (model_dir / "model.npz").read_bytes()
+    code, err = run_main(capsys, "build-model", str(model_dir / "absent.ply"),
+                         str(model_dir / "p.ply"), "-o", str(model_dir))  # fmt: skip
+    assert code == 2 and "already holds a model" in err and "--overwrite" in err
+    assert (model_dir / "model.npz").read_bytes() == before

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
+from collections.abc import Sequence
 from typing import Any
 
 from ..io.mesh import atomic_write_text
@@ -32,16 +34,61 @@ def float_list(text: str) -> list[float]:
     return _number_list(text, float, "numbers", 0.0)
 
 
-def check_outputs(paths: dict[str, str | None], overwrite: bool) -> None:
-    """Refuse before any work if an output exists (unless ``overwrite``) or its folder is missing."""
-    for option, path in paths.items():
-        if path is None:
-            continue
+def finite_float(text: str) -> float:
+    """A finite number, for argparse ``type=`` (``nan`` and ``inf`` are refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def check_outputs(
+    outputs: dict[str, str | None],
+    overwrite: bool,
+    *,
+    inputs: dict[str, str | None] | None = None,
+    suffixes: dict[str, Sequence[str]] | None = None,
+) -> None:
+    """The one rule for a command's output files, applied before any work.
+
+    ``outputs`` and ``inputs`` map an option name (``"--output"``) to a path (``None``: not
+    given). Raises ``ValueError`` when an output has another suffix than ``suffixes[option]``
+    allows, when two outputs share a path or when an output is one of the inputs (even with
+    ``overwrite``); ``OSError`` when an output's folder is missing or not writable, when an
+    output is a folder, or when it exists and ``overwrite`` is false.
+    """
+    given = {option: path for option, path in outputs.items() if path is not None}
+    for option, path in given.items():
+        allowed = (suffixes or {}).get(option)
+        if allowed and not path.lower().endswith(tuple(allowed)):
+            expected = allowed[0] if len(allowed) == 1 else f"one of {', '.join(allowed)}"
+            raise ValueError(f"{option} must end with {expected}, got {path!r}")
         folder = os.path.dirname(os.path.abspath(path))
         if not os.path.isdir(folder):
             raise OSError(f"{option}: folder {folder!r} does not exist")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise OSError(f"{option}: cannot write {path!r}: folder {folder!r} is not writable")
+        if os.path.isdir(path):
+            raise OSError(f"{option}: {path!r} is a folder")
         if os.path.exists(path) and not overwrite:
             raise OSError(f"{option}: {path!r} exists; pass --overwrite to replace it")
+    seen: dict[str, str] = {}
+    for option, path in given.items():
+        key = os.path.realpath(path)
+        if key in seen:
+            raise ValueError(f"{seen[key]} and {option} name the same file {path!r}")
+        seen[key] = option
+    for option, path in (inputs or {}).items():
+        if path is None:
+            continue
+        key = os.path.realpath(path)
+        if key in seen:
+            raise ValueError(
+                f"{seen[key]} {path!r} is the input {option}; an output never replaces an input"
+            )
 
 
 def write_json(path: str, data: Any, *, overwrite: bool) -> str:

@@ -14,7 +14,7 @@ import os
 import sys
 from typing import Any
 
-from ._common import int_list
+from ._common import check_outputs, emit, finite_float, int_list
 
 logger = logging.getLogger("o3dreg")
 
@@ -42,6 +42,11 @@ def add_parser(subparsers: Any) -> None:
         "--scaling", action="store_true", help="similarity Procrustes (size removed)"
     )
     build.add_argument("--slide", action="store_true", help="slide semilandmarks before the PCA")
+    build.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="rebuild a folder that already holds a model (finished registrations are reused)",
+    )
     build.add_argument("--json", action="store_true", help="print the report as JSON")
     build.set_defaults(func=run_build)
 
@@ -56,12 +61,13 @@ def add_parser(subparsers: Any) -> None:
     modes.add_argument("--modes", type=int, default=2, help="number of modes (default 2)")
     modes.add_argument(
         "--sd",
-        type=float,
+        type=finite_float,
         nargs="+",
         default=[-3.0, 3.0],
         help="multiples of the standard deviation",
     )
     modes.add_argument("-o", "--output", help="folder (default MODEL_DIR/modes)")
+    modes.add_argument("--overwrite", action="store_true", help="replace existing mesh files")
     modes.add_argument("--json", action="store_true")
     modes.set_defaults(func=run_modes)
     fit = sub.add_parser("fit", help="fit the model to a patient and predict landmarks")
@@ -70,6 +76,7 @@ def add_parser(subparsers: Any) -> None:
     fit.add_argument("--landmarks", required=True, help="template landmarks (.mrk.json or .csv)")
     fit.add_argument("--truth", help="true landmarks on the patient, to report errors")
     fit.add_argument("-o", "--output", help="write predicted landmarks (.mrk.json or .csv)")
+    fit.add_argument("--overwrite", action="store_true", help="replace an existing --output")
     fit.add_argument("--modes", type=int, default=None, help="modes used (default all)")
     fit.add_argument("--regularization", type=float, default=None, help="noise variance (mm^2)")
     fit.add_argument("--json", action="store_true")
@@ -101,6 +108,7 @@ def run_build(args: argparse.Namespace) -> int:
     from ..app.model_folder import build_model_folder
     from ..io.mesh import read_triangle_mesh
 
+    _check_model_folder(args.output, args.overwrite)
     template = read_triangle_mesh(args.template, name="TEMPLATE")
     executor, closer = _executor(args)
     try:
@@ -121,8 +129,7 @@ def run_build(args: argparse.Namespace) -> int:
         elif closer is not None:
             closer.shutdown()
     batch, model = folder.batch, folder.model
-    if not args.json:
-        print(batch.table())
+    emit(batch.table(), args)
     if model is None:
         print(
             f"o3dreg build-model: only {len(batch.registered)} patient(s) registered; "
@@ -133,15 +140,34 @@ def run_build(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(folder.report, indent=2))
     else:
-        print(model)
-        print(model.variance_table())
+        emit(str(model), args)
+        emit(model.variance_table(), args)
         for curve in folder.curves[1:]:
-            print(curve.table())
-        if batch.failed:
-            print(
-                f"{len(batch.failed)} patient(s) failed: {', '.join(r.name for r in batch.failed)}"
-            )
+            emit(curve.table(), args)
+    if batch.failed:
+        print(
+            f"o3dreg build-model: {len(batch.failed)} patient(s) failed: "
+            f"{', '.join(r.name for r in batch.failed)}; the model was built without them",
+            file=sys.stderr,
+        )
+        return 1
     return 0
+
+
+def _check_model_folder(output: str, overwrite: bool) -> None:
+    """Before any work: the folder can be created or written, and holds no model (or overwrite)."""
+    if os.path.exists(output) and not os.path.isdir(output):
+        raise OSError(f"--output: {output!r} exists and is not a folder")
+    folder = output if os.path.isdir(output) else os.path.dirname(os.path.abspath(output))
+    if not os.path.isdir(folder):
+        raise OSError(f"--output: folder {folder!r} does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise OSError(f"--output: folder {folder!r} is not writable")
+    if os.path.exists(os.path.join(output, "model.npz")) and not overwrite:
+        raise OSError(
+            f"--output: {output!r} already holds a model; pass --overwrite to rebuild it "
+            "(finished registrations are reused) or choose another folder"
+        )
 
 
 def _load(model_dir: str) -> Any:
@@ -178,10 +204,18 @@ def run_info(args: argparse.Namespace) -> int:
 def run_modes(args: argparse.Namespace) -> int:
     model = _load(args.model_dir)
     folder = args.output or os.path.join(args.model_dir, "modes")
-    os.makedirs(folder, exist_ok=True)
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise OSError(f"--output: {folder!r} exists and is not a folder")
     count = min(max(args.modes, 0), model.number_of_modes)
+    sds = list(dict.fromkeys(args.sd))  # --sd 1 1 writes one file
+    names = ["mean.ply"] + [f"mode{m + 1}_{c:+g}sd.ply" for m in range(count) for c in sds]
+    if os.path.isdir(folder):
+        check_outputs(
+            {f"--output {name}": os.path.join(folder, name) for name in names}, args.overwrite
+        )
+    os.makedirs(folder, exist_ok=True)
     written = model.write_meshes(
-        folder, modes=range(count), standard_deviations=args.sd, overwrite=True
+        folder, modes=range(count), standard_deviations=sds, overwrite=args.overwrite
     )
     if args.json:
         print(json.dumps({"written": written}, indent=2))
@@ -201,6 +235,12 @@ def run_fit(args: argparse.Namespace) -> int:
         write_landmarks,
     )
 
+    check_outputs(
+        {"--output": args.output},
+        args.overwrite,
+        inputs={"--landmarks": args.landmarks, "--truth": args.truth, "PATIENT": args.patient},
+        suffixes={"--output": (".mrk.json", ".csv", ".json")},
+    )
     model = _load(args.model_dir)
     template_path = os.path.join(args.model_dir, "template.ply")
     template = read_triangle_mesh(template_path, name="MODEL_DIR/template.ply")
@@ -224,7 +264,9 @@ def run_fit(args: argparse.Namespace) -> int:
         truth_pts = truth[[index[lab] for lab in prediction.labels]]
         errors = landmark_errors(prediction.positions, truth_pts)
     if args.output:
-        write_landmarks(args.output, prediction.labels, prediction.positions, overwrite=True)
+        write_landmarks(
+            args.output, prediction.labels, prediction.positions, overwrite=args.overwrite
+        )
     fit = prediction.fit
     if args.json:
         out: dict[str, Any] = {

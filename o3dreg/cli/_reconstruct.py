@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from ._common import check_outputs
+
 logger = logging.getLogger("o3dreg")
 
 
@@ -77,8 +79,8 @@ def add_parser(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .._validation import check_output_path, check_positive
-    from ..io.mesh import check_mesh_suffix, write_triangle_mesh
+    from .._validation import check_positive
+    from ..io.mesh import MESH_SUFFIXES, write_triangle_mesh
     from ..volume.cleaning import (
         connected_components,
         crop_mesh,
@@ -91,11 +93,13 @@ def run(args: argparse.Namespace) -> int:
     from ..volume.readers import read_volume
 
     start = time.perf_counter()
-    # Fail before any work: bad output suffix, missing folder, existing file.
-    check_mesh_suffix(args.output, "--output")
-    if os.path.exists(args.output) and not args.overwrite:
-        raise OSError(f"--output: {args.output!r} exists; pass --overwrite to replace it")
-    check_output_path(args.output, "--output", overwrite=args.overwrite)
+    # Fail before any work: bad output suffix, missing folder, existing file, the input itself.
+    check_outputs(
+        {"--output": args.output},
+        args.overwrite,
+        inputs={"INPUT": args.input},
+        suffixes={"--output": MESH_SUFFIXES},
+    )
     if args.largest is not None:
         check_positive(args.largest, "--largest", integer=True)
     if args.min_component_vertices is not None:

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from ..io.mesh import read_triangle_mesh, write_triangle_mesh
+from ..io.mesh import MESH_SUFFIXES, read_triangle_mesh, write_triangle_mesh
 from ..registration.elastic import registration_elastic
 from ..registration.options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
 from ..registration.result import ElasticRegistrationResult, LevelReport
@@ -159,9 +159,9 @@ def run(args: argparse.Namespace) -> int:
     check_outputs(
         {"--output": args.output, "--deformation": args.deformation, "--report": args.report},
         args.overwrite,
+        inputs={"SOURCE": args.source, "TARGET": args.target},
+        suffixes={"--output": MESH_SUFFIXES, "--deformation": (".npz",), "--report": (".json",)},
     )
-    if args.deformation is not None and not args.deformation.endswith(".npz"):
-        raise ValueError(f"--deformation must end with .npz, got {args.deformation!r}")
     levels = build_levels(args)
     source = read_triangle_mesh(args.source, name="SOURCE")
     target = read_triangle_mesh(args.target, name="TARGET")
