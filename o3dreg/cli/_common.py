@@ -81,13 +81,13 @@ def check_outputs(
         if key in seen:
             raise ValueError(f"{seen[key]} and {option} name the same file {path!r}")
         seen[key] = option
-    for option, path in (inputs or {}).items():
-        if path is None:
+    for option, source in (inputs or {}).items():
+        if source is None:
             continue
-        key = os.path.realpath(path)
+        key = os.path.realpath(source)
         if key in seen:
             raise ValueError(
-                f"{seen[key]} {path!r} is the input {option}; an output never replaces an input"
+                f"{seen[key]} {source!r} is the input {option}; an output never replaces an input"
             )
 
 

@@ -211,7 +211,7 @@ def _check_mesh_file(
     """
     # Quiet: Open3D's warnings about a truncated file would name the hidden temporary file.
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        back = o3d.io.read_triangle_mesh(tmp)
+        back = o3d.io.read_triangle_mesh(tmp)  # type: ignore[arg-type]  # stubs: PathLike
     got_v, got_t = len(back.vertices), len(back.triangles)
     if got_t != triangles or (exact_vertices and got_v != vertices):
         raise OSError(
