@@ -261,9 +261,7 @@ def write_triangle_mesh(
         # Python's own writers (VTK, VTP, STL, GLB) raise on a full disk; Open3D's do not.
         # glTF may split vertices: compare triangles only there.
         if suffix in (".ply", ".obj", ".off", ".gltf"):
-            _check_mesh_file(
-                tmp, os.fspath(path), name, vertices, triangles, suffix != ".gltf"
-            )
+            _check_mesh_file(tmp, os.fspath(path), name, vertices, triangles, suffix != ".gltf")
 
     return atomic_write(
         path,
@@ -271,6 +269,4 @@ def write_triangle_mesh(
         overwrite=overwrite,
         name=name,
         verify=verify,
-    )
-
     )
