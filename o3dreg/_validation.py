@@ -10,6 +10,7 @@ import os
 from typing import Any
 
 import numpy as np
+import open3d as o3d
 
 __all__ = [
     "as_faces",
@@ -30,15 +31,10 @@ def _describe(value: Any) -> str:
 
 def as_points(value: Any, name: str, *, allow_empty: bool = False) -> np.ndarray:
     """Return ``value`` as a new ``(n, 3) float64`` array of finite coordinates."""
-    try:
-        import open3d as o3d
-
-        if isinstance(value, o3d.geometry.PointCloud):
-            value = np.asarray(value.points)
-        elif isinstance(value, o3d.geometry.TriangleMesh):
-            value = np.asarray(value.vertices)
-    except ImportError:  # pragma: no cover - open3d is a dependency
-        pass
+    if isinstance(value, o3d.geometry.PointCloud):
+        value = np.asarray(value.points)
+    elif isinstance(value, o3d.geometry.TriangleMesh):
+        value = np.asarray(value.vertices)
     if not isinstance(value, (np.ndarray, list, tuple)):
         raise TypeError(f"`{name}` must be an (n, 3) array of points, got {_describe(value)}")
     arr = np.asarray(value)
@@ -66,8 +62,6 @@ def as_mesh_arrays(
     index existing vertices. Degenerate triangles (repeated index or zero area) raise unless
     ``drop_degenerate`` is true, in which case they are removed.
     """
-    import open3d as o3d
-
     if isinstance(mesh, o3d.geometry.TriangleMesh):
         vertices_in: Any = np.asarray(mesh.vertices)
         faces_in: Any = np.asarray(mesh.triangles)

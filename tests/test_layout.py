@@ -86,6 +86,30 @@ def test_no_module_uses_another_modules_private_names():
     assert crossings() - PENDING == set()
 
 
+# Imported inside functions on purpose: slow to import (seconds in all) and needed only for
+# pictures, CT readers, statismo files or a Dask cluster, while `import o3dreg` loads every module.
+DEFERRED = {"matplotlib", "mpl_toolkits", "SimpleITK", "nrrd", "h5py", "distributed"}
+
+
+def test_imports_are_at_module_level_unless_deferred_for_import_time():
+    found = []
+    for path, tree in _modules().items():
+        if path.startswith("registration/"):  # the registration core work's
+            continue
+        for fn in ast.walk(tree):
+            if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(fn):
+                if isinstance(node, ast.Import):
+                    roots = [a.name.split(".")[0] for a in node.names]
+                elif isinstance(node, ast.ImportFrom):
+                    roots = ["." * node.level + (node.module or "").split(".")[0]]
+                else:
+                    continue
+                found += [f"{path}:{node.lineno} {r}" for r in roots if r not in DEFERRED]
+    assert found == []
+
+
 def test_no_test_module_imports_another():
     # Shared builders live in tests/_helpers.py (fixtures in conftest.py): importing a test
     # module runs its module-level code and couples unrelated tests.

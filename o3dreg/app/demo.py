@@ -45,6 +45,7 @@ from ..volume.isosurface import isosurface
 from ..volume.readers import read_volume
 from ..volume.volume import Volume
 from .datasets import headsq_path
+from .report import write_report
 from .synthetic import SmoothWarp
 
 __all__ = ["DemoResult", "make_population", "run_demo"]
@@ -175,8 +176,6 @@ def run_demo(
     -------
     DemoResult
     """
-    from .report import write_report
-
     start = time.perf_counter()
     out = Path(output)
     out.mkdir(parents=True, exist_ok=True)

@@ -15,9 +15,13 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import open3d as o3d
+from open3d.visualization import rendering
 
 from .._validation import as_mesh_arrays
 from ..io.mesh import atomic_write
+
+# matplotlib is imported inside the functions that draw: ~1 s to import, for pictures only.
 
 __all__ = ["BACKENDS", "render_mesh"]
 
@@ -92,9 +96,6 @@ def _render_open3d(
     up: np.ndarray,
     size: tuple[int, int],
 ) -> np.ndarray:
-    import open3d as o3d
-    from open3d.visualization import rendering
-
     if face_rgb is not None:
         # Per-face colours need unshared vertices.
         vertices, faces = vertices[faces].reshape(-1, 3), np.arange(faces.size).reshape(-1, 3)

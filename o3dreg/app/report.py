@@ -11,6 +11,7 @@ import open3d as o3d
 
 from ..io.mesh import atomic_write, atomic_write_text, to_open3d
 from ..registration.distance import SurfaceDistanceQuery
+from .render import render_mesh
 
 logger = logging.getLogger("o3dreg")
 
@@ -18,6 +19,7 @@ __all__ = ["plot_convergence", "plot_variances", "write_report"]
 
 
 def _pyplot():
+    # Deferred: matplotlib.pyplot takes ~1 s to import, and `import o3dreg` needs no pictures.
     import matplotlib
 
     matplotlib.use("Agg")
@@ -79,10 +81,6 @@ _VIEW: dict[str, Any] = {"up": (0.0, 0.0, -1.0), "view": (60.0, 15.0)}
 def _render(
     mesh: o3d.geometry.TriangleMesh, path: Path, scalars: np.ndarray | None = None, **kw: Any
 ) -> Path | None:
-    try:
-        from .render import render_mesh
-    except ImportError:  # pragma: no cover - render module ships with o3dreg
-        return None
     # matplotlib: 0.4 s a picture, where Open3D's Filament on Mesa's software Vulkan took 3-30 s
     # (and minutes on a loaded 2-core machine); the report has nine.
     kw.setdefault("backend", "matplotlib")

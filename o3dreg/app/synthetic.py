@@ -10,6 +10,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import open3d as o3d
+from skimage.measure import marching_cubes
 
 from .._validation import as_points, check_positive
 
@@ -126,9 +128,6 @@ def _form_sdf(name: str, grid: np.ndarray) -> np.ndarray:
 
 
 def _marching_cubes_form(name: str, voxel: float) -> Any:
-    import open3d as o3d
-    from skimage.measure import marching_cubes
-
     ticks = np.arange(-50.0, 50.0 + voxel, voxel)
     grid = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), axis=-1)
     sdf = _form_sdf(name, grid)

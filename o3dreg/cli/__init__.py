@@ -12,10 +12,11 @@ import sys
 from collections.abc import Sequence
 
 from .. import __version__
+from . import _demo, _model, _reconstruct, _register, _view
 
 # Each sub-command module defines ``add_parser(subparsers)`` which registers itself with a
 # ``func(args) -> int`` default. New sub-commands are added to this tuple.
-_COMMANDS = ("_register", "_reconstruct", "_model", "_demo", "_view")
+_COMMANDS = (_register, _reconstruct, _model, _demo, _view)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,15 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"o3dreg {__version__}")
     _add_verbosity(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    import importlib
-
-    for module_name in _COMMANDS:
-        try:
-            module = importlib.import_module(f".{module_name}", __name__)
-        except ModuleNotFoundError as exc:
-            if exc.name and exc.name.endswith(module_name):
-                continue  # sub-command not built yet
-            raise
+    for module in _COMMANDS:
         module.add_parser(sub)
     for child in _walk(sub):
         _add_verbosity(child, default=argparse.SUPPRESS)

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import concurrent.futures as cf
 import os
 import shutil
 import sys
 
+from ..app.demo import run_demo
 from ._common import emit, emit_json
 
 MARKER = ".o3dreg-demo"
@@ -63,10 +65,6 @@ def prepare_output(folder: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    import concurrent.futures as cf
-
-    from ..app.demo import run_demo
-
     if args.patients < 3:
         raise ValueError(f"--patients must be >= 3, got {args.patients}")
     if args.jobs < 1:

@@ -14,6 +14,17 @@ import os
 import sys
 from typing import Any
 
+from ..app.model_folder import build_model_folder
+from ..io.mesh import read_triangle_mesh
+from ..registration.options import ElasticLevel
+from ..shape.landmarks import (
+    landmark_errors,
+    load_template_landmarks,
+    predict_landmarks,
+    read_landmarks,
+    write_landmarks,
+)
+from ..shape.model import ShapeModel
 from ._common import check_outputs, emit, finite_float, int_list
 
 logger = logging.getLogger("o3dreg")
@@ -85,15 +96,13 @@ def add_parser(subparsers: Any) -> None:
 
 
 def _levels(values: list[int] | None) -> Any:
-    from ..registration.options import ElasticLevel
-
     return None if values is None else [ElasticLevel(v) for v in values]
 
 
 def _executor(args: argparse.Namespace) -> tuple[Any, Any]:
     if args.scheduler:
         try:
-            from distributed import Client
+            from distributed import Client  # optional (the dask extra), seconds to import
         except ImportError as exc:
             raise RuntimeError("--scheduler needs Dask: pip install 'o3dreg[dask]'") from exc
         client = Client(args.scheduler)
@@ -105,9 +114,6 @@ def _executor(args: argparse.Namespace) -> tuple[Any, Any]:
 
 
 def run_build(args: argparse.Namespace) -> int:
-    from ..app.model_folder import build_model_folder
-    from ..io.mesh import read_triangle_mesh
-
     _check_model_folder(args.output, args.overwrite)
     template = read_triangle_mesh(args.template, name="TEMPLATE")
     executor, closer = _executor(args)
@@ -171,8 +177,6 @@ def _check_model_folder(output: str, overwrite: bool) -> None:
 
 
 def _load(model_dir: str) -> Any:
-    from ..shape.model import ShapeModel
-
     path = os.path.join(model_dir, "model.npz")
     if not os.path.isfile(path):
         raise OSError(f"MODEL_DIR: no model.npz in {model_dir!r} (run o3dreg build-model)")
@@ -226,15 +230,6 @@ def run_modes(args: argparse.Namespace) -> int:
 
 
 def run_fit(args: argparse.Namespace) -> int:
-    from ..io.mesh import read_triangle_mesh
-    from ..shape.landmarks import (
-        landmark_errors,
-        load_template_landmarks,
-        predict_landmarks,
-        read_landmarks,
-        write_landmarks,
-    )
-
     check_outputs(
         {"--output": args.output},
         args.overwrite,

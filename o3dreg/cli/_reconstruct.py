@@ -12,6 +12,18 @@ from typing import Any
 
 import numpy as np
 
+from .._validation import check_positive
+from ..io.mesh import MESH_SUFFIXES, write_triangle_mesh
+from ..volume.cleaning import (
+    connected_components,
+    crop_mesh,
+    decimate,
+    keep_largest_components,
+    remove_small_components,
+    smooth_taubin,
+)
+from ..volume.isosurface import isosurface
+from ..volume.readers import read_volume
 from ._common import check_outputs
 
 logger = logging.getLogger("o3dreg")
@@ -79,19 +91,6 @@ def add_parser(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .._validation import check_positive
-    from ..io.mesh import MESH_SUFFIXES, write_triangle_mesh
-    from ..volume.cleaning import (
-        connected_components,
-        crop_mesh,
-        decimate,
-        keep_largest_components,
-        remove_small_components,
-        smooth_taubin,
-    )
-    from ..volume.isosurface import isosurface
-    from ..volume.readers import read_volume
-
     start = time.perf_counter()
     # Fail before any work: bad output suffix, missing folder, existing file, the input itself.
     check_outputs(

@@ -7,6 +7,7 @@ import sys
 import time
 
 import numpy as np
+from tqdm import tqdm
 
 from ..io.mesh import MESH_SUFFIXES, read_triangle_mesh, write_triangle_mesh
 from ..registration.elastic import registration_elastic
@@ -173,8 +174,6 @@ def run(args: argparse.Namespace) -> int:
     show = not args.quiet and not args.json
     bar = None
     if show:
-        from tqdm import tqdm
-
         bar = tqdm(total=len(levels), desc="levels", unit="level", file=sys.stderr, leave=False)
 
     def progress(report: LevelReport) -> None:

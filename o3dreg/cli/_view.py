@@ -6,7 +6,9 @@ import argparse
 import os
 
 import numpy as np
+import open3d as o3d
 
+from ..app.render import render_mesh
 from ..io.mesh import read_triangle_mesh
 from ..registration.distance import SurfaceDistanceQuery
 from ._common import emit
@@ -44,7 +46,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _colours(values: np.ndarray) -> np.ndarray:
-    import matplotlib
+    import matplotlib  # deferred: ~0.3 s to import, needed only with --distance-to
 
     top = float(np.percentile(values, 98)) or 1.0
     return np.asarray(matplotlib.colormaps["viridis"](np.clip(values / top, 0, 1)))[:, :3]
@@ -63,8 +65,6 @@ def run(args: argparse.Namespace) -> int:
             args,
         )
     if args.screenshot:
-        from ..app.render import render_mesh
-
         if os.path.exists(args.screenshot) and not args.overwrite:
             raise OSError(
                 f"--screenshot: {args.screenshot!r} exists; pass --overwrite to replace it"
@@ -77,8 +77,6 @@ def run(args: argparse.Namespace) -> int:
             "no display to open a window on (DISPLAY is not set); use --screenshot PNG to render "
             "a picture instead"
         )
-    import open3d as o3d
-
     for k, mesh in enumerate(meshes):
         mesh.compute_vertex_normals()
         if k == 0 and scalars is not None:

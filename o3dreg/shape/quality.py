@@ -77,6 +77,7 @@ class QualityCurve:
         self, path: str | os.PathLike[str], *, overwrite: bool = False, title: str | None = None
     ) -> str:
         """Save the curve as a PNG (atomically); returns the path."""
+        # Deferred: matplotlib.pyplot takes ~1 s to import, and `import o3dreg` loads this module.
         import matplotlib
 
         matplotlib.use("Agg", force=False)

@@ -61,6 +61,7 @@ _log = logging.getLogger("o3dreg")
 
 
 def _h5py() -> Any:
+    # Deferred: ~0.1 s to import, and `import o3dreg` loads this module.
     try:
         import h5py
     except ImportError as exc:  # pragma: no cover - h5py is a dependency

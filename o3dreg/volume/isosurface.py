@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 import open3d as o3d
+from skimage.measure import marching_cubes
 
 from .._validation import check_positive
 from ..io.mesh import to_open3d
@@ -100,8 +101,6 @@ def isosurface(
 def _isosurface(
     volume: Volume, level: float, step: int, crop: bool, close_boundary: bool
 ) -> o3d.geometry.TriangleMesh:
-    from skimage.measure import marching_cubes
-
     array = volume.array
     low, high, lo, hi = _scan(array, level)
     if not low < level < high or lo is None or hi is None:

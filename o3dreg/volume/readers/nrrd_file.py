@@ -12,6 +12,8 @@ from ..volume import Volume
 from .raw_slices import read_raw_slices
 from .sitk_image import from_sitk, sitk_error
 
+# SimpleITK and pynrrd are imported inside the readers (~0.5 s to import; `import o3dreg` loads this
+# module).
 __all__ = ["read_nrrd"]
 
 logger = logging.getLogger("o3dreg")
