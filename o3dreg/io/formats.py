@@ -34,6 +34,7 @@ from typing import Any
 from xml.etree import ElementTree
 
 import numpy as np
+import open3d as o3d
 
 __all__ = [
     "merge_identical_vertices",
@@ -579,9 +580,7 @@ OWN_SUFFIXES = (".vtk", ".vtp")
 
 def read_mesh(path: str, suffix: str) -> Any:
     """Read ``path`` as an ``open3d.geometry.TriangleMesh`` (empty when Open3D finds nothing)."""
-    import open3d as o3d
-
-    from .mesh import to_open3d
+    from .mesh import to_open3d  # io.mesh imports this module: not at module level (a cycle)
 
     if suffix == ".vtk":
         return to_open3d(*read_vtk(path))
@@ -598,8 +597,6 @@ def read_mesh(path: str, suffix: str) -> Any:
 
 def write_mesh(path: str, mesh: Any, suffix: str, *, write_ascii: bool = False) -> bool:
     """Write an ``open3d.geometry.TriangleMesh`` (a copy the caller owns) to ``path``."""
-    import open3d as o3d
-
     vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
     if suffix == ".vtk":
         write_vtk(path, vertices, faces, ascii=write_ascii)
