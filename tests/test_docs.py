@@ -46,3 +46,12 @@ def test_every_public_function_has_a_docstring():
         if not n.startswith("_") and not (getattr(o3dreg, n).__doc__ or "").strip()
     ]
     assert not missing
+
+
+def test_architecture_picture_is_current_and_names_real_modules():
+    gen = load("gen_architecture")
+    assert (DOCS / "images" / "architecture.svg").read_text(encoding="utf-8") == gen.render(), (
+        "docs/images/architecture.svg is stale: run python docs/gen_architecture.py"
+    )
+    missing = [m for m in gen.modules() if importlib.util.find_spec(m) is None]
+    assert not missing, f"the picture names modules that do not exist: {missing}"

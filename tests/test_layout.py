@@ -82,6 +82,32 @@ def crossings() -> set[tuple[str, str]]:
     return found
 
 
+#: Floors of the package: a module imports only from its own floor or those below.
+FLOORS = {"io": 0, "volume": 1, "registration": 2, "shape": 3, "app": 4, "cli": 5}
+
+
+def _floor(module_path: str) -> int:
+    head = module_path.split("/")[0]
+    return FLOORS.get(head.removesuffix(".py"), 0)  # _validation, _geometry: the ground floor
+
+
+def test_imports_go_down_the_stages():
+    found = []
+    for path, tree in _modules().items():
+        if path in ("__init__.py", "__main__.py"):  # the package itself: imports every floor
+            continue
+        for node in ast.walk(tree):
+            if not (isinstance(node, ast.ImportFrom) and node.level > 0):
+                continue
+            base = (PACKAGE / path).parent
+            for _ in range(node.level - 1):
+                base = base.parent
+            target = base.joinpath(*(node.module or "").split(".")).relative_to(PACKAGE)
+            if _floor(target.as_posix() or ".") > _floor(path):
+                found.append(f"{path}:{node.lineno} imports {target.as_posix()}")
+    assert found == []
+
+
 def test_no_module_uses_another_modules_private_names():
     assert crossings() - PENDING == set()
 
