@@ -150,7 +150,9 @@ def render() -> str:
             f'fill="{fill}" stroke="#c8c8c8"/>'
         )
         out.append(
-            _text(WIDTH - 20, y0 + 17, title, 13, font_weight="bold", fill="#555", text_anchor="end")
+            _text(
+                WIDTH - 20, y0 + 17, title, 13, font_weight="bold", fill="#555", text_anchor="end"
+            )
         )
     for i, (_, module, does, hands) in enumerate(CHAIN):
         y = tops[module or "data"]
