@@ -53,25 +53,101 @@ def as_points(value: Any, name: str, *, allow_empty: bool = False) -> np.ndarray
     return out
 
 
+_MESH_KINDS = (
+    "an open3d.geometry.TriangleMesh, an open3d.t.geometry.TriangleMesh, a trimesh.Trimesh, "
+    "a triangulated pyvista.PolyData, an object with vertex (.vertices or .points) and face "
+    "(.faces or .triangles) arrays, or a (vertices, faces) pair"
+)
+
+
+def _padded_cells_to_triangles(cells: np.ndarray, name: str) -> np.ndarray:
+    """Triangles of a VTK-style flat cell array ``[3, i, j, k, 3, ...]`` (pyvista ``faces``)."""
+    if not np.issubdtype(cells.dtype, np.integer):
+        raise TypeError(f"`{name}.faces` must hold integers, got dtype {cells.dtype}")
+    if cells.size == 0:
+        return cells.reshape(0, 3)
+    # Every 4th entry is 3 from the start <=> every cell is a triangle (by induction).
+    if cells.size % 4 == 0 and np.all(cells[::4] == 3):
+        return cells.reshape(-1, 4)[:, 1:]
+    sizes, at = [], 0
+    while at < cells.size:
+        sizes.append(int(cells[at]))
+        at += int(cells[at]) + 1
+    if at != cells.size or min(sizes) < 1:
+        raise ValueError(
+            f"`{name}.faces` is not a padded cell array [n, i0, ..., n, ...] of {cells.size} "
+            "entries"
+        )
+    other = sum(1 for n in sizes if n != 3)
+    raise ValueError(
+        f"`{name}` must hold triangles only, got {other} of {len(sizes)} faces with "
+        f"{sorted({n for n in sizes if n != 3})} vertices: triangulate it first "
+        "(pyvista: mesh.triangulate())"
+    )
+
+
+def _mesh_parts(mesh: Any, name: str) -> tuple[Any, Any]:
+    """``(vertices, faces)`` array-likes of any supported mesh object, without copying.
+
+    Libraries are recognised by their attributes, never imported: o3dreg depends on none of
+    trimesh, pyvista or meshio.
+    """
+    if isinstance(mesh, o3d.geometry.TriangleMesh):
+        return np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    if isinstance(mesh, o3d.t.geometry.TriangleMesh):
+        if "positions" not in mesh.vertex or "indices" not in mesh.triangle:
+            return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+        return mesh.vertex.positions.cpu().numpy(), mesh.triangle.indices.cpu().numpy()
+    if isinstance(mesh, (tuple, list)):
+        if len(mesh) != 2:
+            raise ValueError(
+                f"`{name}` as a sequence must be a (vertices, faces) pair, got {len(mesh)} items"
+            )
+        return mesh[0], mesh[1]
+    if isinstance(mesh, np.ndarray) or isinstance(mesh, (str, bytes, dict)):
+        raise TypeError(f"`{name}` must be {_MESH_KINDS}, got {_describe(mesh)}")
+    vertices = next(
+        (getattr(mesh, a) for a in ("vertices", "points") if getattr(mesh, a, None) is not None),
+        None,
+    )
+    faces = next(
+        (getattr(mesh, a) for a in ("faces", "triangles") if getattr(mesh, a, None) is not None),
+        None,
+    )
+    if faces is None and isinstance(getattr(mesh, "cells_dict", None), dict):
+        # meshio.Mesh: cells by type.
+        faces = mesh.cells_dict.get("triangle")
+        if faces is None:
+            kinds = ", ".join(sorted(mesh.cells_dict)) or "none"
+            raise ValueError(f"`{name}` must hold triangle cells, got {kinds}")
+    if vertices is None or faces is None:
+        raise TypeError(f"`{name}` must be {_MESH_KINDS}, got {_describe(mesh)}")
+    if int(getattr(mesh, "n_strips", 0) or 0) > 0:
+        raise ValueError(
+            f"`{name}` holds triangle strips: triangulate it first (pyvista: mesh.triangulate())"
+        )
+    vertices, faces = np.asarray(vertices), np.asarray(faces)
+    if faces.ndim == 1:
+        # pyvista.PolyData (and VTK): a flat, padded cell array.
+        faces = _padded_cells_to_triangles(faces, name)
+    return vertices, faces
+
+
 def as_mesh_arrays(
     mesh: Any, name: str, *, min_faces: int = 1, drop_degenerate: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """Return ``(vertices (n, 3) float64, faces (m, 3) int64)`` copies of a triangle mesh.
 
-    ``mesh`` is an ``open3d.geometry.TriangleMesh`` or a ``(vertices, faces)`` pair. Faces must
-    index existing vertices. Degenerate triangles (repeated index or zero area) raise unless
-    ``drop_degenerate`` is true, in which case they are removed.
+    ``mesh`` is an ``open3d.geometry.TriangleMesh``, an ``open3d.t.geometry.TriangleMesh``
+    (any device), a ``trimesh.Trimesh``, a triangulated ``pyvista.PolyData`` (its ``faces`` are
+    the flat padded array ``[3, i, j, k, 3, ...]``; other polygons are refused), a
+    ``meshio.Mesh`` with triangle cells, any object with vertex (``.vertices`` or ``.points``)
+    and face (``.faces`` or ``.triangles``) arrays, or a ``(vertices, faces)`` pair. The input
+    is never modified: the arrays returned are new. Faces must index existing vertices.
+    Degenerate triangles (repeated index or zero area) raise unless ``drop_degenerate`` is true,
+    in which case they are removed.
     """
-    if isinstance(mesh, o3d.geometry.TriangleMesh):
-        vertices_in: Any = np.asarray(mesh.vertices)
-        faces_in: Any = np.asarray(mesh.triangles)
-    elif isinstance(mesh, (tuple, list)) and len(mesh) == 2:
-        vertices_in, faces_in = mesh
-    else:
-        raise TypeError(
-            f"`{name}` must be an open3d.geometry.TriangleMesh or a (vertices, faces) pair, "
-            f"got {_describe(mesh)}"
-        )
+    vertices_in, faces_in = _mesh_parts(mesh, name)
     vertices = as_points(vertices_in, f"{name}.vertices")
     faces = as_faces(faces_in, vertices.shape[0], f"{name}.faces")
     if faces.shape[0] < min_faces:

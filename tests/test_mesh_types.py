@@ -1,0 +1,120 @@
+"""Meshes from other libraries at every entry point: one validator, inputs never modified.
+
+pyvista needs the ~565 MB vtk wheel and is not installed for the tests: a stand-in with
+PolyData's attributes (``points``, a flat padded ``faces`` array ``[3, i, j, k, ...]``,
+``n_strips``) checks that path; trimesh is in the test extra and is used as itself.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from o3dreg import evaluate_elastic, read_triangle_mesh, write_triangle_mesh
+from o3dreg._validation import as_mesh_arrays
+
+BOX = o3d.geometry.TriangleMesh.create_box(1.0, 2.0, 3.0)
+V = np.asarray(BOX.vertices).copy()
+F = np.asarray(BOX.triangles).astype(np.int64)
+
+
+class PolyDataStandIn:
+    """What o3dreg reads of a pyvista.PolyData: ``points``, padded ``faces``, ``n_strips``."""
+
+    def __init__(self, points, faces, n_strips=0):
+        self.points = points
+        self.faces = faces
+        self.n_strips = n_strips
+
+
+def _padded(faces):
+    return np.column_stack([np.full(len(faces), 3), faces]).ravel()
+
+
+def _meshes():
+    import trimesh
+
+    return {
+        "open3d": o3d.geometry.TriangleMesh(BOX),
+        "open3d.t": o3d.t.geometry.TriangleMesh.from_legacy(BOX),
+        "trimesh": trimesh.Trimesh(V.copy(), F.copy(), process=False),
+        "pyvista": PolyDataStandIn(V.astype(np.float32), _padded(F)),
+        "meshio": SimpleNamespace(points=V.copy(), cells_dict={"triangle": F.copy()}),
+        "duck": SimpleNamespace(vertices=V.tolist(), triangles=F.tolist()),
+        "pair": (V.copy(), F.copy()),
+    }
+
+
+def _arrays_of(mesh):
+    """Copies of the arrays an object exposes, to check afterwards that nothing changed."""
+    if isinstance(mesh, o3d.geometry.TriangleMesh):
+        return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy()
+    if isinstance(mesh, o3d.t.geometry.TriangleMesh):
+        return mesh.vertex.positions.numpy().copy(), mesh.triangle.indices.numpy().copy()
+    if isinstance(mesh, tuple):
+        return mesh[0].copy(), mesh[1].copy()
+    points = getattr(mesh, "vertices", getattr(mesh, "points", None))
+    faces = getattr(mesh, "faces", getattr(mesh, "triangles", getattr(mesh, "cells_dict", None)))
+    faces = faces["triangle"] if isinstance(faces, dict) else faces
+    return np.array(points).copy(), np.array(faces).copy()
+
+
+@pytest.mark.parametrize("kind", list(_meshes()))
+def test_every_kind_gives_the_same_arrays_and_stays_untouched(kind):
+    mesh = _meshes()[kind]
+    before = _arrays_of(mesh)
+    vertices, faces = as_mesh_arrays(mesh, "mesh")
+    # float32 positions (tensor mesh, pyvista stand-in): the box's coordinates are exact.
+    np.testing.assert_array_equal(vertices, V)
+    np.testing.assert_array_equal(faces, F)
+    assert vertices.dtype == np.float64 and faces.dtype == np.int64
+    # New arrays: writing into them never reaches the caller's mesh.
+    vertices += 100.0
+    faces[:] = 0
+    after = _arrays_of(mesh)
+    np.testing.assert_array_equal(after[0], before[0])
+    np.testing.assert_array_equal(after[1], before[1])
+
+
+@pytest.mark.parametrize("kind", ["open3d.t", "trimesh", "pyvista", "meshio"])
+def test_entry_points_take_every_kind(kind, tmp_path):
+    mesh = _meshes()[kind]
+    before = _arrays_of(mesh)
+    # A registration evaluation: identical meshes are 0 apart, whatever their kind.
+    distances = evaluate_elastic(mesh, _meshes()["pair"])
+    assert distances.source_to_target_max == pytest.approx(0.0, abs=1e-9)
+    back = read_triangle_mesh(write_triangle_mesh(tmp_path / "m.ply", mesh))
+    np.testing.assert_array_equal(np.asarray(back.triangles), F)
+    after = _arrays_of(mesh)
+    np.testing.assert_array_equal(after[0], before[0])
+    np.testing.assert_array_equal(after[1], before[1])
+
+
+def test_pyvista_polygons_other_than_triangles_are_refused():
+    quad = PolyDataStandIn(V, np.array([4, 0, 1, 2, 3, 3, 4, 5, 6]))
+    with pytest.raises(ValueError, match=r"triangles only, got 1 of 2 faces with \[4\] vertices"):
+        as_mesh_arrays(quad, "source")
+    with pytest.raises(ValueError, match="triangulate"):
+        as_mesh_arrays(quad, "source")
+    strips = PolyDataStandIn(V, _padded(F), n_strips=2)
+    with pytest.raises(ValueError, match="triangle strips"):
+        as_mesh_arrays(strips, "source")
+    broken = PolyDataStandIn(V, np.array([3, 0, 1]))
+    with pytest.raises(ValueError, match="not a padded cell array"):
+        as_mesh_arrays(broken, "source")
+
+
+def test_what_is_not_a_mesh_is_refused_naming_the_kinds():
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(V))
+    for value in (cloud, V, "mesh.ply", {"vertices": V, "faces": F}, 3):
+        with pytest.raises(TypeError, match=r"`target` must be .*trimesh\.Trimesh.*pyvista"):
+            as_mesh_arrays(value, "target")
+    with pytest.raises(ValueError, match="must hold triangle cells, got line"):
+        as_mesh_arrays(SimpleNamespace(points=V, cells_dict={"line": F[:, :2]}), "target")
+    with pytest.raises(ValueError, match=r"\(vertices, faces\) pair, got 3 items"):
+        as_mesh_arrays((V, F, F), "target")
+    with pytest.raises(ValueError, match="`target.vertices` must hold at least one point"):
+        as_mesh_arrays(o3d.t.geometry.TriangleMesh(), "target")
