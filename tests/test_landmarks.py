@@ -84,7 +84,7 @@ def test_files_roundtrip_csv_and_slicer(pop, tmp_path):
     (tmp_path / "bad.mrk.json").write_text('{"markups": []}')
     with pytest.raises(ValueError, match="Slicer"):
         read_landmarks(tmp_path / "bad.mrk.json")
-    with pytest.raises(ValueError, match=".csv or .mrk.json"):
+    with pytest.raises(ValueError, match=r"must end with one of .csv, .mrk.json"):
         read_landmarks(tmp_path / "lm.txt")
 
 

@@ -84,9 +84,13 @@ def add_parser(subparsers: Any) -> None:
     fit = sub.add_parser("fit", help="fit the model to a patient and predict landmarks")
     fit.add_argument("model_dir")
     fit.add_argument("patient", help="patient mesh")
-    fit.add_argument("--landmarks", required=True, help="template landmarks (.mrk.json or .csv)")
+    fit.add_argument(
+        "--landmarks", required=True, help="template landmarks (.mrk.json, .fcsv, .csv, .pp; LPS)"
+    )
     fit.add_argument("--truth", help="true landmarks on the patient, to report errors")
-    fit.add_argument("-o", "--output", help="write predicted landmarks (.mrk.json or .csv)")
+    fit.add_argument(
+        "-o", "--output", help="write predicted landmarks (.mrk.json, .fcsv, .csv, .pp; LPS)"
+    )
     fit.add_argument("--overwrite", action="store_true", help="replace an existing --output")
     fit.add_argument("--modes", type=int, default=None, help="modes used (default all)")
     fit.add_argument("--regularization", type=float, default=None, help="noise variance (mm^2)")

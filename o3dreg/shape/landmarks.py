@@ -3,15 +3,14 @@
 A landmark is a point of a template triangle, stored as the triangle index and barycentric
 coordinates, so it has a position on *any* mesh with the template's triangulation: each
 registered patient's semilandmark mesh, the model mean, a fitted model instance. Landmarks are
-read from CSV or from 3D Slicer markups (``.mrk.json``); Slicer positions are mapped to the nearest
-template surface point.
+read from CSV, 3D Slicer markups (``.mrk.json``, ``.fcsv``) or MeshLab picked points (``.pp``) by
+:func:`o3dreg.io.landmarks.read_landmarks` (converted to LPS, the meshes' system); positions are
+mapped to the nearest template surface point.
 """
 
 from __future__ import annotations
 
 import csv
-import io
-import json
 import logging
 import os
 from dataclasses import dataclass, field
@@ -21,7 +20,7 @@ import numpy as np
 
 from .._geometry import barycentric
 from .._validation import as_mesh_arrays, as_points, check_positive
-from ..io.mesh import atomic_write_text
+from ..io.landmarks import check_landmark_suffix, read_landmarks, write_landmarks
 from ..registration.distance import SurfaceDistanceQuery
 from .fit import fit_shape_model
 from .model import ShapeModel
@@ -37,8 +36,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger("o3dreg")
-
-_LANDMARK_SUFFIXES = (".csv", ".mrk.json", ".json")
 
 
 @dataclass(frozen=True, eq=False)
@@ -198,134 +195,21 @@ def _labels(labels: Any, count: int) -> tuple[str, ...]:
 
 
 # -- files ------------------------------------------------------------------------------------------
-def _landmark_suffix(path: str, name: str) -> str:
-    low = path.lower()
-    for suffix in _LANDMARK_SUFFIXES:
-        if low.endswith(suffix):
-            return suffix
-    raise ValueError(f"`{name}` must end with .csv or .mrk.json, got {path!r}")
-
-
-def read_landmarks(path: str | os.PathLike[str]) -> tuple[tuple[str, ...], np.ndarray]:
-    """Read labelled 3D points from CSV or a 3D Slicer markups file.
-
-    Parameters
-    ----------
-    path : str or path-like
-        ``.csv`` with a header ``label,x,y,z`` (extra columns ignored), or a Slicer
-        ``.mrk.json``: ``markups[0].controlPoints[i].position`` and ``.label``. Slicer stores
-        LPS coordinates when ``markups[0].coordinateSystem`` is ``"LPS"`` and RAS otherwise; the
-        positions are returned as stored (the file's system), so the template must use the same.
-
-    Returns
-    -------
-    labels : tuple of str
-    points : (l, 3) ndarray
-    """
-    if not isinstance(path, (str, os.PathLike)):
-        raise TypeError(f"`path` must be a path, got {type(path).__name__}")
-    path = os.fspath(path)
-    suffix = _landmark_suffix(path, "path")
-    if not os.path.isfile(path):
-        raise OSError(f"`path`: no such file {path!r}")
-    if suffix == ".csv":
-        return _read_csv(path)
-    return _read_markups(path)
-
-
-def _read_csv(path: str) -> tuple[tuple[str, ...], np.ndarray]:
-    with open(path, newline="", encoding="utf-8") as fh:
-        reader = csv.DictReader(fh)
-        fields = [f.strip().lower() for f in (reader.fieldnames or [])]
-        if not {"x", "y", "z"} <= set(fields):
-            raise ValueError(
-                f"`path`: {path!r} must have a header with columns x, y, z, got {fields}"
-            )
-        labels, points = [], []
-        for k, row in enumerate(reader):
-            row = {key.strip().lower(): value for key, value in row.items() if key}
-            try:
-                points.append([float(row["x"]), float(row["y"]), float(row["z"])])
-            except (TypeError, ValueError) as exc:
-                raise ValueError(
-                    f"`path`: {path!r} row {k + 2}: coordinates are not numbers"
-                ) from exc
-            labels.append(str(row.get("label") or f"L{k + 1}").strip())
-    if not points:
-        raise ValueError(f"`path`: {path!r} holds no landmarks")
-    return tuple(labels), np.array(points, dtype=np.float64)
-
-
-def _read_markups(path: str) -> tuple[tuple[str, ...], np.ndarray]:
-    try:
-        with open(path, encoding="utf-8") as fh:
-            doc = json.load(fh)
-        markup = doc["markups"][0]
-        control = markup["controlPoints"]
-        labels = tuple(str(p.get("label") or f"L{k + 1}") for k, p in enumerate(control))
-        points = np.array([p["position"] for p in control], dtype=np.float64).reshape(-1, 3)
-    except (json.JSONDecodeError, KeyError, IndexError, TypeError, ValueError) as exc:
-        raise ValueError(
-            f"`path`: {path!r} is not a 3D Slicer markups file "
-            f"(markups[0].controlPoints[i].position expected): {exc}"
-        ) from exc
-    if points.shape[0] == 0:
-        raise ValueError(f"`path`: {path!r} holds no landmarks")
-    return labels, points
-
-
-def write_landmarks(
-    path: str | os.PathLike[str], labels: Any, points: Any, *, overwrite: bool = False
-) -> str:
-    """Write labelled points as CSV (``label,x,y,z``) or Slicer ``.mrk.json``, atomically."""
-    if not isinstance(path, (str, os.PathLike)):
-        raise TypeError(f"`path` must be a path, got {type(path).__name__}")
-    path = os.fspath(path)
-    suffix = _landmark_suffix(path, "path")
-    pts = as_points(points, "points")
-    labels_ = _labels(labels, pts.shape[0])
-    if suffix == ".csv":
-        buf = io.StringIO()
-        writer = csv.writer(buf, lineterminator="\n")
-        writer.writerow(["label", "x", "y", "z"])
-        for label, p in zip(labels_, pts):
-            writer.writerow([label, *(repr(float(c)) for c in p)])
-        text = buf.getvalue()
-    else:
-        doc = {
-            "@schema": "https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/"
-            "Markups/Resources/Schema/markups-schema-v1.0.3.json#",
-            "markups": [
-                {
-                    "type": "Fiducial",
-                    "coordinateSystem": "LPS",
-                    "coordinateUnits": "mm",
-                    "controlPoints": [
-                        {"id": str(k + 1), "label": label, "position": [float(c) for c in p]}
-                        for k, (label, p) in enumerate(zip(labels_, pts))
-                    ],
-                }
-            ],
-        }
-        text = json.dumps(doc, indent=2) + "\n"
-
-    return atomic_write_text(path, text, overwrite=overwrite)
-
-
 def load_template_landmarks(
     path: str | os.PathLike[str], template: Any, *, max_distance: float | None = None
 ) -> TemplateLandmarks:
-    """Read landmarks (CSV or ``.mrk.json``) and attach them to the template surface.
+    """Read landmarks and attach them to the template surface.
 
     A CSV with columns ``label,vertex`` gives template vertices; ``label,triangle,b0,b1,b2``
-    gives triangles and barycentric coordinates; ``label,x,y,z`` (or Slicer markups) gives
-    positions mapped to the nearest template surface point (see
-    :meth:`TemplateLandmarks.from_points`).
+    gives triangles and barycentric coordinates; positions (``label,l,p,s`` CSV, Slicer
+    ``.mrk.json`` / ``.fcsv``, MeshLab ``.pp``: see :func:`~o3dreg.read_landmarks`, which
+    converts them to LPS, the template's system) are mapped to the nearest template surface
+    point (see :meth:`TemplateLandmarks.from_points`).
     """
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`path` must be a path, got {type(path).__name__}")
     path = os.fspath(path)
-    suffix = _landmark_suffix(path, "path")
+    suffix = check_landmark_suffix(path, "path")
     if suffix == ".csv":
         if not os.path.isfile(path):
             raise OSError(f"`path`: no such file {path!r}")

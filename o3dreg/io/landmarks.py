@@ -1,0 +1,384 @@
+"""Landmark files: CSV, 3D Slicer markups (``.mrk.json``, ``.fcsv``) and MeshLab picked points
+(``.pp``), with the RAS / LPS conventions of each.
+
+o3dreg's meshes are in **LPS** patient coordinates (x to the patient's left, y posterior, z
+superior: DICOM's and ITK's convention, what :func:`o3dreg.read_volume` returns). 3D Slicer's
+world is RAS (x right, y anterior); Slicer writes either system and says which. RAS and LPS
+differ by the sign of x and y. Reading converts the points to ``coordinate_system`` (LPS by
+default) when the file says which system it is in:
+
+=================== ========================================================================
+format              how the file says its system
+=================== ========================================================================
+``.mrk.json``       ``markups[0].coordinateSystem`` (``"LPS"`` or ``"RAS"``; absent means
+                    LPS, as Slicer reads it)
+``.fcsv``           ``# CoordinateSystem = LPS`` / ``RAS`` (or ``1`` / ``0``, Slicer 4.x);
+                    absent: Slicer before 4.11 wrote RAS and no line, so RAS is assumed,
+                    with a warning
+``.csv``            column names ``l,p,s`` or ``r,a,s`` (as Slicer's markups CSV export
+                    writes them); ``x,y,z`` says nothing: the points are taken as they are,
+                    with a warning
+``.pp`` (MeshLab)   never (points are in the picked mesh's coordinates): taken as they are,
+                    with a warning
+=================== ========================================================================
+
+``file_coordinate_system`` tells the system of a file that does not say (and silences the
+warning). Writing declares the system wherever the format can: ``.mrk.json`` and ``.fcsv`` in
+LPS, CSV as ``label,l,p,s`` (or ``r,a,s``), ``.pp`` in the points' own system.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime
+import io
+import json
+import os
+import warnings
+from typing import Any
+from xml.etree import ElementTree
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from .._validation import as_points
+from .mesh import atomic_write_text
+
+__all__ = ["LANDMARK_SUFFIXES", "check_landmark_suffix", "read_landmarks", "write_landmarks"]
+
+#: Landmark file suffixes read and written.
+LANDMARK_SUFFIXES = (".csv", ".mrk.json", ".json", ".fcsv", ".pp")
+
+_SYSTEMS = ("LPS", "RAS")
+_FLIP = np.array([-1.0, -1.0, 1.0])  # RAS <-> LPS
+_SCHEMA = (
+    "https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/"
+    "Resources/Schema/markups-schema-v1.0.3.json#"
+)
+_FCSV_COLUMNS = "id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID"
+
+
+def check_landmark_suffix(path: str, name: str) -> str:
+    """The landmark format suffix of ``path``; ``ValueError`` naming ``name`` otherwise."""
+    low = path.lower()
+    for suffix in LANDMARK_SUFFIXES:
+        if low.endswith(suffix):
+            return suffix
+    raise ValueError(f"`{name}` must end with one of {', '.join(LANDMARK_SUFFIXES)}, got {path!r}")
+
+
+def _system(value: Any, name: str, *, allow_none: bool = False) -> str:
+    """``'LPS'`` or ``'RAS'`` (any case); ``''`` for ``None`` when ``allow_none``."""
+    if value is None and allow_none:
+        return ""
+    if not isinstance(value, str) or value.upper() not in _SYSTEMS:
+        expected = "'LPS' or 'RAS'" + (" or None" if allow_none else "")
+        raise ValueError(f"`{name}` must be {expected}, got {value!r}")
+    return value.upper()
+
+
+def read_landmarks(
+    path: str | os.PathLike[str],
+    *,
+    coordinate_system: str = "LPS",
+    file_coordinate_system: str | None = None,
+) -> tuple[tuple[str, ...], np.ndarray]:
+    """Read labelled 3D points from CSV, 3D Slicer (``.mrk.json``, ``.fcsv``) or MeshLab (``.pp``).
+
+    Parameters
+    ----------
+    path : str or path-like
+        ``.csv`` with a header row naming a ``label`` column and the coordinates ``l,p,s``,
+        ``r,a,s`` or ``x,y,z`` (other columns ignored); a Slicer markups file ``.mrk.json``
+        (``markups[0].controlPoints``; control points without a position are skipped) or
+        ``.fcsv``; a MeshLab picked-points file ``.pp`` (inactive points skipped).
+    coordinate_system : {'LPS', 'RAS'}, optional
+        System of the points returned. Default ``'LPS'``, the system of o3dreg's meshes.
+    file_coordinate_system : {'LPS', 'RAS'}, optional
+        System of a file that does not say which it is in (``x,y,z`` CSV, ``.pp``, ``.fcsv``
+        without a ``CoordinateSystem`` line). Default: such a file is taken to be in
+        ``coordinate_system`` (an ``.fcsv``: RAS) and a ``UserWarning`` says so. A file that
+        says otherwise raises ``ValueError``.
+
+    Returns
+    -------
+    labels : tuple of str
+    points : (l, 3) ndarray
+        In ``coordinate_system``, in the file's units (mm for Slicer).
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"`path` must be a path, got {type(path).__name__}")
+    path = os.fspath(path)
+    suffix = check_landmark_suffix(path, "path")
+    target = _system(coordinate_system, "coordinate_system")
+    assumed = _system(file_coordinate_system, "file_coordinate_system", allow_none=True)
+    if not os.path.isfile(path):
+        raise OSError(f"`path`: no such file {path!r}")
+    if suffix == ".csv":
+        labels, points, declared = _read_csv(path)
+    elif suffix == ".fcsv":
+        labels, points, declared = _read_fcsv(path)
+    elif suffix == ".pp":
+        labels, points, declared = _read_pp(path)
+    else:
+        labels, points, declared = _read_markups(path)
+    if not points.shape[0]:
+        raise ValueError(f"`path`: {path!r} holds no landmarks")
+    if declared is not None and assumed and declared != assumed:
+        raise ValueError(
+            f"`file_coordinate_system` is {assumed!r} but {path!r} says its points are in "
+            f"{declared}"
+        )
+    source = declared or assumed
+    if not source:
+        source = "RAS" if suffix == ".fcsv" else target
+        why = (
+            "an .fcsv without a CoordinateSystem line was written by Slicer < 4.11, in RAS"
+            if suffix == ".fcsv"
+            else "the file does not say"
+        )
+        warnings.warn(
+            f"{path!r}: coordinate system not stated; taken as {source} ({why}). Pass "
+            "file_coordinate_system='LPS' or 'RAS' to say which.",
+            UserWarning,
+            stacklevel=2,
+        )
+    if source != target:
+        points = points * _FLIP
+    return labels, points
+
+
+def _numbers(values: list[str], path: str, where: str) -> list[float]:
+    try:
+        return [float(v) for v in values]
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"`path`: {path!r} {where}: coordinates are not numbers") from exc
+
+
+def _read_csv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
+    with open(path, newline="", encoding="utf-8-sig") as fh:
+        reader = csv.DictReader(fh)
+        fields = [f.strip().lower() for f in (reader.fieldnames or [])]
+        declared: str | None = None
+        columns: tuple[str, ...] = ("x", "y", "z")
+        for system in _SYSTEMS:
+            if set(system.lower()) <= set(fields):
+                declared, columns = system, tuple(system.lower())
+                break
+        else:
+            if not set(columns) <= set(fields):
+                raise ValueError(
+                    f"`path`: {path!r} must have a header with columns l,p,s or r,a,s or x,y,z, "
+                    f"got {fields}"
+                )
+        labels, points = [], []
+        for k, row in enumerate(reader):
+            row = {key.strip().lower(): value for key, value in row.items() if key}
+            points.append(_numbers([row[c] for c in columns], path, f"row {k + 2}"))
+            labels.append(str(row.get("label") or f"L{k + 1}").strip())
+    return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), declared
+
+
+def _fcsv_system(value: str, path: str) -> str:
+    value = value.strip().upper()
+    # Slicer 4.x wrote the enum: 0 = RAS, 1 = LPS.
+    system = {"0": "RAS", "1": "LPS"}.get(value, value)
+    if system not in _SYSTEMS:
+        raise ValueError(f"`path`: {path!r} has CoordinateSystem {value!r}; LPS or RAS expected")
+    return system
+
+
+def _read_fcsv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
+    declared = None
+    rows = []
+    with open(path, newline="", encoding="utf-8-sig") as fh:
+        for line in fh:
+            text = line.strip()
+            if text.startswith("#"):
+                key, _, value = text.lstrip("# ").partition("=")
+                if key.strip().lower() == "coordinatesystem":
+                    declared = _fcsv_system(value, path)
+            elif text:
+                rows.append(text)
+    labels, points = [], []
+    for k, row in enumerate(csv.reader(rows)):
+        if len(row) < 4:
+            raise ValueError(f"`path`: {path!r} point {k + 1}: id,x,y,z expected, got {row}")
+        points.append(_numbers(row[1:4], path, f"point {k + 1}"))
+        label = row[11].strip() if len(row) > 11 else ""
+        labels.append(label or f"L{k + 1}")
+    return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), declared
+
+
+def _read_pp(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
+    try:
+        root = ElementTree.parse(path).getroot()
+    except ElementTree.ParseError as exc:
+        raise ValueError(f"`path`: {path!r} is not a MeshLab picked-points file ({exc})") from exc
+    if root.tag != "PickedPoints":
+        raise ValueError(f"`path`: {path!r} is not a MeshLab picked-points file (root {root.tag})")
+    labels, points, skipped = [], [], 0
+    for k, point in enumerate(root.iter("point")):
+        if point.get("active", "1").strip() == "0":
+            skipped += 1  # a template point not placed
+            continue
+        xyz = [point.get(c) for c in ("x", "y", "z")]
+        points.append(_numbers([v if v is not None else "" for v in xyz], path, f"point {k + 1}"))
+        labels.append(str(point.get("name") or f"L{k + 1}"))
+    if skipped:
+        warnings.warn(f"{path!r}: {skipped} inactive point(s) skipped", UserWarning, stacklevel=3)
+    return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), None
+
+
+def _read_markups(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
+    try:
+        with open(path, encoding="utf-8") as fh:
+            doc = json.load(fh)
+        markup = doc["markups"][0]
+        control = markup.get("controlPoints") or []
+        # Slicer reads a markup without coordinateSystem as LPS.
+        declared = str(markup.get("coordinateSystem") or "LPS").upper()
+        labels, points, skipped = [], [], 0
+        for k, p in enumerate(control):
+            status = str(p.get("positionStatus", "defined")).lower()
+            if "position" not in p or status == "missing":
+                skipped += 1
+                continue
+            points.append([float(c) for c in p["position"]])
+            labels.append(str(p.get("label") or f"L{k + 1}"))
+        points_arr = np.array(points, dtype=np.float64).reshape(-1, 3)
+    except (
+        json.JSONDecodeError,
+        KeyError,
+        IndexError,
+        TypeError,
+        ValueError,
+        AttributeError,
+    ) as exc:
+        raise ValueError(
+            f"`path`: {path!r} is not a 3D Slicer markups file "
+            f"(markups[0].controlPoints[i].position expected): {exc}"
+        ) from exc
+    if declared not in _SYSTEMS:
+        raise ValueError(f"`path`: {path!r} has coordinateSystem {declared!r}; LPS or RAS expected")
+    if skipped:
+        warnings.warn(
+            f"{path!r}: {skipped} control point(s) without a position skipped",
+            UserWarning,
+            stacklevel=3,
+        )
+    return tuple(labels), points_arr, declared
+
+
+def write_landmarks(
+    path: str | os.PathLike[str],
+    labels: Any,
+    points: Any,
+    *,
+    overwrite: bool = False,
+    coordinate_system: str = "LPS",
+) -> str:
+    """Write labelled points, atomically, saying their coordinate system where the format can.
+
+    Parameters
+    ----------
+    path : str or path-like
+        ``.csv`` (``label,l,p,s`` or ``label,r,a,s``), ``.mrk.json`` (a Slicer point list, LPS),
+        ``.fcsv`` (Slicer fiducials, ``# CoordinateSystem = LPS``) or ``.pp`` (MeshLab picked
+        points, in the points' system: the format cannot say).
+    labels : sequence of str or None
+        Default ``L1, L2, ...``.
+    points : (l, 3) array_like
+    overwrite : bool, optional
+    coordinate_system : {'LPS', 'RAS'}, optional
+        System of ``points``. Default ``'LPS'`` (o3dreg's meshes).
+
+    Returns
+    -------
+    str
+        The path written.
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"`path` must be a path, got {type(path).__name__}")
+    path = os.fspath(path)
+    suffix = check_landmark_suffix(path, "path")
+    system = _system(coordinate_system, "coordinate_system")
+    pts = as_points(points, "points")
+    if labels is None:
+        labels_ = tuple(f"L{i + 1}" for i in range(pts.shape[0]))
+    else:
+        labels_ = tuple(str(x) for x in labels)
+        if len(labels_) != pts.shape[0]:
+            raise ValueError(f"`labels` must hold {pts.shape[0]} labels, got {len(labels_)}")
+    lps = pts if system == "LPS" else pts * _FLIP
+    if suffix == ".csv":
+        text = _csv_text(labels_, pts, system)
+    elif suffix == ".fcsv":
+        text = _fcsv_text(labels_, lps)
+    elif suffix == ".pp":
+        text = _pp_text(labels_, pts)
+    else:
+        text = _markups_text(labels_, lps)
+    return atomic_write_text(path, text, overwrite=overwrite)
+
+
+def _csv_text(labels: tuple[str, ...], points: np.ndarray, system: str) -> str:
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["label", *system.lower()])
+    for label, p in zip(labels, points):
+        writer.writerow([label, *(repr(float(c)) for c in p)])
+    return buf.getvalue()
+
+
+def _fcsv_text(labels: tuple[str, ...], lps: np.ndarray) -> str:
+    buf = io.StringIO()
+    buf.write("# Markups fiducial file version = 4.11\n# CoordinateSystem = LPS\n")
+    buf.write(f"# columns = {_FCSV_COLUMNS}\n")
+    writer = csv.writer(buf, lineterminator="\n")
+    for k, (label, p) in enumerate(zip(labels, lps)):
+        xyz = [repr(float(c)) for c in p]
+        writer.writerow([str(k + 1), *xyz, 0, 0, 0, 1, 1, 1, 0, label, "", ""])
+    return buf.getvalue()
+
+
+def _pp_text(labels: tuple[str, ...], points: np.ndarray) -> str:
+    now = datetime.datetime.now()
+    lines = [
+        "<!DOCTYPE PickedPoints>",
+        "<PickedPoints>",
+        " <DocumentData>",
+        f'  <DateTime time="{now:%H:%M:%S}" date="{now:%Y-%m-%d}"/>',
+        '  <User name="o3dreg"/>',
+        '  <DataFileName name=""/>',
+        '  <templateName name=""/>',
+        " </DocumentData>",
+    ]
+    for label, p in zip(labels, points):
+        x, y, z = (repr(float(c)) for c in p)
+        lines.append(f' <point x="{x}" y="{y}" z="{z}" active="1" name={quoteattr(label)}/>')
+    lines.append("</PickedPoints>")
+    return "\n".join(lines) + "\n"
+
+
+def _markups_text(labels: tuple[str, ...], lps: np.ndarray) -> str:
+    doc = {
+        "@schema": _SCHEMA,
+        "markups": [
+            {
+                "type": "Fiducial",
+                "coordinateSystem": "LPS",
+                "coordinateUnits": "mm",
+                "controlPoints": [
+                    {
+                        "id": str(k + 1),
+                        "label": label,
+                        "position": [float(c) for c in p],
+                        "positionStatus": "defined",
+                    }
+                    for k, (label, p) in enumerate(zip(labels, lps))
+                ],
+            }
+        ],
+    }
+    return json.dumps(doc, indent=2) + "\n"
