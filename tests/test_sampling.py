@@ -30,3 +30,20 @@ def test_even_coverage():
     gap = cKDTree(chosen).query(pts)[0].max()
     cell = 80.0 / np.sqrt(500)  # sphere of diameter 80
     assert gap < 2.5 * cell
+
+
+def test_ties_at_the_cell_centre_do_not_depend_on_the_order():
+    # Cells of size 1 (extent 10, budget 100) holding 4 points each, mirrored about the cell
+    # centre: equally near it, so the coordinates must break the tie (the full sort's fallback).
+    q = np.concatenate([np.arange(10) + 0.25, np.arange(10) + 0.75])
+    x, y = np.meshgrid(q, q, indexing="ij")
+    grid = np.stack([x.ravel(), y.ravel(), np.full(x.size, 0.5)], axis=1)
+    pts = np.concatenate([grid, [[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]]])
+    idx = spatial_subsample(pts, 100)
+    assert idx.size == 101  # 100 cells of the grid, one of the far anchor
+    for seed in range(3):
+        perm = np.random.default_rng(seed).permutation(pts.shape[0])
+        idx_perm = spatial_subsample(pts[perm], 100)
+        np.testing.assert_array_equal(
+            np.sort(pts[perm][idx_perm], axis=0), np.sort(pts[idx], axis=0)
+        )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import cached_property
 from typing import Any
 
 import igl
@@ -30,10 +31,14 @@ class SurfaceDistanceQuery:
         self.faces = np.ascontiguousarray(faces, dtype=np.int64)
         self._tree = igl.AABB()
         self._tree.init(self.vertices, self.faces)
+
+    @cached_property
+    def face_normals(self) -> np.ndarray:
+        """Unit normal of every triangle, ``(m, 3)`` (computed on first use)."""
         a, b, c = (self.vertices[self.faces[:, k]] for k in range(3))
         normals = np.cross(b - a, c - a)
         length = np.linalg.norm(normals, axis=1, keepdims=True)
-        self.face_normals = normals / np.where(length > 0, length, 1.0)
+        return normals / np.where(length > 0, length, 1.0)
 
     def __repr__(self) -> str:
         return (
@@ -87,19 +92,30 @@ class SurfaceDistanceQuery:
         if cached is not None:
             return cached
         f = self.faces
-        m = f.shape[0]
-        # Edge k of a face joins corners (k+1, k+2): it is opposite corner k.
-        a = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
-        b = np.concatenate([f[:, 2], f[:, 0], f[:, 1]])
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        key = lo * np.int64(self.vertices.shape[0]) + hi
-        _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-        open_edge = (counts[inverse] == 1).reshape(3, m).T
+        n = np.int64(self.vertices.shape[0])
+        # Edge k of a face joins corners (k+1, k+2): it is opposite corner k. One int64 key per
+        # undirected edge; an open edge is a key that occurs once. Sorting the keys (no argsort,
+        # no inverse) finds the few open ones; only they are then looked up per face.
+        a = f[:, [1, 2, 0]]
+        b = f[:, [2, 0, 1]]
+        key = np.minimum(a, b) * n + np.maximum(a, b)  # (m, 3)
+        s = np.sort(key, axis=None)
+        single = np.ones(s.size, dtype=bool)
+        same = s[1:] == s[:-1]
+        single[1:] &= ~same
+        single[:-1] &= ~same
+        open_keys = s[single]
+        open_edge = np.zeros(key.shape, dtype=bool)
+        if open_keys.size:
+            pos = np.minimum(np.searchsorted(open_keys, key), open_keys.size - 1)
+            open_edge = open_keys[pos] == key
         on_boundary = np.zeros(self.vertices.shape[0], dtype=bool)
-        on_boundary[lo[counts[inverse] == 1]] = True
-        on_boundary[hi[counts[inverse] == 1]] = True
-        lengths = np.linalg.norm(self.vertices[a] - self.vertices[b], axis=1)
-        cached = (open_edge, on_boundary, float(lengths.mean()) if lengths.size else 0.0)
+        on_boundary[open_keys // n] = True
+        on_boundary[open_keys % n] = True
+        # Half-edges in the order (all edges 0, all edges 1, all edges 2) of the mean before.
+        lengths = np.linalg.norm(self.vertices[a.T.ravel()] - self.vertices[b.T.ravel()], axis=1)
+        edge = float(lengths.mean()) if lengths.size else 0.0
+        cached = (open_edge, on_boundary, edge)
         self._boundary_cache = cached
         return cached
 

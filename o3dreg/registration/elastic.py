@@ -462,7 +462,14 @@ def canonical_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     shift = np.argmin(f, axis=1)
     rows = np.arange(f.shape[0])[:, None]
     f = f[rows, (shift[:, None] + np.arange(3)) % 3]
-    f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
+    n = np.int64(v.shape[0])
+    if v.shape[0] < 2**21:
+        # One int64 key per triangle (three indices of 21 bits): a plain sort, decoded, is the
+        # lexicographic order at a fraction of the cost of lexsort on a million triangles.
+        key = np.sort((f[:, 0] * n + f[:, 1]) * n + f[:, 2])
+        f = np.stack([key // (n * n), (key // n) % n, key % n], axis=1)
+    else:
+        f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
     repeated = np.zeros(f.shape[0], dtype=bool)
     repeated[1:] = np.all(f[1:] == f[:-1], axis=1)
     f = f[~repeated]
