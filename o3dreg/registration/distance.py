@@ -35,7 +35,17 @@ class SurfaceDistanceQuery:
     @cached_property
     def face_normals(self) -> np.ndarray:
         """Unit normal of every triangle, ``(m, 3)`` (computed on first use)."""
-        a, b, c = (self.vertices[self.faces[:, k]] for k in range(3))
+        return self._normals(self.faces)
+
+    def face_normal(self, face: np.ndarray) -> np.ndarray:
+        """Unit normals of the triangles ``face`` (indices), ``(k, 3)``: the rows of
+        :attr:`face_normals`, without computing all of them on a large surface."""
+        if "face_normals" in self.__dict__:
+            return self.face_normals[face]
+        return self._normals(self.faces[face])
+
+    def _normals(self, faces: np.ndarray) -> np.ndarray:
+        a, b, c = (self.vertices[faces[:, k]] for k in range(3))
         normals = np.cross(b - a, c - a)
         length = np.linalg.norm(normals, axis=1, keepdims=True)
         return normals / np.where(length > 0, length, 1.0)
@@ -79,7 +89,7 @@ class SurfaceDistanceQuery:
         on_surface = dist <= 1e-12 * max(1.0, float(np.abs(self.vertices).max()))
         safe = np.where(on_surface, 1.0, dist)
         grad = diff / safe[:, None]
-        grad[on_surface] = self.face_normals[face[on_surface]]
+        grad[on_surface] = self.face_normal(face[on_surface])
         if return_faces:
             return dist, closest, grad, face
         return dist, closest, grad
@@ -95,29 +105,41 @@ class SurfaceDistanceQuery:
         n = np.int64(self.vertices.shape[0])
         # Edge k of a face joins corners (k+1, k+2): it is opposite corner k. One int64 key per
         # undirected edge; an open edge is a key that occurs once. Sorting the keys (no argsort,
-        # no inverse) finds the few open ones; only they are then looked up per face.
-        a = f[:, [1, 2, 0]]
-        b = f[:, [2, 0, 1]]
-        key = np.minimum(a, b) * n + np.maximum(a, b)  # (m, 3)
+        # no inverse) finds the few open ones; only they are then looked up per face. One edge
+        # slot at a time, so a million-triangle mesh needs no (m, 3) temporaries beyond `key`.
+        key = np.empty(f.shape, dtype=np.int64)
+        for k in range(3):
+            a, b = f[:, (k + 1) % 3], f[:, (k + 2) % 3]
+            key[:, k] = np.minimum(a, b) * n + np.maximum(a, b)
         s = np.sort(key, axis=None)
         single = np.ones(s.size, dtype=bool)
         same = s[1:] == s[:-1]
         single[1:] &= ~same
         single[:-1] &= ~same
+        del same
         open_keys = s[single]
+        del s, single
         open_edge = np.zeros(key.shape, dtype=bool)
         if open_keys.size:
-            pos = np.minimum(np.searchsorted(open_keys, key), open_keys.size - 1)
-            open_edge = open_keys[pos] == key
+            for k in range(3):
+                pos = np.minimum(np.searchsorted(open_keys, key[:, k]), open_keys.size - 1)
+                open_edge[:, k] = open_keys[pos] == key[:, k]
         on_boundary = np.zeros(self.vertices.shape[0], dtype=bool)
         on_boundary[open_keys // n] = True
         on_boundary[open_keys % n] = True
-        # Half-edges in the order (all edges 0, all edges 1, all edges 2) of the mean before.
-        lengths = np.linalg.norm(self.vertices[a.T.ravel()] - self.vertices[b.T.ravel()], axis=1)
-        edge = float(lengths.mean()) if lengths.size else 0.0
-        cached = (open_edge, on_boundary, edge)
+        cached = (open_edge, on_boundary, self.mean_edge)
         self._boundary_cache = cached
         return cached
+
+    @cached_property
+    def mean_edge(self) -> float:
+        """Mean length of the triangles' edges (each interior edge counted twice)."""
+        v, f = self.vertices, self.faces
+        # One edge slot at a time: a million-triangle mesh needs no (m, 3, 3) temporaries.
+        lengths = [
+            np.linalg.norm(v[f[:, (k + 1) % 3]] - v[f[:, (k + 2) % 3]], axis=1) for k in range(3)
+        ]
+        return float(np.concatenate(lengths).mean()) if f.size else 0.0
 
     @property
     def has_boundary(self) -> bool:
@@ -153,6 +175,6 @@ class SurfaceDistanceQuery:
             corner = np.argmax(bary[vertex_hit], axis=1)
             hit[vertex_hit] |= on_boundary[corners[vertex_hit, corner]]
         diff = points - closest
-        n = self.face_normals[face]
+        n = self.face_normal(face)
         tangent = diff - (diff * n).sum(axis=1, keepdims=True) * n
         return hit & (np.linalg.norm(tangent, axis=1) > 0.5 * edge)

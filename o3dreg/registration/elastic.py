@@ -536,7 +536,7 @@ def _supported(
     if method.reject_boundary:
         keep &= ~query.beyond_boundary(moved, face, closest)
     if method.max_normal_angle is not None:
-        cos = (vertex_normals(moved, faces) * query.face_normals[face]).sum(axis=1)
+        cos = (vertex_normals(moved, faces) * query.face_normal(face)).sum(axis=1)
         keep &= cos >= np.cos(np.radians(method.max_normal_angle))
     if method.max_distance_factor is not None and problem is not None:
         keep &= dist <= method.max_distance_factor * problem.sigma
@@ -565,8 +565,7 @@ class _TargetLevelsOfDetail:
         voxels: Sequence[float] = (),
     ) -> None:
         self.full = full
-        edges = vertices[faces[:, [1, 2, 0]]] - vertices[faces]
-        self.edge = float(np.linalg.norm(edges, axis=2).mean())
+        self.edge = full.mean_edge
         self.cache: dict[float, SurfaceDistanceQuery] = {}
         # Finest first, each copy clustered from the previous one: a million-vertex target is
         # clustered once, the coarser copies cost a fraction of that.
