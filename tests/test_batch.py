@@ -11,7 +11,7 @@ import pytest
 from _helpers import FAST, population
 
 from o3dreg import register_batch, registration_elastic, write_triangle_mesh
-from o3dreg.registration.batch import save_registered
+from o3dreg.registration.batch import resume_key, save_registered
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +62,8 @@ def test_batch_resumes_and_force_reregisters(small, tmp_path):
 def test_a_registration_saved_beforehand_is_not_made_again(small, tmp_path):
     template, targets, _ = small
     made = registration_elastic(template, targets[0], levels=FAST)
-    saved = save_registered(tmp_path, "patient000", made, 1.0, "<array>")
+    key = resume_key(template, targets[0], levels=FAST)  # what the batch will look for
+    saved = save_registered(tmp_path, "patient000", made, 1.0, "<array>", key=key)
     batch = register_batch(template, targets[:2], tmp_path, levels=FAST)
     assert [r.skipped for r in batch.records] == [True, False]
     assert batch.records[0].distances == saved.distances == made.distances.as_dict()

@@ -313,3 +313,59 @@ def test_build_model_refuses_to_replace_a_model_before_any_work(model_dir, capsy
                          str(model_dir / "p.ply"), "-o", str(model_dir))  # fmt: skip
     assert code == 2 and "already holds a model" in err and "--overwrite" in err
     assert (model_dir / "model.npz").read_bytes() == before
+
+
+# -- 3. resume keys and names ------------------------------------------------------------------
+
+
+def _batch(template, targets, out, **options):
+    from o3dreg import ElasticCriteria, ElasticLevel, register_batch
+
+    options.setdefault("levels", [ElasticLevel(2)])
+    return register_batch(
+        template, targets, out, criteria=ElasticCriteria(max_iteration=2), **options
+    )
+
+
+def test_resume_registers_again_when_template_patient_or_options_change(tmp_path, caplog):
+    from o3dreg import ElasticLevel
+
+    template = sphere(6)
+    write_triangle_mesh(tmp_path / "a.ply", sphere(10))
+    targets = [str(tmp_path / "a.ply")]
+    out = tmp_path / "reg"
+    first = _batch(template, targets, out)
+    assert not first.records[0].skipped
+    assert _batch(template, targets, out).records[0].skipped  # nothing changed: resumed
+
+    moved = o3d.geometry.TriangleMesh(template)  # same triangles, other vertices
+    moved.vertices = o3d.utility.Vector3dVector(np.asarray(template.vertices) * 1.1)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="o3dreg"):
+        again = _batch(moved, targets, out)
+    assert not again.records[0].skipped and "registering again" in caplog.text
+    assert _batch(moved, targets, out).records[0].skipped
+
+    write_triangle_mesh(tmp_path / "a.ply", sphere(12), overwrite=True)  # same name, new file
+    assert not _batch(moved, targets, out).records[0].skipped
+    assert not _batch(moved, targets, out, levels=[ElasticLevel(3)]).records[0].skipped
+    assert not _batch(moved, targets, out, init=np.diag([1, 1, 1, 1.0])).records[0].skipped
+
+
+def test_a_record_never_leads_outside_the_output_folder(tmp_path):
+    import json
+
+    from o3dreg.registration.batch import BatchResult
+
+    template = sphere(6)
+    write_triangle_mesh(tmp_path / "a.ply", sphere(10))
+    out = tmp_path / "reg"
+    _batch(template, [str(tmp_path / "a.ply")], out)
+    write_triangle_mesh(tmp_path / "foreign_shape.ply", sphere(6))  # outside the folder
+    record = json.loads((out / "a.json").read_text())
+    record["name"] = "../foreign_shape"
+    (out / "a.json").write_text(json.dumps(record))
+    again = _batch(template, [str(tmp_path / "a.ply")], out)
+    assert [r.name for r in again.registered] == ["a"] and not again.records[0].skipped
+    with pytest.raises(ValueError, match="not a plain file name"):
+        BatchResult((), str(out), np.zeros((0, 3))).mesh_path("../foreign_shape")

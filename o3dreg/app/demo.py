@@ -33,7 +33,7 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from ..io.mesh import write_triangle_mesh
-from ..registration.batch import BatchResult, register_batch, save_registered
+from ..registration.batch import BatchResult, register_batch, resume_key, save_registered
 from ..registration.elastic import evaluate_elastic, registration_elastic
 from ..registration.options import DistanceEstimation
 from ..shape.build import build_shape_model
@@ -227,7 +227,12 @@ def run_demo(
         result = registration_elastic(template, first.mesh, estimation_method=method)
         if method is None:
             save_registered(
-                out / "registered", first.name, result, time.perf_counter() - began, "<array>"
+                out / "registered",
+                first.name,
+                result,
+                time.perf_counter() - began,
+                "<array>",
+                key=resume_key(template, first.mesh),
             )
         err = np.linalg.norm(result.vertices - first.truth(template_vertices), axis=1)
         comparison[name] = (result, err)

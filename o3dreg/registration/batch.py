@@ -9,13 +9,19 @@ Each finished patient is written to the output folder as soon as it completes (a
   patient as done.
 
 Interrupting a batch (Ctrl-C) loses only the patients in progress; running it again skips the
-finished ones (unless ``force``). A patient that fails to load or to register is recorded with
+finished ones (unless ``force``). A finished patient is recognised by its record's resume key, a
+hash of the template, the patient's content, the initial transformation and the registration
+options (:func:`resume_key`): when any of them changed since, the patient is registered again
+(with a log line). A record whose name is not its file's stem is ignored, so a record never
+makes the batch read a file outside its folder. A patient that fails to load or to register is recorded with
 its error (``"status": "failed"``) and the batch goes on; a rerun retries it.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import dataclasses
+import hashlib
 import json
 import logging
 import os
@@ -31,7 +37,7 @@ import numpy as np
 from .._validation import as_mesh_arrays, as_transformation
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 
-__all__ = ["BatchResult", "PatientRecord", "register_batch"]
+__all__ = ["BatchResult", "PatientRecord", "register_batch", "resume_key"]
 
 logger = logging.getLogger("o3dreg")
 
@@ -128,10 +134,10 @@ class BatchResult:
         return tuple(r for r in self.records if r.status == "failed")
 
     def mesh_path(self, name: str) -> str:
-        return os.path.join(self.output_dir, f"{name}.ply")
+        return os.path.join(self.output_dir, f"{_checked_name(name)}.ply")
 
     def deformation_path(self, name: str) -> str:
-        return os.path.join(self.output_dir, f"{name}.npz")
+        return os.path.join(self.output_dir, f"{_checked_name(name)}.npz")
 
     def shapes(self) -> tuple[tuple[str, ...], np.ndarray]:
         """Names and semilandmark vertices ``(s, n, 3)`` of the registered patients."""
@@ -177,6 +183,95 @@ def _safe_name(name: str) -> str:
     return cleaned or "patient"
 
 
+def _checked_name(name: str) -> str:
+    """``name`` when it is a plain file stem (no folder, no ``..``); ``ValueError`` otherwise."""
+    if not isinstance(name, str) or name != _safe_name(name):
+        raise ValueError(f"patient name {name!r} is not a plain file name")
+    return name
+
+
+def _canonical(value: Any) -> Any:
+    """A JSON-able form of registration options that changes whenever a value does."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {
+            "type": type(value).__name__,
+            **{f.name: _canonical(getattr(value, f.name)) for f in dataclasses.fields(value)},
+        }
+    if isinstance(value, np.ndarray):
+        return {"array": _digest(value)}
+    if isinstance(value, (list, tuple)):
+        return [_canonical(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _canonical(v) for k, v in sorted(value.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(value, (bool, int, str)) or value is None:
+        return value
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))  # exact
+    return repr(value)
+
+
+def _digest(*arrays: np.ndarray) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _file_digest(path: str) -> str:
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    except OSError:
+        # Not readable here (e.g. only the Dask workers see it): the path stands for the file.
+        return f"path:{os.path.abspath(path)}"
+    return h.hexdigest()
+
+
+def _options_key(options: dict[str, Any]) -> dict[str, Any]:
+    """Options with the defaults of :func:`registration_elastic` filled in, canonical form."""
+    from .options import DistanceEstimation, ElasticCriteria, default_levels
+
+    filled = {k: v for k, v in options.items() if v is not None}
+    filled.setdefault("levels", default_levels())
+    filled.setdefault("estimation_method", DistanceEstimation())
+    filled.setdefault("criteria", ElasticCriteria())
+    filled.setdefault("padding", 0.1)
+    return _canonical(filled)
+
+
+def _key(template_digest: str, target: Any, init: Any, options_key: Any) -> str:
+    target_digest = _file_digest(target) if isinstance(target, str) else _digest(*target)
+    payload = {
+        "template": template_digest,
+        "target": target_digest,
+        "init": None if init is None else _digest(np.asarray(init, dtype=np.float64)),
+        "options": options_key,
+    }
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+
+
+def resume_key(template: Any, target: Any, *, init: Any = None, **options: Any) -> str:
+    """The key :func:`register_batch` stores with a finished registration.
+
+    A hash of the template's vertices and triangles, the target (a file's bytes, or a mesh's
+    arrays), ``init`` and the registration options with their defaults filled in: a finished
+    patient whose key differs from the current one is registered again. Pass it to
+    :func:`save_registered` for a registration made outside a batch.
+    """
+    tv, tf = as_mesh_arrays(template, "template")
+    if isinstance(target, (str, os.PathLike)):
+        target = os.fspath(target)
+    else:
+        target = as_mesh_arrays(target, "target", drop_degenerate=True)
+    if init is not None:
+        init = as_transformation(init, "init")
+    return _key(_digest(tv, tf), target, init, _options_key(options))
+
+
 def _default_name(target: Any, index: int) -> str:
     if isinstance(target, (str, os.PathLike)):
         base = os.path.basename(os.fspath(target))
@@ -200,14 +295,32 @@ def _register_one(
     return result, time.perf_counter() - start
 
 
-def _read_record(path: str) -> PatientRecord | None:
+def _read_record(path: str, name: str, key: str) -> PatientRecord | None:
+    """The finished record of patient ``name`` at ``path``, or None (missing, stale, foreign)."""
     try:
         with open(path, encoding="utf-8") as fh:
             data = json.load(fh)
+        stored_key = data.pop("resume_key", None)
         data["transformation"] = tuple(data.get("transformation", ()))
-        return PatientRecord(**data, skipped=True)
-    except (OSError, ValueError, TypeError):
+        record = PatientRecord(**data, skipped=True)
+    except FileNotFoundError:
         return None
+    except (OSError, ValueError, TypeError, AttributeError) as exc:
+        logger.warning("batch: %s: unreadable record %s (%s); registering again", name, path, exc)
+        return None
+    if record.name != name:
+        logger.warning(
+            "batch: %s: record %s names %r; ignored, registering again", name, path, record.name
+        )
+        return None
+    if record.status == "registered" and stored_key != key:
+        logger.warning(
+            "batch: %s: the template, the patient or the options changed since it was "
+            "registered; registering again",
+            name,
+        )
+        return None
+    return record
 
 
 def _write_json(path: str, data: Any) -> None:
@@ -215,11 +328,18 @@ def _write_json(path: str, data: Any) -> None:
 
 
 def save_registered(
-    output_dir: str | os.PathLike[str], name: str, result: Any, seconds: float, source: str = ""
+    output_dir: str | os.PathLike[str],
+    name: str,
+    result: Any,
+    seconds: float,
+    source: str = "",
+    *,
+    key: str = "",
 ) -> PatientRecord:
     """Write one registered patient as :func:`register_batch` does (mesh, deformation, then the
     record), so that a batch run on ``output_dir`` skips it: a registration already made
-    elsewhere (e.g. a comparison) is not made twice."""
+    elsewhere (e.g. a comparison) is not made twice. ``key`` is its :func:`resume_key`; a
+    record without the batch's key is registered again."""
     output_dir = os.fspath(output_dir)
     name = _safe_name(name)
     write_triangle_mesh(
@@ -244,7 +364,7 @@ def save_registered(
         record.distances["source_to_target_mean"],
         record.distances["target_to_source_mean"],
     )
-    _write_json(os.path.join(output_dir, f"{name}.json"), record.as_dict())
+    _write_json(os.path.join(output_dir, f"{name}.json"), {**record.as_dict(), "resume_key": key})
     return record
 
 
@@ -377,8 +497,11 @@ def _run_batch(
 
     records: dict[str, PatientRecord] = {}
     todo: list[int] = []
+    template_digest, options_key = _digest(*template), _options_key(options)
+    keys = [_key(template_digest, t, init, options_key) for t, init in zip(targets, inits)]
     for i, name in enumerate(names):
-        record = None if force else _read_record(os.path.join(output_dir, f"{name}.json"))
+        path = os.path.join(output_dir, f"{name}.json")
+        record = None if force else _read_record(path, name, keys[i])
         if (
             record is not None
             and record.status == "registered"
@@ -412,7 +535,7 @@ def _run_batch(
             record = PatientRecord(name, "failed", False, msg, source=source_of(i))
         else:
             assert outcome is not None
-            record = save_registered(output_dir, name, *outcome, source=source_of(i))
+            record = save_registered(output_dir, name, *outcome, source=source_of(i), key=keys[i])
         if record.status == "failed":
             _write_json(os.path.join(output_dir, f"{name}.json"), record.as_dict())
         records[name] = record
