@@ -35,6 +35,16 @@ def mesh_of(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.TriangleMes
     )
 
 
+def signed_volume(mesh: Any) -> float:
+    """Volume enclosed by a closed mesh (Open3D or ``(vertices, faces)``): positive when its
+    triangles wind outward (divergence theorem: a sum of signed tetrahedra from the origin)."""
+    if isinstance(mesh, o3d.geometry.TriangleMesh):
+        mesh = (np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    v, f = mesh
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
 def snapshot(mesh: o3d.geometry.TriangleMesh) -> tuple[np.ndarray, np.ndarray]:
     """Copies of a mesh's arrays, to assert later that a call left it untouched."""
     return np.asarray(mesh.vertices).copy(), np.asarray(mesh.triangles).copy()

@@ -7,6 +7,7 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 import pytest
+from _helpers import signed_volume
 from scipy.special import ellipeinc, ellipkinc
 
 from o3dreg import Volume, connected_components, isosurface, keep_largest_components, read_volume
@@ -50,13 +51,6 @@ def _closed(mesh) -> bool:
     return bool(mesh.is_edge_manifold(allow_boundary_edges=False) and mesh.is_vertex_manifold())
 
 
-def _signed_volume(mesh) -> float:
-    v = np.asarray(mesh.vertices)
-    f = np.asarray(mesh.triangles)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
-
-
 def _ellipsoid_area(a: float, b: float, c: float) -> float:
     """Exact surface area (Legendre's formula with incomplete elliptic integrals), a >= b >= c."""
     a, b, c = sorted((a, b, c), reverse=True)
@@ -86,7 +80,7 @@ def test_ellipsoid_area_and_volume():
     # the smallest radius of curvature c^2/a = 3 mm, chords cut inside by ~h^2/(8 r) ~ 0.01 mm,
     # i.e. well below 1 % of volume and area; 1 % leaves room for the quadratic field's
     # interpolation bias.
-    assert _signed_volume(mesh) == pytest.approx(exact_volume, rel=0.01)
+    assert signed_volume(mesh) == pytest.approx(exact_volume, rel=0.01)
     assert mesh.get_surface_area() == pytest.approx(exact_area, rel=0.01)
 
 
@@ -118,7 +112,7 @@ def test_axis_order_spacing_origin_and_orientation(direction):
     assert np.allclose(vertices.min(axis=0), centre - semi, atol=0.5)
     assert np.allclose(vertices.max(axis=0), centre + semi, atol=0.5)
     # Outward orientation whatever the handedness of the index -> world map.
-    assert _signed_volume(mesh) > 0
+    assert signed_volume(mesh) > 0
     mesh.compute_triangle_normals()
     normals = np.asarray(mesh.triangle_normals)
     centroids = vertices[np.asarray(mesh.triangles)].mean(axis=1)
@@ -147,7 +141,7 @@ def test_object_cut_by_the_border_is_closed():
     volume = Volume(array, spacing=(1, 1, 1))
     closed = isosurface(volume, 0.5)
     assert _closed(closed)
-    assert _signed_volume(closed) > 0
+    assert signed_volume(closed) > 0
     opened = isosurface(volume, 0.5, close_boundary=False)
     assert not _closed(opened)
 
@@ -194,7 +188,7 @@ def test_headsq_skull_at_bone_level():
     assert components.vertex_counts[0] > 0.9 * len(mesh.vertices)
     extent = np.ptp(np.asarray(mesh.vertices), axis=0)
     assert np.all((extent > 120) & (extent < 220)), extent  # millimetres: an adult head
-    assert _signed_volume(mesh) > 0
+    assert signed_volume(mesh) > 0
 
 
 def test_dicom_slice_has_no_surface():
@@ -216,7 +210,7 @@ def test_pitched_ct_extent_matches_the_affine():
     # Vertices lie within one voxel (at most 2.4 mm along the pitched axis) of the voxel extent.
     assert np.allclose(vertices.min(axis=0), world.min(axis=0), atol=2.5)
     assert np.allclose(vertices.max(axis=0), world.max(axis=0), atol=2.5)
-    assert _signed_volume(mesh) > 0
+    assert signed_volume(mesh) > 0
 
 
 # The eight PDDCA mandible masks of the shared (research-only) data; never copied into the repo.
@@ -234,4 +228,4 @@ def test_mandible_mask_gives_one_closed_component(shared_data, case):
     assert 8_000 <= dominant <= 20_000, dominant
     assert dominant >= 0.95 * len(mesh.vertices)
     assert _closed(keep_largest_components(mesh))
-    assert _signed_volume(mesh) > 0
+    assert signed_volume(mesh) > 0

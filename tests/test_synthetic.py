@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _helpers import signed_volume
 
 from o3dreg.app.synthetic import FORMS, synthetic_form
 
@@ -16,11 +17,6 @@ VOLUMES = {
 }
 #: Euler characteristic 2 - 2g: the ring has genus 1.
 EULER = {"sphere": 2, "cube": 2, "open_ring": 0, "cone": 2}
-
-
-def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
-    a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
 
 # A polyhedron whose vertices lie on a convex surface holds less volume than it; the shortfall
@@ -38,7 +34,7 @@ def test_form_is_closed_with_analytic_volume(name, number_of_vertices, tolerance
     assert mesh.is_orientable()
     assert mesh.euler_poincare_characteristic() == EULER[name]
     # Positive signed volume: triangles are oriented with outward normals.
-    volume = _signed_volume(vertices, faces)
+    volume = signed_volume((vertices, faces))
     assert volume > 0
     assert volume == pytest.approx(VOLUMES[name], rel=tolerance)
 
