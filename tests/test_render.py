@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from o3dreg.app.render import render_mesh
+from o3dreg.app.render import mode_displacements, render_mesh, render_shape_modes
 from o3dreg.app.synthetic import synthetic_form
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _png_size(path) -> tuple[int, int]:
@@ -54,3 +61,79 @@ def test_render_mesh_rejects_bad_input(tmp_path, cone):
     with pytest.raises(ValueError, match="`size` must be at least"):
         render_mesh(cone, tmp_path / "a.png", size=(4, 4))
     assert not (tmp_path / "a.png").exists()
+
+
+def test_open3d_backend_is_stopped_at_its_time_limit(tmp_path, cone):
+    # 0.05 s is less than a fresh interpreter takes to import Open3D, so the child is always
+    # stopped: the caller gets an error instead of a hang (Filament on software Vulkan).
+    with pytest.raises(RuntimeError, match="time limit of 0.05 s"):
+        render_mesh(cone, tmp_path / "a.png", backend="open3d", time_limit=0.05)
+    assert not (tmp_path / "a.png").exists()
+    with pytest.raises(ValueError, match="`time_limit` must be a positive number"):
+        render_mesh(cone, tmp_path / "a.png", backend="open3d", time_limit=0.0)
+
+
+def test_view_screenshot_is_written_headless_in_bounded_time(tmp_path, cone):
+    # The command the docs call headless, as a user runs it: no display, no GPU. It hung in
+    # Filament before (killed at 120 s); the matplotlib default takes seconds.
+    import open3d as o3d
+
+    mesh_path, png = tmp_path / "cone.ply", tmp_path / "cone.png"
+    o3d.io.write_triangle_mesh(str(mesh_path), cone)
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+    command = [sys.executable, "-m", "o3dreg", "view", str(mesh_path), "--screenshot", str(png)]
+    done = subprocess.run(
+        [*command, "--distance-to", str(mesh_path), "--size", "640,480"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert _png_size(png) == (640, 480)
+    assert "mean 0.000" in done.stdout  # a mesh is at distance 0 from itself
+
+
+def _sphere_model(radii):
+    import open3d as o3d
+
+    from o3dreg.shape.model import build_shape_model
+
+    sphere = o3d.geometry.TriangleMesh.create_icosahedron(1.0).subdivide_loop(2)
+    unit = np.asarray(sphere.vertices)
+    unit = unit / np.linalg.norm(unit, axis=1, keepdims=True)
+    faces = np.asarray(sphere.triangles)
+    return build_shape_model([r * unit for r in radii], faces), unit
+
+
+def test_mode_displacements_of_spheres_are_radial():
+    # Spheres of radii 8-12 about the origin: the only mode is a change of radius, so the
+    # displacement is along the normal at every vertex, the same everywhere, and linear in c.
+    radii = [8.0, 9.0, 10.0, 11.0, 12.0]
+    model, _ = _sphere_model(radii)
+    d = mode_displacements(model, 0, 2.0)
+    moved = np.linalg.norm(model.mode_shape(0, 2.0) - model.mean, axis=1)
+    # The vertex normals of a subdivided icosahedron deviate from the radial direction by a few
+    # degrees at most: cos(5 deg) = 0.996.
+    np.testing.assert_allclose(np.abs(d), moved, rtol=4e-3)
+    assert np.all(d > 0) or np.all(d < 0)
+    # One SD of radius, spread over the vertices in the unit-norm mode: |d| = 2 * std(radii).
+    np.testing.assert_allclose(np.abs(d), 2.0 * np.std(radii, ddof=1), rtol=4e-3)
+    np.testing.assert_allclose(mode_displacements(model, 0, -2.0), -d, rtol=1e-12)
+    np.testing.assert_allclose(mode_displacements(model, 0, 0.0), 0.0, atol=1e-12)
+
+
+def test_render_shape_modes_writes_one_grid(tmp_path):
+    from o3dreg.shape.model import build_shape_model
+
+    sphere, unit = _sphere_model([1.0, 2.0])
+    # Ellipsoids whose x and y semi-axes vary independently: two modes.
+    axes = [(8.0, 9.0, 10.0), (12.0, 9.5, 10.0), (9.0, 12.0, 10.0), (11.0, 8.0, 10.0)]
+    model = build_shape_model([unit * a for a in axes], sphere.faces)
+    path = render_shape_modes(model, tmp_path / "modes.png", modes=(0, 1, 5), panel=(200, 180))
+    # One row per mode the model has (mode 6 it lacks), three columns and a colour bar.
+    assert _png_size(path) == (3 * 200 + 110, 2 * (180 + 30))
+    with pytest.raises(ValueError, match="`modes` must name at least one"):
+        render_shape_modes(model, tmp_path / "x.png", modes=(7,))
+    assert not (tmp_path / "x.png").exists()

@@ -1,16 +1,20 @@
 """Headless pictures of meshes coloured by a scalar (distances, errors), written as PNG.
 
-Two back ends: Open3D's :class:`open3d.visualization.rendering.OffscreenRenderer` (Filament; on a
-machine without a GPU it runs on Mesa's software Vulkan, ``llvmpipe``), and matplotlib's
-``plot_trisurf``-style :class:`~mpl_toolkits.mplot3d.art3d.Poly3DCollection` with per-face
-colours when Open3D cannot render. ``backend='auto'`` tries them in that order.
+Two back ends: matplotlib's :class:`~mpl_toolkits.mplot3d.art3d.Poly3DCollection` with shaded
+per-face colours (the default: about a second a picture, on any machine), and Open3D's
+:class:`open3d.visualization.rendering.OffscreenRenderer` (Filament). Without a GPU, Filament runs
+on Mesa's software Vulkan (``llvmpipe``), where it took 3-30 s a picture and sometimes never
+returned (killed after 120 s on a 2.5k-vertex mesh), so it runs in a child process under a time
+limit; ``backend='auto'`` tries it and falls back to matplotlib.
 """
 
 from __future__ import annotations
 
 import atexit
 import logging
+import multiprocessing
 import os
+import tempfile
 from collections.abc import Sequence
 from typing import Any
 
@@ -23,12 +27,21 @@ from ..io.mesh import atomic_write
 
 # matplotlib is imported inside the functions that draw: ~1 s to import, for pictures only.
 
-__all__ = ["BACKENDS", "render_mesh"]
+__all__ = [
+    "BACKENDS",
+    "OPEN3D_TIME_LIMIT",
+    "mode_displacements",
+    "render_mesh",
+    "render_shape_modes",
+]
 
 logger = logging.getLogger("o3dreg")
 
 #: Values accepted by ``render_mesh(backend=...)``.
-BACKENDS = ("auto", "open3d", "matplotlib")
+BACKENDS = ("matplotlib", "open3d", "auto")
+
+#: Seconds Open3D's renderer is given (in a child process) before it is stopped.
+OPEN3D_TIME_LIMIT = 60.0
 
 # One Filament renderer per process, of a fixed size: creating several in a process is slow and
 # unreliable, so it is reused with its scene cleared, and its picture is scaled into the figure.
@@ -122,6 +135,34 @@ def _render_open3d(
     return np.asarray(renderer.render_to_image())[..., :3]
 
 
+def _open3d_child(args: tuple[Any, ...], out: str) -> None:
+    np.save(out, _render_open3d(*args))
+
+
+def _render_open3d_limited(args: tuple[Any, ...], time_limit: float | None) -> np.ndarray:
+    """``_render_open3d(*args)``, in a child process stopped after ``time_limit`` seconds."""
+    if time_limit is None:
+        return _render_open3d(*args)
+    # "spawn": a fresh interpreter, so that neither a hung Filament nor the parent's threads
+    # (fork copies locks held by other threads) can block the parent.
+    context = multiprocessing.get_context("spawn")
+    with tempfile.TemporaryDirectory(prefix="o3dreg-render-") as folder:
+        out = os.path.join(folder, "image.npy")
+        child = context.Process(target=_open3d_child, args=(args, out), daemon=True)
+        child.start()
+        child.join(time_limit)
+        if child.is_alive():
+            child.kill()
+            child.join()
+            raise RuntimeError(
+                f"Open3D did not render within the time limit of {time_limit:g} s (no GPU? "
+                "Filament on software Vulkan can hang); use backend='matplotlib'"
+            )
+        if child.exitcode != 0 or not os.path.exists(out):
+            raise RuntimeError(f"Open3D's renderer exited with status {child.exitcode}")
+        return np.load(out)
+
+
 def _render_matplotlib(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -129,7 +170,9 @@ def _render_matplotlib(
     view: tuple[float, float],
     up: np.ndarray,
     size: tuple[int, int],
+    frame: np.ndarray | None = None,
 ) -> np.ndarray:
+    """Draw with matplotlib; ``frame`` (points) sets the box framed (default ``vertices``)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
@@ -152,7 +195,8 @@ def _render_matplotlib(
     FigureCanvasAgg(fig)
     ax: Any = fig.add_axes((0.0, 0.0, 1.0, 1.0), projection="3d")
     ax.add_collection3d(Poly3DCollection(tris, facecolors=base * shade[:, None], linewidths=0))
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    framed = pts if frame is None else frame @ np.stack([e2, e1, up], axis=1)
+    lo, hi = framed.min(axis=0), framed.max(axis=0)
     half = (hi - lo).max() / 2.0
     for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), (lo + hi) / 2.0):
         setter(c - half, c + half)
@@ -177,7 +221,8 @@ def render_mesh(
     size: tuple[int, int] = (800, 600),
     title: str | None = None,
     label: str | None = None,
-    backend: str = "auto",
+    backend: str = "matplotlib",
+    time_limit: float | None = OPEN3D_TIME_LIMIT,
     overwrite: bool = True,
 ) -> str:
     """Render ``mesh``, optionally coloured by ``scalars``, to a PNG file, headless.
@@ -205,9 +250,15 @@ def render_mesh(
         Drawn above the picture.
     label : str, optional
         Colour-bar label (a colour bar is drawn when ``scalars`` is given).
-    backend : {'auto', 'open3d', 'matplotlib'}
-        ``'auto'`` (default) uses Open3D's offscreen renderer and falls back to matplotlib when it
-        fails (no Vulkan/EGL driver, for instance); the fallback is logged.
+    backend : {'matplotlib', 'open3d', 'auto'}
+        ``'matplotlib'`` (default) works on any machine in about a second. ``'open3d'`` uses
+        Open3D's offscreen renderer (Filament: smoother shading, needs a Vulkan or EGL driver);
+        ``'auto'`` tries Open3D and falls back to matplotlib when it fails or runs out of time
+        (the fallback is logged, and later calls in the process go straight to matplotlib).
+    time_limit : float or None
+        Seconds Open3D's renderer may take, in a child process that is stopped after them
+        (default :data:`OPEN3D_TIME_LIMIT`); ``None`` renders in this process with no limit
+        (faster for many pictures, but a hung driver hangs the caller). Unused by matplotlib.
     overwrite : bool
         Replace an existing file. Default ``True``.
 
@@ -221,7 +272,7 @@ def render_mesh(
     ValueError
         For a wrong ``scalars`` length, ``size``, ``view``, ``up`` or ``backend``.
     RuntimeError
-        When ``backend='open3d'`` is requested and Open3D cannot render.
+        When ``backend='open3d'`` is requested and Open3D cannot render within ``time_limit``.
     """
     vertices, faces = as_mesh_arrays(mesh, "mesh")
     if backend not in BACKENDS:
@@ -237,6 +288,8 @@ def render_mesh(
     if up_.shape != (3,) or not np.isfinite(up_).all() or np.linalg.norm(up_) == 0:
         raise ValueError(f"`up` must be a non-zero (3,) vector, got {up!r}")
     up_ = up_ / np.linalg.norm(up_)
+    if time_limit is not None and not (np.isfinite(time_limit) and time_limit > 0):
+        raise ValueError(f"`time_limit` must be a positive number of seconds, got {time_limit!r}")
     values = None
     if scalars is not None:
         values = np.asarray(scalars, dtype=np.float64).ravel()
@@ -260,7 +313,9 @@ def render_mesh(
     image: np.ndarray | None = None
     if backend in ("auto", "open3d") and not (backend == "auto" and _OPEN3D_FAILED):
         try:
-            image = _render_open3d(vertices, faces, face_rgb, vertex_rgb, view_, up_, inner)
+            image = _render_open3d_limited(
+                (vertices, faces, face_rgb, vertex_rgb, view_, up_, inner), time_limit
+            )
         except Exception as error:  # any driver failure: fall back
             if backend == "open3d":
                 raise RuntimeError(f"Open3D offscreen rendering failed: {error}") from error
@@ -292,6 +347,134 @@ def render_mesh(
                     norm=matplotlib.colors.Normalize(lo, hi), cmap=cmap
                 )
                 fig.colorbar(mappable, cax=cax, label=label)
+        fig.savefig(tmp, format="png", dpi=dpi)
+
+    return atomic_write(path, write, overwrite=overwrite, name="path")
+
+
+def mode_displacements(model: Any, mode: int, standard_deviations: float) -> np.ndarray:
+    """Signed normal displacement (mm, outward positive) of each vertex of a mode shape.
+
+    ``(mode_shape(mode, c) - mean) . n`` with ``n`` the mean shape's area-weighted unit vertex
+    normals: positive where the shape grows outwards, negative where it moves in.
+    """
+    from ..registration.elastic import vertex_normals
+
+    normals = vertex_normals(np.asarray(model.mean), np.asarray(model.faces))
+    moved = model.mode_shape(mode, standard_deviations) - model.mean
+    return np.asarray((moved * normals).sum(axis=1))
+
+
+def render_shape_modes(
+    model: Any,
+    path: str | os.PathLike[str],
+    *,
+    modes: Sequence[int] = (0, 1),
+    standard_deviations: Sequence[float] = (-3.0, 0.0, 3.0),
+    view: Sequence[float] = (30.0, 20.0),
+    up: Sequence[float] = (0.0, 0.0, 1.0),
+    panel: tuple[int, int] = (420, 360),
+    cmap: str = "coolwarm",
+    overwrite: bool = True,
+) -> str:
+    """One PNG of a shape model's modes (paper Figure 6), coloured by displacement from the mean.
+
+    A grid with one row per mode and one column per multiple of the standard deviation; every
+    panel is coloured by :func:`mode_displacements` on one colour scale, symmetric about 0 (the
+    mean is the neutral colour), with a colour bar in mm. Drawn with matplotlib (headless, any
+    machine).
+
+    Parameters
+    ----------
+    model : ShapeModel
+    path : str or os.PathLike
+        The PNG to write (atomically).
+    modes : sequence of int
+        0-based modes, one row each (modes the model lacks are left out). Default the first two.
+    standard_deviations : sequence of float
+        Multiples of each mode's standard deviation, one column each. Default ``(-3, 0, 3)``.
+    view, up :
+        Camera as in :func:`render_mesh`.
+    panel : (width, height)
+        Size of one panel in pixels. Default ``(420, 360)``.
+    cmap : str
+        A diverging matplotlib colormap. Default ``'coolwarm'``.
+    overwrite : bool
+        Replace an existing file. Default ``True``.
+
+    Returns
+    -------
+    str
+        The path written.
+
+    Raises
+    ------
+    ValueError
+        For an empty ``modes`` or ``standard_deviations``, or a bad ``view``/``up``/``panel``.
+    """
+    import matplotlib
+
+    rows = [int(m) for m in modes if 0 <= int(m) < model.number_of_modes]
+    sds = [float(c) for c in standard_deviations]
+    if not rows:
+        raise ValueError(
+            f"`modes` must name at least one of the model's {model.number_of_modes} modes, "
+            f"got {list(modes)!r}"
+        )
+    if not sds:
+        raise ValueError("`standard_deviations` must not be empty")
+    try:
+        width, height = (int(s) for s in panel)
+    except (TypeError, ValueError):
+        raise ValueError(f"`panel` must be (width, height) in pixels, got {panel!r}") from None
+    if width < 64 or height < 64:
+        raise ValueError(f"`panel` must be at least (64, 64) pixels, got {panel!r}")
+    view_ = _check_view(view)
+    up_ = np.asarray(up, dtype=np.float64)
+    if up_.shape != (3,) or not np.isfinite(up_).all() or np.linalg.norm(up_) == 0:
+        raise ValueError(f"`up` must be a non-zero (3,) vector, got {up!r}")
+    up_ = up_ / np.linalg.norm(up_)
+    faces = np.asarray(model.faces)
+    values = {(m, c): mode_displacements(model, m, c) for m in rows for c in sds}
+    top = max(float(np.abs(v).max()) for v in values.values()) or 1.0
+    norm = matplotlib.colors.Normalize(-top, top)
+    colormap = matplotlib.colormaps[cmap]
+    shapes = {(m, c): model.mode_shape(m, c) for m in rows for c in sds}
+    # One frame for every panel, so that changes of size and position show.
+    frame = np.concatenate(list(shapes.values()))
+    pictures = {}
+    for (m, c), value in values.items():
+        face_rgb = colormap(norm(value[faces].mean(axis=1)))[:, :3]
+        pictures[(m, c)] = _render_matplotlib(
+            shapes[(m, c)], faces, face_rgb, view_, up_, (width, height), frame
+        )
+
+    def write(tmp: str) -> None:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        dpi = 100
+        bar, head = 110, 30
+        fig_w, fig_h = width * len(sds) + bar, (height + head) * len(rows)
+        fig = Figure(figsize=(fig_w / dpi, fig_h / dpi), dpi=dpi)
+        FigureCanvasAgg(fig)
+        for i, m in enumerate(rows):
+            for j, c in enumerate(sds):
+                ax = fig.add_axes(
+                    (
+                        j * width / fig_w,
+                        1.0 - (i + 1) * (height + head) / fig_h,
+                        width / fig_w,
+                        height / fig_h,
+                    )
+                )
+                ax.imshow(pictures[(m, c)], interpolation="antialiased")
+                ax.set_axis_off()
+                name = "mean" if c == 0 else f"{c:+g} SD"
+                ax.set_title(f"mode {m + 1}: {name}", fontsize=12)
+        cax = fig.add_axes((1.0 - 80 / fig_w, 0.15, 18 / fig_w, 0.7))
+        mappable = matplotlib.cm.ScalarMappable(norm=norm, cmap=colormap)
+        fig.colorbar(mappable, cax=cax, label="displacement from the mean along the normal (mm)")
         fig.savefig(tmp, format="png", dpi=dpi)
 
     return atomic_write(path, write, overwrite=overwrite, name="path")

@@ -8,10 +8,10 @@ import os
 import numpy as np
 import open3d as o3d
 
-from ..app.render import render_mesh
+from ..app.render import BACKENDS, OPEN3D_TIME_LIMIT, render_mesh
 from ..io.mesh import read_triangle_mesh
 from ..registration.distance import SurfaceDistanceQuery
-from ._common import emit
+from ._common import emit, int_list
 
 EPILOG = """examples:
   o3dreg view template.ply patient.ply
@@ -26,7 +26,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "view",
         help="show meshes in Open3D's interactive viewer",
         description="Open meshes in Open3D's viewer where a display exists; --screenshot renders "
-        "a PNG instead (works without a display).",
+        "the first mesh to a PNG instead (works without a display or GPU: matplotlib by default, "
+        "about a second; --backend open3d uses Filament, under --time-limit).",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -42,6 +43,27 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--screenshot", metavar="PNG", help="write a picture instead of opening a window"
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing --screenshot file")
+    p.add_argument(
+        "--backend",
+        choices=BACKENDS,
+        default="matplotlib",
+        help="--screenshot renderer: matplotlib (default; any machine), open3d (Filament: needs a "
+        "Vulkan/EGL driver, slow or hanging on software Vulkan), auto (open3d, else matplotlib)",
+    )
+    p.add_argument(
+        "--time-limit",
+        type=float,
+        default=OPEN3D_TIME_LIMIT,
+        metavar="SECONDS",
+        help=f"stop the open3d renderer after SECONDS (default {OPEN3D_TIME_LIMIT:g})",
+    )
+    p.add_argument(
+        "--size",
+        type=int_list,
+        default=[1000, 800],
+        metavar="W,H",
+        help="--screenshot size in pixels (default 1000,800)",
+    )
     p.set_defaults(func=run)
 
 
@@ -69,7 +91,22 @@ def run(args: argparse.Namespace) -> int:
             raise OSError(
                 f"--screenshot: {args.screenshot!r} exists; pass --overwrite to replace it"
             )
-        render_mesh(meshes[0], args.screenshot, scalars=scalars, overwrite=args.overwrite)
+        if len(args.size) != 2:
+            raise ValueError(f"--size must be W,H, got {args.size}")
+        render_mesh(
+            meshes[0],
+            args.screenshot,
+            scalars=scalars,
+            title=os.path.basename(args.meshes[0])
+            + (
+                f": distance to {os.path.basename(args.distance_to)}" if scalars is not None else ""
+            ),
+            label="mm" if scalars is not None else None,
+            size=(args.size[0], args.size[1]),
+            backend=args.backend,
+            time_limit=args.time_limit,
+            overwrite=args.overwrite,
+        )
         emit(f"wrote {args.screenshot}", args)
         return 0
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
