@@ -7,7 +7,8 @@ set -euo pipefail
 cd "$(dirname "$0")"
 
 need_apt=()
-for pkg in libusb-1.0-0 libgomp1 libgl1 libvulkan1 mesa-vulkan-drivers; do
+# chromium: the browser tests of the explorer page (headless, WebGL on SwiftShader).
+for pkg in libusb-1.0-0 libgomp1 libgl1 libvulkan1 mesa-vulkan-drivers chromium; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 if [ ${#need_apt[@]} -gt 0 ]; then

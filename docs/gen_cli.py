@@ -26,6 +26,15 @@ batch had failed patients); **2** bad input or a failure before any output was w
 on standard error, no partial files); **130** interrupted.
 
 Outputs are never overwritten unless `--overwrite` is given, and are written atomically.
+
+Pictures and pages without a GPU: `o3dreg view MESH --screenshot PNG` draws with matplotlib by
+default (a second or two, on any machine); `--backend open3d` uses Open3D's Filament renderer,
+which on a machine without a GPU runs on software Vulkan and can hang, so it runs in a child
+process stopped after `--time-limit` seconds. `o3dreg build-model` writes an interactive
+`MODEL_DIR/explorer.html` (mode sliders, variance table, every patient's registration coloured
+by distance with its verdict; one self-contained file that works offline), `o3dreg model
+explore` rewrites it, and `o3dreg register ... --html PAGE.html` writes one registration's page;
+see [the explorer](shape-model.md#explorer-in-the-browser).
 """
 
 

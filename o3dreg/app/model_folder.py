@@ -3,7 +3,8 @@
 A model folder holds ``template.ply`` (the template the model is defined on), ``model.npz``
 (:meth:`~o3dreg.ShapeModel.save`), ``model.h5`` (statismo layout), ``mean.ply`` and ``modes/``,
 ``variance.txt`` (the paper's Table 4), ``quality/`` (tables and PNG plots), ``registrations/``
-(one semilandmark mesh, deformation and record per patient) and ``report.json``.
+(one semilandmark mesh, deformation and record per patient), ``report.json`` and
+``explorer.html`` (:func:`~o3dreg.app.explorer.write_model_explorer`).
 ``o3dreg build-model`` is a thin adapter over :func:`build_model_folder`.
 """
 
@@ -28,6 +29,7 @@ from ..shape.model import ShapeModel
 from ..shape.quality import QualityCurve, compactness, generalization, specificity
 from ..shape.sliding import SlidingResult, slide_semilandmarks
 from ..shape.statismo import write_statismo
+from .explorer import write_model_explorer
 
 logger = logging.getLogger("o3dreg")
 
@@ -170,4 +172,5 @@ def build_model_folder(
     atomic_write_text(
         os.path.join(out, "report.json"), json.dumps(report, indent=2) + "\n", overwrite=True
     )
+    write_model_explorer(os.path.join(out, "explorer.html"), model, registrations=batch)
     return ModelFolder(out, batch, model, curves, slid, report)

@@ -143,6 +143,16 @@ def write_report(
     except Exception as exc:  # a picture is not worth failing the report for
         logger.warning("could not render modes.png: %s", exc)
 
+    try:
+        from .explorer import write_model_explorer
+
+        explorer = write_model_explorer(
+            out / "explorer.html", model, registrations=batch, up=_VIEW["up"], view=_VIEW["view"]
+        )
+    except Exception as exc:  # the page is not worth failing the report for
+        logger.warning("could not write explorer.html: %s", exc)
+        explorer = None
+
     def img(key: str, caption: str) -> str:
         path = pictures.get(key)
         return (
@@ -156,6 +166,16 @@ def write_report(
         "The pipeline of Berar et al. (2005) on the bundled CT head: CT volume -> bone mesh -> "
         "template -> registration of a population -> Procrustes -> shape model -> landmarks.",
         "",
+        *(
+            [
+                "**[Open the interactive explorer](explorer.html)** (one file, works offline): "
+                "the mode sliders, the variance table, and every patient's registered template "
+                "coloured by its distance to the patient.",
+                "",
+            ]
+            if explorer
+            else []
+        ),
         "## Steps",
         "",
         *[f"{k + 1}. {text}" for k, text in enumerate(figures["steps"])],

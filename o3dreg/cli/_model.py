@@ -1,4 +1,4 @@
-"""``o3dreg build-model`` and ``o3dreg model {info, modes, fit}``: statistical shape models.
+"""``o3dreg build-model`` and ``o3dreg model {info, modes, fit, explore}``: statistical shape models.
 
 ``build-model`` is a thin adapter over :func:`o3dreg.app.model_folder.build_model_folder`, which
 documents the model folder's layout.
@@ -14,6 +14,7 @@ import os
 import sys
 from typing import Any
 
+from ..app.explorer import write_model_explorer
 from ..app.model_folder import build_model_folder
 from ..io.mesh import read_triangle_mesh
 from ..registration.options import ElasticLevel
@@ -96,6 +97,7 @@ def add_parser(subparsers: Any) -> None:
     fit.add_argument("--regularization", type=float, default=None, help="noise variance (mm^2)")
     fit.add_argument("--json", action="store_true")
     fit.set_defaults(func=run_fit)
+    _add_explore(sub)
     model.set_defaults(func=lambda args: (model.print_help(), 2)[1])
 
 
@@ -295,3 +297,51 @@ def run_fit(args: argparse.Namespace) -> int:
         if errors is not None:
             print(f"mean error {errors.mean():.3g} mm")
     return 0 if fit.success else 1
+
+
+def _vector3(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z, got {text!r}")
+    return values
+
+
+def _add_explore(sub: Any) -> None:
+    explore = sub.add_parser(
+        "explore",
+        help="write the interactive explorer page (modes, variances, patients)",
+        description="Write a self-contained HTML page (works offline): the mean shape with a "
+        "slider per mode (+-3 SD), the variance table, and each patient's registered template "
+        "coloured by its distance to the patient, with its verdict.",
+    )
+    explore.add_argument("model_dir")
+    explore.add_argument("-o", "--output", help="page to write (default MODEL_DIR/explorer.html)")
+    explore.add_argument(
+        "--up",
+        type=_vector3,
+        default=[0.0, 0.0, 1.0],
+        metavar="X,Y,Z",
+        help="world direction shown upwards at first (default 0,0,1; write --up=0,0,-1)",
+    )
+    explore.add_argument("--overwrite", action="store_true", help="replace an existing page")
+    explore.set_defaults(func=run_explore)
+
+
+def run_explore(args: argparse.Namespace) -> int:
+    model = _load(args.model_dir)
+    output = args.output or os.path.join(args.model_dir, "explorer.html")
+    if args.output is not None:
+        check_outputs({"--output": args.output}, args.overwrite)
+    folder = os.path.join(args.model_dir, "registrations")
+    written = write_model_explorer(
+        output,
+        model,
+        registrations=folder if os.path.isdir(folder) else None,
+        up=args.up,
+        overwrite=args.overwrite or args.output is None,
+    )
+    print(written)
+    return 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
@@ -19,7 +20,8 @@ from ._common import check_outputs, emit, emit_json, float_list, int_list, write
 EPILOG = """examples:
   o3dreg register template.ply patient.ply -o registered.ply
   o3dreg register template.ply patient.ply -o registered.ply --levels 4,8,16 \\
-      --regularization 0.1 --deformation deformation.npz --report report.json
+      --regularization 0.1 --deformation deformation.npz --report report.json \\
+      --html registration.html
   o3dreg register template.ply patient.ply -o single.ply --no-symmetric
   o3dreg register template.ply scan.ply -o out.ply --loss cauchy --max-normal-angle 60
 
@@ -108,6 +110,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--project", action="store_true", help="move vertices onto the target surface")
     p.add_argument("--deformation", help="also write the deformation (.npz)")
     p.add_argument("--report", help="also write a JSON report")
+    p.add_argument(
+        "--html",
+        metavar="FILE",
+        help="also write an interactive page (template, patient, distance colours; offline)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
     p.set_defaults(func=run)
@@ -158,7 +165,12 @@ def report_dict(result: ElasticRegistrationResult, **extra) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     check_outputs(
-        {"--output": args.output, "--deformation": args.deformation, "--report": args.report},
+        {
+            "--output": args.output,
+            "--deformation": args.deformation,
+            "--report": args.report,
+            "--html": args.html,
+        },
         args.overwrite,
         inputs={"SOURCE": args.source, "TARGET": args.target},
         suffixes={"--output": MESH_SUFFIXES, "--deformation": (".npz",), "--report": (".json",)},
@@ -223,6 +235,18 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.report:
         write_json(args.report, report, overwrite=args.overwrite)
+    if args.html:
+        from ..app.explorer import write_registration_explorer
+
+        write_registration_explorer(
+            args.html,
+            source,
+            target,
+            result,
+            verdict=report,
+            name=f"{os.path.basename(args.source)} -> {os.path.basename(args.target)}",
+            overwrite=args.overwrite,
+        )
     if args.json:
         emit_json(report)
     emit(result.distances.table(), args)
