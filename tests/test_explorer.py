@@ -92,7 +92,11 @@ def test_model_explore_cli_rewrites_the_page(folder, tmp_path, capsys):
     assert capsys.readouterr().out.strip() == str(out)
     data = page_data(out)
     # Camera rows (right, up, back): the requested up is the screen's up.
-    np.testing.assert_allclose(np.reshape(data["rotation"], (3, 3))[1] @ [0, 1, 0], 1.0, atol=0.1)
+    rotation = np.reshape(data["rotation"], (3, 3))
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(rotation) == pytest.approx(1.0)  # right-handed
+    # Elevation 20 degrees: the world's up makes 20 degrees with the screen's up.
+    assert rotation[1] @ [0, 1, 0] == pytest.approx(np.cos(np.radians(20.0)))
     assert main(["model", "explore", str(folder), "-o", str(out)]) == 2  # exists: refused
     assert "--overwrite" in capsys.readouterr().err
     # Without -o it rewrites MODEL/explorer.html.

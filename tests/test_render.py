@@ -98,7 +98,7 @@ def test_view_screenshot_is_written_headless_in_bounded_time(tmp_path, cone):
 def _sphere_model(radii):
     import open3d as o3d
 
-    from o3dreg.shape.model import build_shape_model
+    from o3dreg import build_shape_model
 
     sphere = o3d.geometry.TriangleMesh.create_icosahedron(1.0).subdivide_loop(2)
     unit = np.asarray(sphere.vertices)
@@ -125,7 +125,7 @@ def test_mode_displacements_of_spheres_are_radial():
 
 
 def test_render_shape_modes_writes_one_grid(tmp_path):
-    from o3dreg.shape.model import build_shape_model
+    from o3dreg import build_shape_model
 
     sphere, unit = _sphere_model([1.0, 2.0])
     # Ellipsoids whose x and y semi-axes vary independently: two modes.

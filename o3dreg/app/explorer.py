@@ -25,6 +25,7 @@ import numpy as np
 from .._validation import as_mesh_arrays
 from ..io.mesh import atomic_write_text, read_triangle_mesh
 from ..registration.distance import SurfaceDistanceQuery
+from .render import view_rotation
 
 __all__ = ["write_model_explorer", "write_registration_explorer"]
 
@@ -56,23 +57,6 @@ def _colormap(name: str, count: int = 33) -> list[list[float]]:
 
     table = matplotlib.colormaps[name](np.linspace(0.0, 1.0, count))[:, :3]
     return np.round(table, 4).tolist()
-
-
-def _rotation(view: Sequence[float], up: Sequence[float]) -> list[float]:
-    """World -> camera rotation (row-major): camera x right, y up, z towards the viewer."""
-    from .render import _camera, _check_view
-
-    up_ = np.asarray(up, dtype=np.float64)
-    if up_.shape != (3,) or not np.isfinite(up_).all() or np.linalg.norm(up_) == 0:
-        raise ValueError(f"`up` must be a non-zero (3,) vector, got {up!r}")
-    up_ = up_ / np.linalg.norm(up_)
-    unit = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
-    eye, centre = _camera(unit, _check_view(view), up_, 35.0)
-    back = (eye - centre) / np.linalg.norm(eye - centre)
-    screen_up = up_ - (up_ @ back) * back
-    screen_up /= np.linalg.norm(screen_up)
-    right = np.cross(screen_up, back)
-    return np.stack([right, screen_up, back]).ravel().tolist()
 
 
 def _finite(value: Any) -> Any:
@@ -269,7 +253,7 @@ def write_model_explorer(
     if not isinstance(model, ShapeModel):
         raise TypeError(f"`model` must be a ShapeModel, got {type(model).__name__}")
     max_triangles = _check_triangles(max_display_triangles)
-    rotation = _rotation(view, up)
+    rotation = view_rotation(view, up)
     folder = getattr(registrations, "output_dir", registrations)
     if folder is not None and not os.path.isdir(folder):
         raise OSError(f"`registrations`: no folder {os.fspath(folder)!r}")
@@ -393,7 +377,7 @@ def write_registration_explorer(
     )
     data = {
         "title": title or f"o3dreg registration: {name}",
-        "rotation": _rotation(view, up),
+        "rotation": view_rotation(view, up),
         "colormaps": {"coolwarm": _colormap("coolwarm"), "viridis": _colormap("viridis")},
         "model": None,
         "cases": [case],

@@ -84,6 +84,25 @@ def _camera(
     return centre + distance * direction, centre
 
 
+def view_rotation(view: Sequence[float], up: Sequence[float]) -> list[float]:
+    """The world -> camera rotation of ``(azimuth, elevation)`` about ``up``, row-major.
+
+    Rows: the camera's right, up (``up`` as seen on screen) and back (towards the viewer)
+    directions, as :func:`render_mesh` places its camera.
+    """
+    up_ = np.asarray(up, dtype=np.float64)
+    if up_.shape != (3,) or not np.isfinite(up_).all() or np.linalg.norm(up_) == 0:
+        raise ValueError(f"`up` must be a non-zero (3,) vector, got {up!r}")
+    up_ = up_ / np.linalg.norm(up_)
+    unit = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    eye, centre = _camera(unit, _check_view(view), up_, 35.0)
+    back = (eye - centre) / np.linalg.norm(eye - centre)
+    screen_up = up_ - (up_ @ back) * back
+    screen_up /= np.linalg.norm(screen_up)
+    right = np.cross(screen_up, back)
+    return [float(v) for v in np.stack([right, screen_up, back]).ravel()]
+
+
 def _colours(
     scalars: np.ndarray | None, cmap: str, vmin: float | None, vmax: float | None
 ) -> tuple[np.ndarray | None, float, float]:
