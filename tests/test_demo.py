@@ -23,6 +23,7 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     for section in ("Single vs symmetric", "Batch registration", "Table 4", "Landmark prediction"):
         assert section in report
     assert (out / "images" / "variances.png").stat().st_size > 1000
+    assert "(explorer.html)" in report and (out / "explorer.html").stat().st_size > 10_000
     assert (out / "model.npz").is_file() and (out / MARKER).is_file()
     # A second run replaces the folder it made.
     assert main(["demo", "-o", str(out), "--patients", "3", "-q"]) == 0

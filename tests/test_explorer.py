@@ -134,6 +134,12 @@ def test_explorer_shows_failed_and_moved_patients_with_their_verdict(folder, tmp
         tmp_path / "a.html", model, registrations=records))["cases"]}  # fmt: skip
     assert "distance" not in cases["p0"] and "registered" in cases["p0"]
     assert "no such file" in cases["p0"]["notes"][0]
+    # Given by name (a patient registered from arrays), the surface is found again.
+    again = page_data(write_model_explorer(
+        tmp_path / "b.html", model, registrations=records,
+        targets={"p0": read_triangle_mesh(folder.parent / "p0.ply")}))["cases"][0]  # fmt: skip
+    expected = moved["distances"]["source_to_target_mean"]
+    assert f32(again["distance"]).mean() == pytest.approx(expected, rel=1e-5)
     # NaN (no registration) is null in the page's JSON.
     assert cases["p9"]["verdict"] == {**failed, "min_jacobian_determinant": None}
     assert "registered" not in cases["p9"]

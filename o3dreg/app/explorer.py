@@ -140,7 +140,9 @@ def _check_triangles(value: Any) -> int:
     return int(value)
 
 
-def _registration_cases(folder: str, faces: np.ndarray, max_triangles: int) -> list[dict]:
+def _registration_cases(
+    folder: str, faces: np.ndarray, max_triangles: int, targets: Mapping[str, Any]
+) -> list[dict]:
     """One case per ``NAME.json`` record of a batch folder (see :func:`~o3dreg.register_batch`)."""
     cases = []
     for entry in sorted(os.listdir(folder)):
@@ -167,7 +169,13 @@ def _registration_cases(folder: str, faces: np.ndarray, max_triangles: int) -> l
         source = record.get("source", "")
         if registered is not None:
             try:
-                target = as_mesh_arrays(read_triangle_mesh(source), "target")
+                given = targets.get(name)
+                if given is None:
+                    target = as_mesh_arrays(read_triangle_mesh(source), "target")
+                elif isinstance(given, (str, os.PathLike)):
+                    target = as_mesh_arrays(read_triangle_mesh(given), f"targets[{name!r}]")
+                else:
+                    target = as_mesh_arrays(given, f"targets[{name!r}]")
             except (OSError, TypeError, ValueError) as error:
                 notes.append(f"patient surface not shown, no distances: {error}")
         cases.append(
@@ -189,6 +197,7 @@ def write_model_explorer(
     model: Any,
     *,
     registrations: Any = None,
+    targets: Mapping[str, Any] | None = None,
     view: Sequence[float] = (30.0, 20.0),
     up: Sequence[float] = (0.0, 0.0, 1.0),
     max_display_triangles: int = MAX_DISPLAY_TRIANGLES,
@@ -216,6 +225,9 @@ def write_model_explorer(
         A :func:`~o3dreg.register_batch` output folder (``NAME.json`` records and ``NAME.ply``
         semilandmark meshes), or its result. Patients whose file (the record's ``source``) is
         gone are shown without distances.
+    targets : mapping of str to mesh or path, optional
+        Patient surfaces by name (``open3d.geometry.TriangleMesh``, ``(vertices, faces)`` or a
+        file), for records that do not name a readable file (patients registered from arrays).
     view : (azimuth, elevation)
         Initial camera direction in degrees about ``up``. Default ``(30, 20)``.
     up : (3,) array_like
@@ -285,7 +297,9 @@ def write_model_explorer(
         ],
     }
     if folder is not None:
-        data["cases"] = _registration_cases(os.fspath(folder), faces, max_triangles)
+        data["cases"] = _registration_cases(
+            os.fspath(folder), faces, max_triangles, dict(targets or {})
+        )
     return atomic_write_text(path, _page(data), overwrite=overwrite)
 
 

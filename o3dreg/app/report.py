@@ -147,7 +147,12 @@ def write_report(
         from .explorer import write_model_explorer
 
         explorer = write_model_explorer(
-            out / "explorer.html", model, registrations=batch, up=_VIEW["up"], view=_VIEW["view"]
+            out / "explorer.html",
+            model,
+            registrations=batch,
+            targets={p.name: p.mesh for p in patients},
+            up=_VIEW["up"],
+            view=_VIEW["view"],
         )
     except Exception as exc:  # the page is not worth failing the report for
         logger.warning("could not write explorer.html: %s", exc)
