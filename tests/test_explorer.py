@@ -15,7 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
-from test_shapemodel import population
+from _helpers import population
 
 from o3dreg import write_triangle_mesh
 from o3dreg.app.explorer import write_model_explorer, write_registration_explorer
