@@ -21,11 +21,15 @@ from importlib import resources
 from typing import Any
 
 import numpy as np
+import open3d as o3d
 
+from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays
 from ..io.mesh import atomic_write_text, read_triangle_mesh
 from ..registration.distance import SurfaceDistanceQuery
-from .render import view_rotation
+from ..registration.result import ElasticRegistrationResult
+from ..shape.model import ShapeModel
+from .render import mode_displacements, view_rotation
 
 __all__ = ["write_model_explorer", "write_registration_explorer"]
 
@@ -82,8 +86,6 @@ def _verdict(record: Mapping[str, Any]) -> dict[str, Any]:
 def _display_mesh(vertices: np.ndarray, faces: np.ndarray, max_triangles: int) -> dict[str, Any]:
     note = ""
     if faces.shape[0] > max_triangles:
-        import open3d as o3d
-
         mesh = o3d.geometry.TriangleMesh(
             o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(faces.astype(np.int32))
         )
@@ -259,9 +261,6 @@ def write_model_explorer(
     >>> write_model_explorer("explorer.html", model, registrations="model/registrations")
     ... # doctest: +SKIP
     """
-    from ..shape.model import ShapeModel
-    from .render import mode_displacements
-
     if not isinstance(model, ShapeModel):
         raise TypeError(f"`model` must be a ShapeModel, got {type(model).__name__}")
     max_triangles = _check_triangles(max_display_triangles)
@@ -355,9 +354,6 @@ def write_registration_explorer(
         If ``result`` does not have ``source``'s vertices, or for a bad ``view``, ``up`` or
         ``max_display_triangles``.
     """
-    from .._geometry import apply_transformation
-    from ..registration.result import ElasticRegistrationResult
-
     if not isinstance(result, ElasticRegistrationResult):
         raise TypeError(
             f"`result` must be an ElasticRegistrationResult, got {type(result).__name__}"

@@ -24,6 +24,7 @@ from open3d.visualization import rendering
 
 from .._validation import as_mesh_arrays
 from ..io.mesh import atomic_write
+from ..registration.elastic import vertex_normals
 
 # matplotlib is imported inside the functions that draw: ~1 s to import, for pictures only.
 
@@ -377,8 +378,6 @@ def mode_displacements(model: Any, mode: int, standard_deviations: float) -> np.
     ``(mode_shape(mode, c) - mean) . n`` with ``n`` the mean shape's area-weighted unit vertex
     normals: positive where the shape grows outwards, negative where it moves in.
     """
-    from ..registration.elastic import vertex_normals
-
     normals = vertex_normals(np.asarray(model.mean), np.asarray(model.faces))
     moved = model.mode_shape(mode, standard_deviations) - model.mean
     return np.asarray((moved * normals).sum(axis=1))

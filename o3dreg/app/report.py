@@ -11,7 +11,8 @@ import open3d as o3d
 
 from ..io.mesh import atomic_write, atomic_write_text, to_open3d
 from ..registration.distance import SurfaceDistanceQuery
-from .render import render_mesh
+from .explorer import write_model_explorer
+from .render import render_mesh, render_shape_modes
 
 logger = logging.getLogger("o3dreg")
 
@@ -137,15 +138,11 @@ def write_report(
             vmax=3.0,
         )
     try:
-        from .render import render_shape_modes
-
         pictures["modes"] = Path(render_shape_modes(model, images / "modes.png", **_VIEW))
     except Exception as exc:  # a picture is not worth failing the report for
         logger.warning("could not render modes.png: %s", exc)
 
     try:
-        from .explorer import write_model_explorer
-
         explorer = write_model_explorer(
             out / "explorer.html",
             model,

@@ -10,6 +10,7 @@ import time
 import numpy as np
 from tqdm import tqdm
 
+from ..app.explorer import write_registration_explorer
 from ..io.mesh import MESH_SUFFIXES, read_triangle_mesh, write_triangle_mesh
 from ..registration.elastic import registration_elastic
 from ..registration.options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
@@ -236,8 +237,6 @@ def run(args: argparse.Namespace) -> int:
     if args.report:
         write_json(args.report, report, overwrite=args.overwrite)
     if args.html:
-        from ..app.explorer import write_registration_explorer
-
         write_registration_explorer(
             args.html,
             source,
