@@ -5,7 +5,8 @@ import pytest
 from _helpers import level_problem
 
 from o3dreg.app.synthetic import synthetic_form
-from o3dreg.registration.elastic import lattice_box
+from o3dreg.registration._cost import Robustness
+from o3dreg.registration.elastic import lattice_box, vertex_normals
 from o3dreg.registration.lattice import TrilinearLattice
 
 
@@ -91,3 +92,27 @@ def test_bending_energy_is_free_for_affine_motion(meshes):
         nodes, meshes[1], lattice, symmetric_weight=0.0, regularization=1.0, energy="membrane"
     )
     assert membrane.evaluate((nodes @ a.T + 2.0).ravel()).cost_regularization > 1.0
+
+
+@pytest.mark.parametrize(
+    "robustness",
+    [None, Robustness(loss="cauchy", max_distance_factor=3.0, max_normal_angle=60.0)],
+    ids=["plain", "robust"],
+)
+def test_normal_equations_are_those_of_the_jacobian(meshes, robustness):
+    # The solver assembles J^T J and J^T r block by block, without J: it must be the same
+    # system as the Jacobian that is checked against finite differences above.
+    source, target = meshes
+    points = source[0] * 0.9
+    origin, size = lattice_box([points, target[0]])
+    lattice = TrilinearLattice.zeros(origin, size, (4, 4, 4))
+    normals = vertex_normals(points, source[1])
+    problem = level_problem(points, target, lattice, robustness=robustness, normals=normals)
+    u = np.random.default_rng(2).normal(scale=0.5, size=problem.number_of_unknowns)
+    ev = problem.evaluate(u)
+    A, g = problem.normal_equations(ev)
+    J = ev.jacobian
+    scale = abs(J.T @ J).max()
+    # Sums of the same products in another order: equal to rounding.
+    np.testing.assert_allclose(A.toarray(), (J.T @ J).toarray(), rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(g, J.T @ ev.residuals, rtol=0, atol=1e-12 * abs(g).max())
