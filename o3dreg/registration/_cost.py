@@ -36,7 +36,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .distance import SurfaceDistanceQuery
-from .lattice import _CORNERS, TrilinearLattice
+from .lattice import TrilinearLattice
 
 #: Tuning constants of the robust losses (95% efficiency under Gaussian noise), in units of the
 #: robust scale ``sigma``.
@@ -255,30 +255,21 @@ class LevelProblem:
         flat = np.unique(lat.node_index(cells))
         nz1, ny1 = lat.node_shape[2], lat.node_shape[1]
         cells = np.stack([flat // (ny1 * nz1), (flat // nz1) % ny1, flat % nz1], axis=1)
-        local = 0.25 + 0.5 * _CORNERS
-        pts = lat.origin + (cells[:, None, :] + local[None, :, :]).reshape(-1, 3) * lat.cell_size
+        pts = lat.cell_samples(cells)
         base = np.broadcast_to(np.eye(3), (pts.shape[0], 3, 3)).copy()
         if prior is not None:
             base = prior.jacobian(pts)
         lookup = np.full(lat.number_of_nodes, -1, dtype=np.int64)
         lookup[f] = np.arange(f.size)
-        probe = lat.with_displacements(np.zeros(lat.displacements.shape))
-        nodes, _ = probe.weights(pts)
-        _, t, _ = probe.locate(pts)
-        fv = np.stack([1.0 - t, t], axis=1)
-        df = np.stack([-np.ones_like(t), np.ones_like(t)], axis=1) / lat.cell_size
-        c0, c1, c2 = _CORNERS[:, 0], _CORNERS[:, 1], _CORNERS[:, 2]
-        grads = [
-            df[:, c0, 0] * fv[:, c1, 1] * fv[:, c2, 2],
-            fv[:, c0, 0] * df[:, c1, 1] * fv[:, c2, 2],
-            fv[:, c0, 0] * fv[:, c1, 1] * df[:, c2, 2],
-        ]
+        nodes, _, grads = lat.basis(pts)
         local_nodes = lookup[nodes]
         keep = local_nodes >= 0
         rows = np.broadcast_to(np.arange(pts.shape[0])[:, None], nodes.shape)[keep]
         ops = [
-            sp.csr_matrix((g[keep], (rows, local_nodes[keep])), shape=(pts.shape[0], f.size))
-            for g in grads
+            sp.csr_matrix(
+                (grads[:, :, a][keep], (rows, local_nodes[keep])), shape=(pts.shape[0], f.size)
+            )
+            for a in range(3)
         ]
         return base, ops
 

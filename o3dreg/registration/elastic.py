@@ -514,11 +514,7 @@ def _min_cell_determinant(deformation: LatticeDeformation, points: np.ndarray) -
     shape = deformation._common_shape()
     lat = TrilinearLattice.zeros(deformation.levels[0].origin, deformation.levels[0].size, shape)
     cells, _, _ = lat.locate(points)
-    cells = np.unique(cells, axis=0)
-    from .lattice import corner_offsets
-
-    local = 0.25 + 0.5 * corner_offsets()
-    pts = lat.origin + (cells[:, None, :] + local[None, :, :]).reshape(-1, 3) * lat.cell_size
+    pts = lat.cell_samples(np.unique(cells, axis=0))
     return float(deformation.jacobian_determinant(pts).min())
 
 

@@ -141,6 +141,39 @@ class TrilinearLattice:
         cells = np.minimum(np.floor(s).astype(np.int64), shape - 1)
         return cells, s - cells, inside
 
+    def cell_samples(self, cells: np.ndarray) -> np.ndarray:
+        """8 interior points of each cell ``(k, 3)`` (integer indices), at local coordinates 1/4
+        and 3/4 along each axis: where the Jacobian determinant of a trilinear map is sampled
+        (it is a polynomial of degree 2 in each coordinate; these samples avoid the faces the
+        cells share). Returns ``(8 k, 3)``, cell-major."""
+        local = 0.25 + 0.5 * _CORNERS
+        return self.origin + (cells[:, None, :] + local[None, :, :]).reshape(-1, 3) * self.cell_size
+
+    def basis(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The 8 nodes of each point's cell, their trilinear weights and the weights' spatial
+        derivatives: ``(n, 8)``, ``(n, 8)``, ``(n, 8, 3)`` with ``[p, k, a] = d w_k / d x_a``.
+
+        The one place where the trilinear basis and its gradient are written. The derivative is
+        exact inside each cell (one-sided on a cell face) and zero along axes where the point
+        lies outside the box (the field is clamped there).
+        """
+        cells, t, inside = self.locate(points)
+        f = np.stack([1.0 - t, t], axis=1)  # (n, 2, 3): f[:, bit, axis]
+        df = np.stack([-np.ones_like(t), np.ones_like(t)], axis=1) / self.cell_size
+        df = df * inside[:, None, :]
+        c0, c1, c2 = _CORNERS[:, 0], _CORNERS[:, 1], _CORNERS[:, 2]
+        w = f[:, c0, 0] * f[:, c1, 1] * f[:, c2, 2]
+        grads = np.stack(
+            [
+                df[:, c0, 0] * f[:, c1, 1] * f[:, c2, 2],
+                f[:, c0, 0] * df[:, c1, 1] * f[:, c2, 2],
+                f[:, c0, 0] * f[:, c1, 1] * df[:, c2, 2],
+            ],
+            axis=2,
+        )
+        nodes = self.node_index(cells[:, None, :] + _CORNERS[None, :, :])
+        return nodes, w, grads
+
     def weights(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The 8 nodes of each point's cell and their trilinear weights.
 
@@ -176,16 +209,7 @@ class TrilinearLattice:
         Exact inside each cell; on a cell face it is the one-sided derivative of the cell the point
         is assigned to. Zero along axes where the point lies outside the box (clamped field).
         """
-        cells, t, inside = self.locate(points)
-        f = np.stack([1.0 - t, t], axis=1)  # values
-        df = np.stack([-np.ones_like(t), np.ones_like(t)], axis=1) / self.cell_size  # d/dx
-        df = df * inside[:, None, :]
-        c0, c1, c2 = _CORNERS[:, 0], _CORNERS[:, 1], _CORNERS[:, 2]
-        gx = df[:, c0, 0] * f[:, c1, 1] * f[:, c2, 2]
-        gy = f[:, c0, 0] * df[:, c1, 1] * f[:, c2, 2]
-        gz = f[:, c0, 0] * f[:, c1, 1] * df[:, c2, 2]
-        grads = np.stack([gx, gy, gz], axis=2)  # (n, 8, 3)
-        nodes = self.node_index(cells[:, None, :] + _CORNERS[None, :, :])
+        nodes, _, grads = self.basis(points)
         d = self.displacements.reshape(-1, 3)[nodes]  # (n, 8, 3)
         return np.einsum("nkc,nka->nca", d, grads)
 
