@@ -130,7 +130,14 @@ def build_levels(args: argparse.Namespace) -> list[ElasticLevel]:
         raise ValueError(
             f"--regularization must give 1 or {len(resolutions)} values, got {len(weights)}"
         )
-    return [ElasticLevel(r, w) for r, w in zip(resolutions, weights)]
+    # The default hierarchy keeps its barycentre-term schedule; levels given on the command line
+    # use the term at full weight (eq. 3 at every level, as published).
+    scales = (
+        [lev.symmetric_scale for lev in default_levels()]
+        if args.levels is None
+        else [1.0] * len(resolutions)
+    )
+    return [ElasticLevel(r, w, symmetric_scale=s) for r, w, s in zip(resolutions, weights, scales)]
 
 
 def report_dict(result: ElasticRegistrationResult, **extra) -> dict:

@@ -206,8 +206,9 @@ def registration_elastic(
             )
     query = SurfaceDistanceQuery(vt, ft)
     origin, size = lattice_box([points, vt], padding)
-    target_points = vt if estimation_method.symmetric else None
     weight = estimation_method.symmetric_weight if estimation_method.symmetric else 0.0
+    symmetric_levels = weight > 0 and any(lev.symmetric_scale > 0 for lev in levels_)
+    target_points = vt if symmetric_levels else None
 
     surfaces = _TargetLevelsOfDetail(
         vt,
@@ -247,7 +248,8 @@ def registration_elastic(
         # as all of it, at a fraction of the cost of each distance query.
         use = _level_sample(lattice, points, level.points_per_node)
         use_target = None
-        if target_points is not None:
+        level_weight = weight * level.symmetric_scale
+        if target_points is not None and level_weight > 0:
             budget = int(estimation_method.target_points_per_source_point * use.size)
             use_target = _target_subsample(target_points, budget, target_samples)
         level_query = query
@@ -269,7 +271,7 @@ def registration_elastic(
         if estimation_method.max_normal_angle is not None:
             normals = vertex_normals(points + previous, fs)[use]
         offsets = None
-        if target_points is not None and estimation_method.barycentre_correction:
+        if use_target is not None and estimation_method.barycentre_correction:
             offsets = _barycentre_offsets(
                 (points + previous)[use], surface_samples, deformation, sample_weights
             )
@@ -280,7 +282,7 @@ def registration_elastic(
             active[use],
             level_query,
             use_target,
-            weight,
+            level_weight,
             level.regularization,
             level.energy,
             robustness=robustness,

@@ -118,6 +118,10 @@ class ElasticLevel:
         problems only).
     criteria : ElasticCriteria or None
         Stopping rule of this level; ``None`` uses the registration's ``criteria``.
+    symmetric_scale : float
+        Multiplies :attr:`DistanceEstimation.symmetric_weight` at this level; ``0`` makes the
+        level minimise the single distance (eq. 2). Default 1 (eq. 3 as published); the
+        default hierarchy lowers it at its fine levels (see :func:`default_levels`).
     """
 
     resolution: int
@@ -129,9 +133,11 @@ class ElasticLevel:
     solver: str = "lm"
     criteria: ElasticCriteria | None = None
     min_jacobian_determinant: float | None = 0.05
+    symmetric_scale: float = 1.0
 
     def __post_init__(self) -> None:
         check_positive(self.resolution, "resolution", integer=True)
+        check_positive(self.symmetric_scale, "symmetric_scale", allow_zero=True)
         if self.resolution > MAX_RESOLUTION:
             raise ValueError(
                 f"`resolution` must be at most {MAX_RESOLUTION} cells per axis (memory: about "
@@ -170,6 +176,8 @@ class ElasticLevel:
             extra += f", solver={self.solver!r}"
         if self.criteria is not None:
             extra += f", criteria={self.criteria!r}"
+        if self.symmetric_scale != 1.0:
+            extra += f", symmetric_scale={self.symmetric_scale:g}"
         return f"ElasticLevel(resolution={self.resolution}, regularization={self.regularization:g}{extra})"
 
 
@@ -306,11 +314,32 @@ class DistanceEstimation:
         )
 
 
-def default_levels() -> list[ElasticLevel]:
-    """The default hierarchy: 2, 4, 8 and 16 cells per axis, bending energy with weight 0.1.
+#: ``symmetric_scale`` of the default levels 2, 4, 8, 16 (see :func:`default_levels`).
+DEFAULT_SYMMETRIC_SCALES = (1.0, 1.0, 0.3, 0.0)
 
-    Chosen on the bunny under known warps of 2-10% of its diagonal and on the paper's cone ->
-    sphere case (docs/registration.md records the sweep): 1.0 is too stiff for large warps, 0.01
-    leaves the Jacobian determinant lower for no gain in accuracy.
+
+def default_levels() -> list[ElasticLevel]:
+    """The default hierarchy: 2, 4, 8 and 16 cells per axis, the barycentre term on coarse levels.
+
+    Bending energy with weight 0.1 on every level; the barycentre term at full weight on the two
+    coarse levels, 0.3 at 8 cells, none at 16.
+
+    The regularisation was chosen on the bunny under known warps of 2-10% of its diagonal and on
+    the paper's cone -> sphere case (docs/registration.md records the sweep): 1.0 is too stiff
+    for large warps, 0.01 leaves the Jacobian determinant lower for no gain in accuracy.
+
+    The barycentre term spreads the template over the whole target, a large-scale effect the
+    coarse levels settle; on a fine lattice it also slides each template vertex towards the
+    centroid of its Voronoi cell of target points (Lloyd's relaxation), which costs
+    correspondence accuracy and, as its assignments change at every evaluation, twice the
+    evaluations. Measured (bunny, 3k -> 36k, medium warp, paper's plain least squares): mean
+    correspondence error 0.180% of the diagonal with the term at every level, 0.085% with this
+    schedule (single distance: 0.092%); the cone -> sphere of Table 1 keeps its spreading
+    (sphere -> cone mean 1.5 mm, against 0.5 mm with the term at every level and 33.6 mm with
+    the single distance). ``symmetric_scale=1`` on every level is eq. (3) at every level, the
+    published method.
     """
-    return [ElasticLevel(resolution=r) for r in (2, 4, 8, 16)]
+    return [
+        ElasticLevel(resolution=r, symmetric_scale=s)
+        for r, s in zip((2, 4, 8, 16), DEFAULT_SYMMETRIC_SCALES)
+    ]
