@@ -369,3 +369,74 @@ def test_a_record_never_leads_outside_the_output_folder(tmp_path):
     assert [r.name for r in again.registered] == ["a"] and not again.records[0].skipped
     with pytest.raises(ValueError, match="not a plain file name"):
         BatchResult((), str(out), np.zeros((0, 3))).mesh_path("../foreign_shape")
+
+
+# -- 4/5. corrupt archives ---------------------------------------------------------------------
+
+
+@pytest.fixture
+def deformation_file(tmp_path):
+    from o3dreg.registration.deformation import LatticeDeformation
+    from o3dreg.registration.lattice import TrilinearLattice
+
+    rng = np.random.default_rng(1)
+    lattice = TrilinearLattice(
+        np.zeros(3), np.ones(3) * 10, (2, 2, 2), rng.normal(size=(3, 3, 3, 3))
+    )
+    path = tmp_path / "d.npz"
+    LatticeDeformation((lattice,)).save(path)
+    return path
+
+
+def _rewrite(path: Path, **changes) -> None:
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays.update(changes)
+    np.savez(path, **arrays)  # uncompressed: byte offsets of the members are simple
+
+
+def test_deformation_archives_with_nan_or_negative_counts_are_refused(deformation_file):
+    from o3dreg import load_deformation
+
+    with np.load(deformation_file) as data:
+        displacements = data["level0_displacements"].copy()
+    displacements[0, 0, 0, 0] = np.nan
+    _rewrite(deformation_file, level0_displacements=displacements)
+    with pytest.raises(ValueError, match="level0_displacements holds NaN"):
+        load_deformation(deformation_file)
+    displacements[0, 0, 0, 0] = 0.0
+    _rewrite(deformation_file, level0_displacements=displacements, number_of_levels=np.array(-1))
+    with pytest.raises(ValueError, match="number_of_levels is -1"):
+        load_deformation(deformation_file)
+
+
+def _damaged(path: Path, how: str) -> None:
+    raw = bytearray(path.read_bytes())
+    if how == "empty":
+        path.write_bytes(b"")
+    elif how == "truncated":
+        path.write_bytes(bytes(raw[: len(raw) // 2]))
+    else:  # one flipped byte inside the last member's data: a bad CRC
+        _rewrite(path)
+        raw = bytearray(path.read_bytes())
+        central = raw.find(b"PK\x01\x02")  # the central directory follows the data
+        raw[central - 20] ^= 0xFF
+        path.write_bytes(bytes(raw))
+
+
+@pytest.mark.parametrize("how", ["empty", "truncated", "bad-crc"])
+def test_damaged_archives_raise_a_clear_value_error(deformation_file, how):
+    from o3dreg import load_deformation
+
+    _damaged(deformation_file, how)
+    with pytest.raises(ValueError, match="d.npz"):
+        load_deformation(deformation_file)
+
+
+@pytest.mark.parametrize("how", ["empty", "truncated", "bad-crc"])
+def test_damaged_model_is_one_line_and_exit_2(model_dir, how):
+    _damaged(model_dir / "model.npz", how)
+    done = cli("model", "info", str(model_dir))
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr and "model.npz" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1

@@ -102,7 +102,7 @@ def test_load_bad_files(tmp_path):
         LatticeDeformation.load(tmp_path / "missing.npz")
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip")
-    with pytest.raises(OSError, match="not a readable"):
+    with pytest.raises(ValueError, match="not a complete .npz archive"):
         LatticeDeformation.load(bad)
     other = tmp_path / "other.npz"
     np.savez(other, a=np.zeros(3))

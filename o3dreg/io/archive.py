@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import zipfile
+import zlib
 from typing import Any
 
 import numpy as np
@@ -31,27 +33,55 @@ def write_archive(
     return atomic_write(path, write, overwrite=overwrite)
 
 
-def read_archive(path: Any, *, kind: str, version: int, what: str) -> dict[str, np.ndarray]:
+def read_archive(
+    path: Any, *, kind: str, version: int, what: str, finite: bool = True
+) -> dict[str, np.ndarray]:
     """Read an archive written by :func:`write_archive`, checking its tag and version.
 
-    Raises ``OSError`` for a missing or unreadable file and ``ValueError`` for a file holding
-    something else (``what`` names it in the message) or a newer version.
+    Every member is read (so a truncated file or a bad CRC is found here, not later) and, with
+    ``finite``, every floating-point member must be finite.
+
+    Raises ``OSError`` for a missing or unreadable file and ``ValueError`` for a file that is
+    not a complete ``.npz`` archive (empty, truncated, bad CRC), holds something else (``what``
+    names it in the message), a newer version, or NaN / infinite values.
     """
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`path` must be a path, got {type(path).__name__}")
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise OSError(f"`path`: no such file {path!r}")
+    if not os.access(path, os.R_OK):
+        raise OSError(f"`path`: {path!r} is not readable")
+    if os.path.getsize(path) == 0:
+        raise ValueError(f"`path`: {path!r} is empty, not an o3dreg {what}")
     try:
-        data = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise OSError(f"`path`: {path!r} is not a readable .npz file ({exc})") from exc
-    with data:
-        if "format" not in data or str(data["format"]) != kind:
-            raise ValueError(f"`path`: {path!r} does not hold an o3dreg {what}")
-        if int(data["version"]) > version:
-            raise ValueError(
-                f"`path`: {path!r} has format version {int(data['version'])}, "
-                f"this o3dreg reads up to {version}"
-            )
-        return {name: data[name] for name in data.files}
+        with zipfile.ZipFile(path) as archive:
+            damaged = archive.testzip()  # reads every member: CRCs and truncation
+        if damaged is not None:
+            raise zipfile.BadZipFile(f"bad CRC-32 of member {damaged!r}")
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in data.files}
+    except _CORRUPT as exc:
+        raise ValueError(
+            f"`path`: {path!r} is not a complete .npz archive (truncated or corrupt: "
+            f"{type(exc).__name__}: {exc})"
+        ) from exc
+    if "format" not in arrays or str(arrays["format"]) != kind:
+        raise ValueError(f"`path`: {path!r} does not hold an o3dreg {what}")
+    try:
+        stored = int(arrays["version"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"`path`: {path!r} has no valid format version") from exc
+    if stored > version:
+        raise ValueError(
+            f"`path`: {path!r} has format version {stored}, this o3dreg reads up to {version}"
+        )
+    if finite:
+        for name, value in arrays.items():
+            if np.issubdtype(value.dtype, np.inexact) and not np.all(np.isfinite(value)):
+                raise ValueError(f"`path`: {path!r}: {name} holds NaN or infinite values")
+    return arrays
+
+
+# What numpy and zipfile raise for an empty, truncated or damaged archive.
+_CORRUPT = (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)

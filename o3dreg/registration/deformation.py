@@ -180,7 +180,7 @@ class LatticeDeformation:
                     "part): read it with PartitionedDeformation.load or load_deformation"
                 ) from exc
             raise
-        return _lattice_from(data, "")
+        return _lattice_from(data, "", path)
 
 
 def _lattice_arrays(deformation: LatticeDeformation, prefix: str) -> dict[str, Any]:
@@ -193,17 +193,26 @@ def _lattice_arrays(deformation: LatticeDeformation, prefix: str) -> dict[str, A
     return arrays
 
 
-def _lattice_from(data: dict[str, np.ndarray], prefix: str) -> LatticeDeformation:
+def _lattice_from(data: dict[str, np.ndarray], prefix: str, path: Any) -> LatticeDeformation:
     levels = []
-    for k in range(int(data[f"{prefix}number_of_levels"])):
-        levels.append(
-            TrilinearLattice(
-                data[f"{prefix}level{k}_origin"].astype(np.float64),
-                data[f"{prefix}level{k}_size"].astype(np.float64),
-                tuple(int(s) for s in data[f"{prefix}level{k}_shape"]),  # type: ignore[arg-type]
-                data[f"{prefix}level{k}_displacements"].astype(np.float64),
+    try:
+        count = int(data[f"{prefix}number_of_levels"])
+        if count < 0:
+            raise ValueError(f"{prefix}number_of_levels is {count}")
+        for k in range(count):
+            shape = tuple(int(s) for s in data[f"{prefix}level{k}_shape"])
+            if len(shape) != 3 or min(shape) < 1:
+                raise ValueError(f"{prefix}level{k}_shape is {shape}")
+            levels.append(
+                TrilinearLattice(
+                    data[f"{prefix}level{k}_origin"].astype(np.float64),
+                    data[f"{prefix}level{k}_size"].astype(np.float64),
+                    shape,  # type: ignore[arg-type]
+                    data[f"{prefix}level{k}_displacements"].astype(np.float64),
+                )
             )
-        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"`path`: {os.fspath(path)!r} is not a valid deformation: {exc}") from exc
     return LatticeDeformation(tuple(levels))
 
 
@@ -212,7 +221,7 @@ def _holds(path: Any, kind: str) -> bool:
     try:
         with np.load(os.fspath(path), allow_pickle=False) as data:
             return "format" in data and str(data["format"]) == kind
-    except (OSError, ValueError, TypeError):
+    except Exception:  # empty, truncated, not a zip: the reader called next says which
         return False
 
 
@@ -337,8 +346,17 @@ class PartitionedDeformation:
             version=_PARTITIONED_VERSION,
             what="PartitionedDeformation",
         )
-        parts = tuple(_lattice_from(data, f"part{k}_") for k in range(int(data["number_of_parts"])))
-        return cls(parts, data["sites"].astype(np.float64), data["labels"].astype(np.int64))
+        try:
+            count = int(data["number_of_parts"])
+            sites, labels = data["sites"].astype(np.float64), data["labels"].astype(np.int64)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(
+                f"`path`: {os.fspath(path)!r} is not a valid deformation: {exc}"
+            ) from exc
+        if count < 1:
+            raise ValueError(f"`path`: {os.fspath(path)!r} has number_of_parts {count}")
+        parts = tuple(_lattice_from(data, f"part{k}_", path) for k in range(count))
+        return cls(parts, sites, labels)
 
 
 def load_deformation(path: str | os.PathLike[str]) -> LatticeDeformation | PartitionedDeformation:
