@@ -12,10 +12,13 @@ find the correspondences; the *truth* is the template's vertices moved by the sa
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import open3d as o3d
+from pydicom.dataset import FileDataset, FileMetaDataset
+from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 from scipy.spatial.transform import Rotation
 
 from o3dreg import ElasticLevel
@@ -141,3 +144,52 @@ def population(
         truths.append(phi(template))
         poses.append(pose)
     return (template, tf), targets, np.stack(truths), b, poses
+
+
+def write_dicom_series(
+    folder: Path,
+    stored: np.ndarray,
+    *,
+    slope: float,
+    intercept: float,
+    positions_z: list[float],
+    series_uid: str | None = None,
+    prefix: str = "img",
+) -> str:
+    """Write ``stored`` (planes, rows, columns) uint16 as a CT series with pydicom."""
+    folder.mkdir(exist_ok=True)
+    series_uid = series_uid or generate_uid()
+    study_uid = generate_uid()
+    frame_uid = generate_uid()
+    for n, (plane, z) in enumerate(zip(stored, positions_z, strict=True)):
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = CTImageStorage
+        meta.MediaStorageSOPInstanceUID = generate_uid()
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        ds = FileDataset(None, {}, file_meta=meta, preamble=b"\0" * 128)
+        ds.SOPClassUID = CTImageStorage
+        ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+        ds.StudyInstanceUID = study_uid
+        ds.SeriesInstanceUID = series_uid
+        ds.FrameOfReferenceUID = frame_uid
+        ds.Modality = "CT"
+        ds.PatientName = "Phantom^Test"
+        ds.PatientID = "0"
+        ds.InstanceNumber = n + 1
+        ds.ImagePositionPatient = [-10.0, 20.0, float(z)]
+        ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
+        ds.PixelSpacing = [0.75, 0.5]  # row spacing (y), column spacing (x)
+        ds.SliceThickness = 2.0
+        ds.Rows, ds.Columns = plane.shape
+        ds.SamplesPerPixel = 1
+        ds.PhotometricInterpretation = "MONOCHROME2"
+        ds.BitsAllocated = 16
+        ds.BitsStored = 16
+        ds.HighBit = 15
+        ds.PixelRepresentation = 0
+        ds.RescaleSlope = slope
+        ds.RescaleIntercept = intercept
+        ds.PixelData = np.ascontiguousarray(plane, dtype="<u2").tobytes()
+        # Files named in reverse order of position: the reader must sort by position.
+        ds.save_as(folder / f"{prefix}{len(stored) - n:03d}.dcm", enforce_file_format=True)
+    return series_uid

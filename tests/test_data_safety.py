@@ -440,3 +440,72 @@ def test_damaged_model_is_one_line_and_exit_2(model_dir, how):
     assert done.returncode == 2, done.stderr
     assert "Traceback" not in done.stderr and "model.npz" in done.stderr
     assert len(done.stderr.strip().splitlines()) == 1
+
+
+# -- 4. corrupt volumes ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("suffix", [".nii", ".nii.gz"])
+def test_truncated_nifti_is_an_error_not_zeros(tmp_path, suffix):
+    import nibabel as nib
+
+    from o3dreg import read_volume
+
+    path = tmp_path / f"ct{suffix}"
+    data = np.random.default_rng(0).integers(0, 1000, (20, 30, 40)).astype(np.int16)
+    nib.save(nib.Nifti1Image(data, np.eye(4)), path)
+    assert read_volume(path).shape == (40, 30, 20)  # the whole file reads
+    raw = path.read_bytes()
+    path.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(OSError, match="truncated"):
+        read_volume(path)
+
+
+@pytest.mark.parametrize(
+    ("header", "message"),
+    [
+        ({"spacings": [0.0, 1.0, 1.0]}, "spacings"),
+        ({"spacings": [np.nan, 1.0, 1.0]}, "spacings"),
+        (
+            {
+                "space": "left-posterior-superior",
+                "space directions": np.eye(3),
+                "space origin": [np.nan, 0.0, 0.0],
+            },
+            "space origin",
+        ),
+        (
+            {
+                "space": "left-posterior-superior",
+                "space directions": np.diag([1.0, 0.0, 1.0]),
+                "space origin": [0.0, 0.0, 0.0],
+            },
+            "zero space direction",
+        ),
+    ],
+)
+def test_nrrd_with_unusable_geometry_is_refused(tmp_path, header, message):
+    import nrrd
+
+    from o3dreg import read_volume
+
+    path = tmp_path / "mask.nrrd"
+    nrrd.write(str(path), np.zeros((4, 5, 6), np.uint8), header)
+    with pytest.raises(ValueError, match=message):
+        read_volume(path)
+
+
+def test_dicom_series_with_a_truncated_slice_is_refused(tmp_path):
+    from _helpers import write_dicom_series
+
+    from o3dreg import read_volume
+
+    folder = tmp_path / "series"
+    stored = np.random.default_rng(0).integers(0, 3000, (4, 32, 32)).astype(np.uint16)
+    write_dicom_series(folder, stored, slope=1.0, intercept=0.0, positions_z=[0, 2, 4, 6])
+    assert read_volume(folder).shape == (4, 32, 32)
+    first = sorted(folder.iterdir())[0]  # an end slice: without it the series still looks whole
+    raw = first.read_bytes()
+    first.write_bytes(raw[: len(raw) - 32 * 16 * 2])  # half its PixelData
+    with pytest.raises(OSError, match=first.name):
+        read_volume(folder)

@@ -11,8 +11,7 @@ import numpy as np
 import pydicom
 import pytest
 import SimpleITK as sitk
-from pydicom.dataset import FileDataset, FileMetaDataset
-from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
+from _helpers import write_dicom_series
 
 from o3dreg import Volume, read_raw_slices, read_volume
 from o3dreg.app.datasets import headsq_path
@@ -163,55 +162,6 @@ def test_metaimage_round_trip(tmp_path, ramp, suffix):
     assert np.allclose(v.direction, ROTATION)
 
 
-def _write_dicom_series(
-    folder: Path,
-    stored: np.ndarray,
-    *,
-    slope: float,
-    intercept: float,
-    positions_z: list[float],
-    series_uid: str | None = None,
-    prefix: str = "img",
-) -> str:
-    """Write ``stored`` (planes, rows, columns) uint16 as a CT series with pydicom."""
-    folder.mkdir(exist_ok=True)
-    series_uid = series_uid or generate_uid()
-    study_uid = generate_uid()
-    frame_uid = generate_uid()
-    for n, (plane, z) in enumerate(zip(stored, positions_z, strict=True)):
-        meta = FileMetaDataset()
-        meta.MediaStorageSOPClassUID = CTImageStorage
-        meta.MediaStorageSOPInstanceUID = generate_uid()
-        meta.TransferSyntaxUID = ExplicitVRLittleEndian
-        ds = FileDataset(None, {}, file_meta=meta, preamble=b"\0" * 128)
-        ds.SOPClassUID = CTImageStorage
-        ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
-        ds.StudyInstanceUID = study_uid
-        ds.SeriesInstanceUID = series_uid
-        ds.FrameOfReferenceUID = frame_uid
-        ds.Modality = "CT"
-        ds.PatientName = "Phantom^Test"
-        ds.PatientID = "0"
-        ds.InstanceNumber = n + 1
-        ds.ImagePositionPatient = [-10.0, 20.0, float(z)]
-        ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
-        ds.PixelSpacing = [0.75, 0.5]  # row spacing (y), column spacing (x)
-        ds.SliceThickness = 2.0
-        ds.Rows, ds.Columns = plane.shape
-        ds.SamplesPerPixel = 1
-        ds.PhotometricInterpretation = "MONOCHROME2"
-        ds.BitsAllocated = 16
-        ds.BitsStored = 16
-        ds.HighBit = 15
-        ds.PixelRepresentation = 0
-        ds.RescaleSlope = slope
-        ds.RescaleIntercept = intercept
-        ds.PixelData = np.ascontiguousarray(plane, dtype="<u2").tobytes()
-        # Files named in reverse order of position: the reader must sort by position.
-        ds.save_as(folder / f"{prefix}{len(stored) - n:03d}.dcm", enforce_file_format=True)
-    return series_uid
-
-
 @pytest.fixture
 def stored_slices() -> np.ndarray:
     rng = np.random.default_rng(0)
@@ -220,7 +170,7 @@ def stored_slices() -> np.ndarray:
 
 def test_dicom_series_rescaled_to_hu_and_sorted(tmp_path, stored_slices):
     folder = tmp_path / "series"
-    _write_dicom_series(
+    write_dicom_series(
         folder, stored_slices, slope=2.0, intercept=-1024.0, positions_z=[0, 2, 4, 6, 8]
     )
     v = read_volume(folder)
@@ -232,7 +182,7 @@ def test_dicom_series_rescaled_to_hu_and_sorted(tmp_path, stored_slices):
 
 def test_dicom_series_fractional_rescale(tmp_path, stored_slices):
     folder = tmp_path / "series"
-    _write_dicom_series(
+    write_dicom_series(
         folder, stored_slices, slope=0.5, intercept=-1000.5, positions_z=[0, 2, 4, 6, 8]
     )
     v = read_volume(folder)
@@ -241,7 +191,7 @@ def test_dicom_series_fractional_rescale(tmp_path, stored_slices):
 
 def test_dicom_series_missing_slice_detected(tmp_path, stored_slices):
     folder = tmp_path / "series"
-    _write_dicom_series(
+    write_dicom_series(
         folder, stored_slices, slope=1.0, intercept=-1024.0, positions_z=[0, 2, 4, 8, 10]
     )
     with pytest.raises(ValueError, match=r"non-uniform slice spacing .* missing slices"):
@@ -250,10 +200,10 @@ def test_dicom_series_missing_slice_detected(tmp_path, stored_slices):
 
 def test_dicom_folder_with_two_series(tmp_path, stored_slices):
     folder = tmp_path / "mixed"
-    first = _write_dicom_series(
+    first = write_dicom_series(
         folder, stored_slices, slope=1, intercept=-1024, positions_z=[0, 2, 4, 6, 8]
     )
-    second = _write_dicom_series(
+    second = write_dicom_series(
         folder,
         stored_slices[:3],
         slope=1,

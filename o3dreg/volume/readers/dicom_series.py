@@ -28,6 +28,7 @@ def read_dicom_series(folder: str, series_uid: str | None) -> Volume:
     series = list(sitk.ImageSeriesReader.GetGDCMSeriesIDs(folder))
     if not series:
         raise OSError(f"`path`: no DICOM series found in folder {folder!r}")
+    _check_every_file_listed(folder, series)
     if series_uid is None:
         if len(series) > 1:
             listing = "; ".join(
@@ -46,6 +47,8 @@ def read_dicom_series(folder: str, series_uid: str | None) -> Volume:
         )
     files = list(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(folder, series_uid))
     headers = [_dicom_header(f) for f in files]
+    for name, header in zip(files, headers, strict=True):
+        _check_pixel_data_size(name, header)
     _check_slice_positions(files, headers, series_uid)
     rescales = {(h["slope"], h["intercept"]) for h in headers}
     integral = all(float(s).is_integer() and float(i).is_integer() for s, i in rescales)
@@ -100,13 +103,71 @@ def _dicom_header(path: str) -> dict[str, Any]:
             return None
 
     thickness = numbers("0018|0050")
+    size = reader.GetSize()
     return {
+        "pixel_bytes": int(np.prod(size, dtype=np.int64))
+        * reader.GetNumberOfComponents()
+        * int((numbers("0028|0100") or [0])[0])
+        // 8,
+        "transfer_syntax": (tag("0002|0010") or "").strip().rstrip("\0"),
         "position": numbers("0020|0032"),
         "orientation": numbers("0020|0037"),
         "slope": float((numbers("0028|1053") or [1.0])[0]),
         "intercept": float((numbers("0028|1052") or [0.0])[0]),
         "thickness": thickness[0] if thickness and thickness[0] > 0 else 1.0,
     }
+
+
+# Transfer syntaxes whose pixel data is stored uncompressed (its size is known from the header).
+_UNCOMPRESSED = {"1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.2"}
+
+
+def _check_pixel_data_size(path: str, header: dict[str, Any]) -> None:
+    """``OSError`` for an uncompressed slice shorter than its pixel data (a truncated copy)."""
+    if header["transfer_syntax"] in _UNCOMPRESSED and header["pixel_bytes"] > 0:
+        size = os.path.getsize(path)
+        if size < header["pixel_bytes"]:
+            raise OSError(
+                f"`path`: DICOM file {path!r} is truncated: {size} bytes, its pixel data "
+                f"alone needs {header['pixel_bytes']}"
+            )
+
+
+def _check_every_file_listed(folder: str, series: list[str]) -> None:
+    """``OSError`` naming the DICOM files of ``folder`` GDCM left out of every series.
+
+    GDCM silently skips files it cannot parse (e.g. a slice truncated mid-way), which would
+    make a series look complete but shorter.
+    """
+    import SimpleITK as sitk
+
+    listed = {
+        os.path.abspath(f)
+        for uid in series
+        for f in sitk.ImageSeriesReader.GetGDCMSeriesFileNames(folder, uid)
+    }
+    left_out = []
+    for entry in sorted(os.listdir(folder)):
+        path = os.path.abspath(os.path.join(folder, entry))
+        if entry.upper() == "DICOMDIR":  # the index of a DICOM medium, no image
+            continue
+        if path not in listed and os.path.isfile(path) and _has_dicom_magic(path):
+            left_out.append(entry)
+    if left_out:
+        raise OSError(
+            f"`path`: {len(left_out)} DICOM file(s) in {folder!r} could not be read "
+            f"(truncated or damaged?): {', '.join(left_out[:5])}"
+            f"{', ...' if len(left_out) > 5 else ''}"
+        )
+
+
+def _has_dicom_magic(path: str) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(128)
+            return fh.read(4) == b"DICM"
+    except OSError:
+        return False
 
 
 def _check_slice_positions(files: list[str], headers: list[dict[str, Any]], uid: str) -> None:

@@ -32,6 +32,7 @@ _NRRD_SPACE_TO_LPS = {
 def read_nrrd(path: str) -> Volume:
     import SimpleITK as sitk
 
+    _check_geometry_fields(path)
     try:
         image = sitk.ReadImage(path)
     except RuntimeError as exc:
@@ -43,6 +44,28 @@ def read_nrrd(path: str) -> Volume:
     volume = _read_nrrd_pynrrd(path)
     logger.info("read %s with pynrrd: %r", path, volume)
     return volume
+
+
+def _check_geometry_fields(path: str) -> None:
+    """Refuse zero or NaN spacings and a NaN origin (SimpleITK reads them as 1 mm and 0)."""
+    import nrrd
+
+    try:
+        header = nrrd.read_header(path)
+    except Exception:  # unreadable header: SimpleITK, then pynrrd, say why
+        return
+    spacings = header.get("spacings")
+    if spacings is not None:
+        values = np.asarray(spacings, dtype=np.float64)
+        if not np.all(np.isfinite(values)) or np.any(values == 0):
+            raise ValueError(
+                f"`path`: {path!r} has spacings {values.tolist()}; each must be a non-zero number"
+            )
+    origin = header.get("space origin")
+    if origin is not None and not np.all(np.isfinite(np.asarray(origin, dtype=np.float64))):
+        raise ValueError(
+            f"`path`: {path!r} has space origin {np.asarray(origin).tolist()}; it must be finite"
+        )
 
 
 def _read_nrrd_pynrrd(path: str) -> Volume:
@@ -113,26 +136,36 @@ def _nrrd_geometry(header: dict[str, Any], path: str) -> tuple[np.ndarray, np.nd
     if directions is not None:
         rows = [np.asarray(d, dtype=np.float64) for d in directions]
         rows = [r for r in rows if r.ndim == 1 and r.size == 3 and np.all(np.isfinite(r))]
-        if len(rows) == 2:
+        if len(rows) == 2 and len(header.get("sizes", [])) == 2:
             rows.append(np.cross(rows[0], rows[1]) / np.linalg.norm(np.cross(rows[0], rows[1])))
         if len(rows) != 3:
             raise ValueError(f"`path`: {path!r} has unusable space directions {directions!r}")
         matrix = np.stack(rows, axis=1) * flips[:, None]  # columns: i, j, k axes in world
         spacing = np.linalg.norm(matrix, axis=0)
+        if np.any(spacing == 0):
+            raise ValueError(
+                f"`path`: {path!r} has a zero space direction {np.asarray(directions).tolist()}"
+            )
         direction = matrix / spacing
     else:
         spacings = header.get("spacings")
         spacing = np.asarray(spacings, dtype=np.float64)[:3] if spacings is not None else np.ones(3)
         if spacing.size == 2:
             spacing = np.append(spacing, 1.0)
-        spacing = np.where(np.isfinite(spacing) & (spacing > 0), np.abs(spacing), 1.0)
+        if not np.all(np.isfinite(spacing)) or np.any(spacing == 0):
+            raise ValueError(
+                f"`path`: {path!r} has spacings {spacing.tolist()}; each must be a non-zero number"
+            )
+        spacing = np.abs(spacing)  # a negative spacing flips the axis: size is its magnitude
         direction = np.eye(3)
     origin_in = header.get("space origin")
-    origin = (
-        np.asarray(origin_in, dtype=np.float64)[:3] * flips
-        if origin_in is not None and np.all(np.isfinite(np.asarray(origin_in, dtype=float)))
-        else np.zeros(3)
-    )
+    origin = np.zeros(3)
+    if origin_in is not None:
+        origin = np.asarray(origin_in, dtype=np.float64)[:3] * flips
+        if not np.all(np.isfinite(origin)):
+            raise ValueError(
+                f"`path`: {path!r} has space origin {origin.tolist()}; it must be finite"
+            )
     return spacing, origin, direction
 
 

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import gzip
 import logging
+import os
+import struct
+import zlib
 from typing import Any
 
 import numpy as np
@@ -54,7 +58,10 @@ def from_sitk(image: Any, source: str) -> Volume:
     array = sitk.GetArrayFromImage(image)
     spacing = np.asarray(image.GetSpacing(), dtype=np.float64)[::-1]
     origin = np.asarray(image.GetOrigin(), dtype=np.float64)
-    return Volume(array, spacing, origin, np.asarray(image.GetDirection(), dtype=np.float64))
+    try:
+        return Volume(array, spacing, origin, np.asarray(image.GetDirection(), dtype=np.float64))
+    except ValueError as exc:  # a header with zero or NaN spacing, NaN origin, ...
+        raise ValueError(f"`path`: {source!r} has an unusable geometry: {exc}") from exc
 
 
 def _slice_thickness(image: Any) -> float:
@@ -71,6 +78,8 @@ def _slice_thickness(image: Any) -> float:
 def read_sitk_file(path: str) -> Volume:
     import SimpleITK as sitk
 
+    if path.lower().endswith((".nii", ".nii.gz")):
+        _check_nifti_complete(path)
     try:
         image = sitk.ReadImage(path)
     except RuntimeError as exc:
@@ -78,3 +87,53 @@ def read_sitk_file(path: str) -> Volume:
     volume = from_sitk(image, path)
     logger.info("read %s: %r", path, volume)
     return volume
+
+
+def _check_nifti_complete(path: str) -> None:
+    """``OSError`` when a NIfTI file holds fewer voxel bytes than its header promises.
+
+    SimpleITK fills the missing part of a truncated ``.nii`` or ``.nii.gz`` with zeros.
+    """
+    opener: Any = gzip.open if path.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rb") as fh:
+            head = fh.read(540)
+            expected = _nifti_data_end(head, path)
+            if expected is None:
+                return  # not a header we know: SimpleITK reports it
+            if opener is open:
+                size = os.path.getsize(path)
+            else:
+                fh.seek(0)
+                size = 0
+                while block := fh.read(1 << 22):
+                    size += len(block)
+    except (EOFError, gzip.BadGzipFile, zlib.error) as exc:
+        raise OSError(f"`path`: {path!r} is truncated or corrupt ({exc})") from exc
+    if size < expected:
+        raise OSError(
+            f"`path`: {path!r} is truncated: {size} bytes where its header needs {expected}"
+        )
+
+
+def _nifti_data_end(head: bytes, path: str) -> int | None:
+    """Byte offset of the end of the voxel data from a NIfTI-1 or NIfTI-2 header."""
+    for order in ("<", ">"):
+        (sizeof_hdr,) = struct.unpack(order + "i", head[:4]) if len(head) >= 4 else (0,)
+        if sizeof_hdr == 348 and len(head) >= 348:
+            dims = struct.unpack(order + "8h", head[40:56])
+            (bitpix,) = struct.unpack(order + "h", head[72:74])
+            (offset,) = struct.unpack(order + "f", head[108:112])
+            break
+        if sizeof_hdr == 540 and len(head) >= 540:
+            (bitpix,) = struct.unpack(order + "h", head[14:16])
+            dims = struct.unpack(order + "8q", head[16:80])
+            (offset,) = struct.unpack(order + "q", head[168:176])
+            break
+    else:
+        return None
+    ndim = dims[0]
+    if not 1 <= ndim <= 7 or bitpix <= 0 or any(d < 0 for d in dims[1 : ndim + 1]):
+        raise ValueError(f"`path`: {path!r} has an invalid NIfTI header (dim {list(dims)})")
+    voxels = int(np.prod([max(d, 1) for d in dims[1 : ndim + 1]], dtype=np.int64))
+    return int(offset) + voxels * bitpix // 8
