@@ -509,3 +509,49 @@ def test_dicom_series_with_a_truncated_slice_is_refused(tmp_path):
     first.write_bytes(raw[: len(raw) - 32 * 16 * 2])  # half its PixelData
     with pytest.raises(OSError, match=first.name):
         read_volume(folder)
+
+
+# -- 4/5. corrupt meshes -----------------------------------------------------------------------
+
+
+def test_ply_header_claiming_2e9_vertices_is_refused_before_allocation(tmp_path):
+    path = tmp_path / "huge.ply"
+    path.write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 2000000000\n"
+        b"property float x\nproperty float y\nproperty float z\nelement face 1\n"
+        b"property list uchar int vertex_indices\nend_header\n" + bytes(64)
+    )
+    # Under a 3 GB address-space limit: a reader that believed the header would die here.
+    done = python(
+        """
+        import resource, sys
+        resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+        from o3dreg.io.mesh import read_triangle_mesh
+        try:
+            read_triangle_mesh(sys.argv[1])
+        except OSError as exc:
+            print("OSError", exc)
+        """,
+        str(path),
+    )
+    assert "OSError" in done.stdout and "2000000000 vertex" in done.stdout, done.stderr[-2000:]
+
+
+@pytest.mark.parametrize("fraction", [0.3, 0.6, 0.9])
+def test_truncated_ply_and_obj_are_refused(tmp_path, fraction):
+    mesh = sphere(30)
+    for suffix, ascii in ((".ply", False), (".ply", True), (".obj", True)):
+        path = tmp_path / f"whole{suffix}"
+        write_triangle_mesh(path, mesh, write_ascii=ascii, overwrite=True)
+        raw = path.read_bytes()
+        cut = tmp_path / f"cut{suffix}"
+        cut.write_bytes(raw[: int(len(raw) * fraction)])
+        with pytest.raises(OSError, match="truncated"):
+            read_triangle_mesh(cut)
+
+
+def test_obj_faces_past_the_vertices_are_refused(tmp_path):
+    path = tmp_path / "m.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 4\n")  # no header comments
+    with pytest.raises(OSError, match="refers to vertex 4"):
+        read_triangle_mesh(path)

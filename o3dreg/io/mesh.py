@@ -15,6 +15,7 @@ import open3d as o3d
 
 from .._validation import as_mesh_arrays, check_output_path
 from . import formats
+from .integrity import check_obj_complete, check_ply_complete
 
 __all__ = [
     "MESH_SUFFIXES",
@@ -85,6 +86,10 @@ def read_triangle_mesh(
         raise OSError(f"`{name}`: no such file {path!r}")
     if not os.access(path, os.R_OK):
         raise OSError(f"`{name}`: file {path!r} is not readable")
+    if suffix == ".ply":
+        check_ply_complete(path, name)
+    elif suffix == ".obj":
+        check_obj_complete(path, name)
     mesh = formats.read_mesh(path, suffix)
     if len(mesh.vertices) == 0 or len(mesh.triangles) == 0:
         raise OSError(

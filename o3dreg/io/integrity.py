@@ -1,0 +1,138 @@
+"""Checks that a mesh file is whole before a reader allocates what its header promises.
+
+A PLY header claiming two billion vertices would make Open3D try to allocate them (tens of GB)
+before finding the file short; a truncated OBJ is read silently as the part that is left. These
+checks compare what the header (or Open3D's OBJ comments, and the faces' vertex indices) promise
+with what the file holds, reading the file once and allocating nothing in proportion to the
+claims.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+
+__all__ = ["check_obj_complete", "check_ply_complete"]
+
+_PLY_TYPE_SIZES = {
+    "char": 1, "uchar": 1, "int8": 1, "uint8": 1,
+    "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+    "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
+    "double": 8, "float64": 8,
+}  # fmt: skip
+
+# A PLY header is a few hundred bytes; a longer one is not a header we can trust.
+_MAX_PLY_HEADER = 1 << 16
+
+
+def check_ply_complete(path: str, name: str = "path") -> None:
+    """``OSError`` when the PLY file at ``path`` is shorter than its header's elements need."""
+    with open(path, "rb") as fh:
+        head = fh.read(_MAX_PLY_HEADER)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        return  # not a PLY header we understand: the reader reports it
+    body_start = head.find(b"\n", end)
+    body_start = len(head) if body_start < 0 else body_start + 1
+    text = head[:end].decode("ascii", errors="replace").splitlines()
+    fmt = ""
+    elements: list[tuple[str, int, list[int]]] = []  # name, count, minimal bytes per property
+    for line in text:
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "format" and len(words) > 1:
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3:
+            try:
+                count = int(words[2])
+            except ValueError:
+                raise OSError(f"`{name}`: {path!r} has a bad PLY element line {line!r}") from None
+            if count < 0:
+                raise OSError(f"`{name}`: {path!r} has a negative element count {line!r}")
+            elements.append((words[1], count, []))
+        elif words[0] == "property" and elements and len(words) >= 3:
+            if words[1] == "list" and len(words) >= 5:
+                # The count of the list, and for faces at least three corners.
+                corners = 3 if elements[-1][0] == "face" else 0
+                elements[-1][2].append(
+                    _PLY_TYPE_SIZES.get(words[2], 1) + corners * _PLY_TYPE_SIZES.get(words[3], 1)
+                )
+            else:
+                elements[-1][2].append(_PLY_TYPE_SIZES.get(words[1], 1))
+    claims = ", ".join(f"{count} {element}" for element, count, _ in elements)
+    if not fmt.startswith("binary"):
+        # ASCII: one line per element.
+        total = sum(count for _, count, _ in elements)
+        lines = _count_lines(path, body_start)
+        if lines < total:
+            raise OSError(
+                f"`{name}`: {path!r} is truncated or its header is wrong: the header declares "
+                f"{claims} ({total} lines), the file holds {lines}"
+            )
+        return
+    needed = sum(count * sum(sizes) for _, count, sizes in elements)
+    held = os.path.getsize(path) - body_start
+    if held < needed:
+        raise OSError(
+            f"`{name}`: {path!r} is truncated or its header is wrong: the header declares "
+            f"{claims} (at least {needed} bytes of data), the file holds {held}"
+        )
+
+
+def _count_lines(path: str, start: int) -> int:
+    """Non-empty lines from byte ``start`` on (a last line without a newline counts)."""
+    lines = 0
+    last = b"\n"
+    with open(path, "rb") as fh:
+        fh.seek(start)
+        while block := fh.read(1 << 22):
+            lines += block.count(b"\n") - block.count(b"\n\n")
+            last = block[-1:]
+    return lines + (last != b"\n")
+
+
+_OBJ_COUNT = re.compile(rb"^#\s*number of (vertices|triangles):\s*(\d+)\s*$")
+
+
+def check_obj_complete(path: str, name: str = "path") -> None:
+    """``OSError`` when an OBJ file is shorter than it says or its faces point past its vertices.
+
+    Open3D writes ``# number of vertices: N`` and ``# number of triangles: M``; other writers
+    do not, so faces referring to vertices the file does not hold are the general test.
+    """
+    declared: dict[bytes, int] = {}
+    vertices = faces = 0
+    largest = 0
+    with open(path, "rb") as fh:
+        for line in fh:
+            if line.startswith(b"v ") or line.startswith(b"v\t"):
+                vertices += 1
+            elif line.startswith(b"f ") or line.startswith(b"f\t"):
+                corners = line.split()[1:]
+                faces += max(len(corners) - 2, 0)
+                for corner in corners:
+                    index = corner.split(b"/", 1)[0]
+                    try:
+                        value = int(index)
+                    except ValueError:
+                        raise OSError(
+                            f"`{name}`: {path!r} has a malformed face line "
+                            f"{line.decode(errors='replace').strip()!r}"
+                        ) from None
+                    largest = max(largest, value if value > 0 else vertices + 1 + value)
+            elif line.startswith(b"#"):
+                match = _OBJ_COUNT.match(line.strip())
+                if match:
+                    declared[match.group(1)] = int(match.group(2))
+    if largest > vertices:
+        raise OSError(
+            f"`{name}`: {path!r} is truncated or damaged: a face refers to vertex {largest}, "
+            f"the file holds {vertices}"
+        )
+    for what, held in ((b"vertices", vertices), (b"triangles", faces)):
+        if what in declared and held < declared[what]:
+            raise OSError(
+                f"`{name}`: {path!r} is truncated: it declares {declared[what]} "
+                f"{what.decode()} and holds {held}"
+            )
