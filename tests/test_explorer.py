@@ -126,6 +126,9 @@ def test_explorer_shows_failed_and_moved_patients_with_their_verdict(folder, tmp
     moved = json.loads((records / "p0.json").read_text())
     moved["source"] = str(tmp_path / "gone.ply")
     (records / "p0.json").write_text(json.dumps(moved))
+    warned = json.loads((records / "p1.json").read_text())
+    warned["warnings"] = ["3 triangles folded"]  # the verdicts the trust work adds
+    (records / "p1.json").write_text(json.dumps(warned))
     failed = {"status": "failed", "success": False, "message": "OSError: broken"}
     (records / "p9.json").write_text(
         json.dumps({"name": "p9", "min_jacobian_determinant": float("nan"), **failed})
@@ -140,6 +143,7 @@ def test_explorer_shows_failed_and_moved_patients_with_their_verdict(folder, tmp
         targets={"p0": read_triangle_mesh(folder.parent / "p0.ply")}))["cases"][0]  # fmt: skip
     expected = moved["distances"]["source_to_target_mean"]
     assert f32(again["distance"]).mean() == pytest.approx(expected, rel=1e-5)
+    assert cases["p1"]["verdict"]["warnings"] == ["3 triangles folded"]
     # NaN (no registration) is null in the page's JSON.
     assert cases["p9"]["verdict"] == {**failed, "min_jacobian_determinant": None}
     assert "registered" not in cases["p9"]

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from o3dreg.app.render import mode_displacements, render_mesh, render_shape_modes
+from o3dreg.app.render import mode_displacements, render_mesh, render_shape_modes, view_rotation
 from o3dreg.app.synthetic import synthetic_form
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -133,7 +133,39 @@ def test_render_shape_modes_writes_one_grid(tmp_path):
     model = build_shape_model([unit * a for a in axes], sphere.faces)
     path = render_shape_modes(model, tmp_path / "modes.png", modes=(0, 1, 5), panel=(200, 180))
     # One row per mode the model has (mode 6 it lacks), three columns and a colour bar.
-    assert _png_size(path) == (3 * 200 + 110, 2 * (180 + 30))
+    assert _png_size(path) == (3 * 200 + 130, 2 * (180 + 30))
     with pytest.raises(ValueError, match="`modes` must name at least one"):
         render_shape_modes(model, tmp_path / "x.png", modes=(7,))
     assert not (tmp_path / "x.png").exists()
+
+
+def _left_right_squares():
+    # Two squares facing -x, side by side along y: value 0 at y > 0, value 1 at y < 0.
+    square = np.array([[0.0, 0.2, -0.5], [0.0, 1.2, -0.5], [0.0, 1.2, 0.5], [0.0, 0.2, 0.5]])
+    other = square * [1.0, -1.0, 1.0]
+    vertices = np.vstack([square, other])
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 6, 5], [4, 7, 6]])
+    return (vertices, faces), np.array([0.0, 0.0, 1.0, 1.0])
+
+
+def test_pictures_are_not_mirrored(tmp_path):
+    # Up z, azimuth 0, elevation 0: the camera sits on -x looking towards +x (render's
+    # convention, as Open3D's back end and the explorer place it), so +y is on the left.
+    import matplotlib.image
+
+    mesh, values = _left_right_squares()
+    path = render_mesh(
+        mesh, tmp_path / "lr.png", scalars=values, view=(0, 0), size=(300, 200), cmap="viridis"
+    )
+    image = matplotlib.image.imread(path)[..., :3]
+    purple, yellow = np.array([0.27, 0.0, 0.33]), np.array([0.99, 0.91, 0.14])
+    columns = np.arange(image.shape[1])
+
+    def mean_column(colour):
+        near = np.linalg.norm(image - colour, axis=2) < 0.25
+        return columns[near.any(axis=0)].mean()
+
+    assert mean_column(purple) < mean_column(yellow)  # y > 0 (value 0) drawn on the left
+    # The explorer's camera agrees: its right-hand direction is -y.
+    rotation = np.reshape(view_rotation((0, 0), (0, 0, 1)), (3, 3))
+    np.testing.assert_allclose(rotation[0], [0.0, -1.0, 0.0], atol=1e-12)

@@ -64,14 +64,18 @@ def _colormap(name: str, count: int = 33) -> list[list[float]]:
 
 
 def _finite(value: Any) -> Any:
-    """``value`` with NaN and infinities as ``None`` (JSON has neither)."""
+    """``value`` as JSON: NaN and infinities as ``None`` (JSON has neither), objects as text."""
     if isinstance(value, float) and not np.isfinite(value):
         return None
     if isinstance(value, Mapping):
         return {k: _finite(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_finite(v) for v in value]
-    return value
+    if isinstance(value, np.generic):
+        return _finite(value.item())
+    if value is None or isinstance(value, (str, int, float)):
+        return value
+    return str(value)  # a warning object, say: its text
 
 
 def _verdict(record: Mapping[str, Any]) -> dict[str, Any]:
@@ -109,12 +113,17 @@ def _case(
     template: np.ndarray | None = None,
     max_triangles: int = MAX_DISPLAY_TRIANGLES,
     notes: Sequence[str] = (),
+    shared_faces: bool = False,
 ) -> dict[str, Any]:
-    """One registration's view: the registered template coloured by its distance to ``target``."""
+    """One registration's view: the registered template coloured by its distance to ``target``.
+
+    With ``shared_faces`` the page takes the triangles from its model (the same template).
+    """
     case: dict[str, Any] = {"name": name, "verdict": dict(verdict), "notes": list(notes)}
     if registered is not None and faces is not None:
         case["registered"] = _b64(registered, "<f4")
-        case["faces"] = _b64(faces, "<u4")
+        if not shared_faces:
+            case["faces"] = _b64(faces, "<u4")
         if template is not None:
             case["template"] = _b64(template, "<f4")
     if target is not None:
@@ -189,6 +198,7 @@ def _registration_cases(
                 target=target,
                 max_triangles=max_triangles,
                 notes=notes,
+                shared_faces=True,
             )
         )
     return cases
@@ -375,6 +385,10 @@ def write_registration_explorer(
             "min_jacobian_determinant": result.min_jacobian_determinant,
             "flipped_triangles": result.flipped_triangles,
         }
+        # A verdict of the result's own, where it has one.
+        for key in ("status", "warnings"):
+            if getattr(result, key, None) is not None:
+                verdict[key] = getattr(result, key)
     rigid = apply_transformation(np.asarray(result.transformation), vertices)
     case = _case(
         name,

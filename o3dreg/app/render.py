@@ -202,12 +202,15 @@ def _render_matplotlib(
     e1 = np.cross(up, helper)
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(up, e1)
-    pts = vertices @ np.stack([e2, e1, up], axis=1)
+    # A right-handed frame (e2, -e1, up): with (e2, e1, up) every picture was a mirror image.
+    # The camera direction cos(az) e2 + sin(az) e1 of _camera is azimuth -az in this frame.
+    basis = np.stack([e2, -e1, up], axis=1)
+    pts = vertices @ basis
     tris = pts[faces]
     normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     az, el = np.radians(view[0]), np.radians(view[1])
-    light = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    light = np.array([np.cos(el) * np.cos(az), -np.cos(el) * np.sin(az), np.sin(el)])
     shade = 0.35 + 0.65 * np.abs(normals @ light)
     base = np.full((faces.shape[0], 3), 0.75) if face_rgb is None else face_rgb
     dpi = 100
@@ -215,13 +218,13 @@ def _render_matplotlib(
     FigureCanvasAgg(fig)
     ax: Any = fig.add_axes((0.0, 0.0, 1.0, 1.0), projection="3d")
     ax.add_collection3d(Poly3DCollection(tris, facecolors=base * shade[:, None], linewidths=0))
-    framed = pts if frame is None else frame @ np.stack([e2, e1, up], axis=1)
+    framed = pts if frame is None else frame @ basis
     lo, hi = framed.min(axis=0), framed.max(axis=0)
     half = (hi - lo).max() / 2.0
     for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), (lo + hi) / 2.0):
         setter(c - half, c + half)
     ax.set_box_aspect((1, 1, 1))
-    ax.view_init(elev=view[1], azim=view[0])
+    ax.view_init(elev=view[1], azim=-view[0])
     ax.set_axis_off()
     fig.canvas.draw()
     image = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()  # type: ignore[attr-defined]
@@ -463,16 +466,25 @@ def render_shape_modes(
     pictures = {}
     for (m, c), value in values.items():
         face_rgb = colormap(norm(value[faces].mean(axis=1)))[:, :3]
+        # Drawn larger, then cropped: matplotlib's 3-D axes leave wide margins.
         pictures[(m, c)] = _render_matplotlib(
-            shapes[(m, c)], faces, face_rgb, view_, up_, (width, height), frame
+            shapes[(m, c)], faces, face_rgb, view_, up_, (2 * width, 2 * height), frame
         )
+    # One crop for every panel (the box holding every drawn pixel), so the scale stays common.
+    drawn = np.any(np.stack(list(pictures.values())) < 250, axis=(0, 3))
+    rows_, cols_ = np.flatnonzero(drawn.any(axis=1)), np.flatnonzero(drawn.any(axis=0))
+    if rows_.size and cols_.size:
+        pad = 6
+        top_, bottom = max(rows_[0] - pad, 0), min(rows_[-1] + pad + 1, drawn.shape[0])
+        left, right = max(cols_[0] - pad, 0), min(cols_[-1] + pad + 1, drawn.shape[1])
+        pictures = {k: v[top_:bottom, left:right] for k, v in pictures.items()}
 
     def write(tmp: str) -> None:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 
         dpi = 100
-        bar, head = 110, 30
+        bar, head = 130, 30
         fig_w, fig_h = width * len(sds) + bar, (height + head) * len(rows)
         fig = Figure(figsize=(fig_w / dpi, fig_h / dpi), dpi=dpi)
         FigureCanvasAgg(fig)
@@ -490,9 +502,9 @@ def render_shape_modes(
                 ax.set_axis_off()
                 name = "mean" if c == 0 else f"{c:+g} SD"
                 ax.set_title(f"mode {m + 1}: {name}", fontsize=12)
-        cax = fig.add_axes((1.0 - 80 / fig_w, 0.15, 18 / fig_w, 0.7))
+        cax = fig.add_axes((1.0 - 105 / fig_w, 0.15, 18 / fig_w, 0.7))
         mappable = matplotlib.cm.ScalarMappable(norm=norm, cmap=colormap)
-        fig.colorbar(mappable, cax=cax, label="displacement from the mean along the normal (mm)")
+        fig.colorbar(mappable, cax=cax, label="displacement from the mean\nalong the normal (mm)")
         fig.savefig(tmp, format="png", dpi=dpi)
 
     return atomic_write(path, write, overwrite=overwrite, name="path")
