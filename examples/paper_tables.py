@@ -58,7 +58,7 @@ def register(source, target, symmetric: bool) -> o3dreg.ElasticRegistrationResul
         target,
         init=np.eye(4),
         levels=PUBLISHED_LEVELS,
-        estimation_method=o3dreg.DistanceEstimation(symmetric=symmetric),
+        estimation_method=o3dreg.DistanceEstimation.paper(symmetric=symmetric),
     )
 
 

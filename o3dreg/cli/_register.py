@@ -6,6 +6,7 @@ import argparse
 import os
 import sys
 import time
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -66,19 +67,27 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="compare barycentres with the template's own Voronoi centroids (dense targets)",
     )
-    robust = p.add_argument_group("robustness (real scans: partial data, debris, outliers)")
+    robust = p.add_argument_group(
+        "robustness (the defaults handle partial scans, debris and outliers)"
+    )
+    robust.add_argument(
+        "--paper",
+        action="store_true",
+        help="the paper's plain least squares: linear loss, no boundary or normal rejection, "
+        "every target component (the options below still apply on top)",
+    )
     robust.add_argument(
         "--loss",
         choices=["linear", "huber", "cauchy", "tukey"],
-        default="linear",
-        help="robust loss of both distance terms (default linear: the paper's least squares)",
+        default=None,
+        help="robust loss of both distance terms (default cauchy; linear: least squares)",
     )
     robust.add_argument(
         "--max-normal-angle",
         type=float,
         default=None,
         metavar="DEG",
-        help="drop matches whose normals differ by more than DEG degrees (e.g. 60)",
+        help="drop matches whose normals differ by more than DEG degrees (default 90; 180: off)",
     )
     robust.add_argument(
         "--max-distance-factor",
@@ -92,7 +101,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=None,
         metavar="F",
-        help="ignore target islands smaller than F times its largest component (e.g. 0.01)",
+        help="ignore target islands smaller than F times its largest component "
+        "(default 0.01; 0: keep all)",
     )
     robust.add_argument(
         "--keep-boundary",
@@ -119,6 +129,28 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
     p.set_defaults(func=run)
+
+
+def estimation_method(args: argparse.Namespace) -> DistanceEstimation:
+    """The library's defaults (or ``--paper``'s plain least squares), with the given options."""
+    changes: dict[str, Any] = {
+        "symmetric": not args.no_symmetric,
+        "symmetric_weight": args.symmetric_weight,
+        "barycentre_correction": args.barycentre_correction,
+    }
+    if args.loss is not None:
+        changes["loss"] = args.loss
+    if args.max_normal_angle is not None:
+        changes["max_normal_angle"] = args.max_normal_angle
+    if args.max_distance_factor is not None:
+        changes["max_distance_factor"] = args.max_distance_factor
+    if args.min_target_component is not None:
+        changes["min_target_component"] = args.min_target_component or None
+    if args.keep_boundary:
+        changes["reject_boundary"] = False
+    if args.paper:
+        return DistanceEstimation.paper(**changes)
+    return DistanceEstimation(**changes)
 
 
 def build_levels(args: argparse.Namespace) -> list[ElasticLevel]:
@@ -217,16 +249,7 @@ def run(args: argparse.Namespace) -> int:
         target,
         init=init,
         levels=levels,
-        estimation_method=DistanceEstimation(
-            symmetric=not args.no_symmetric,
-            symmetric_weight=args.symmetric_weight,
-            barycentre_correction=args.barycentre_correction,
-            loss=args.loss,
-            max_normal_angle=args.max_normal_angle,
-            max_distance_factor=args.max_distance_factor,
-            reject_boundary=not args.keep_boundary,
-            min_target_component=args.min_target_component,
-        ),
+        estimation_method=estimation_method(args),
         parts=args.parts,
         criteria=ElasticCriteria(max_iteration=args.max_iteration),
         callback=progress,

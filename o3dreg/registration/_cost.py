@@ -273,6 +273,11 @@ class LevelProblem:
         ]
         return base, ops
 
+    @property
+    def guards_folding(self) -> bool:
+        """Whether :meth:`min_determinant` samples the map (the folding guard is on)."""
+        return self._fold is not None
+
     def min_determinant(self, u: np.ndarray) -> float:
         """Smallest ``det(dT/dx)`` over the fold samples with this level's increment ``u``."""
         if self._fold is None:

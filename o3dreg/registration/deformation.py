@@ -110,7 +110,7 @@ class LatticeDeformation:
         """
         if not self.levels:
             return 1.0
-        finest = self._common_shape()
+        finest = self.common_shape()
         origin, size = self.levels[0].origin, self.levels[0].size
         n = max(int(samples_per_cell), 2)
         cells = np.asarray(finest)
@@ -125,7 +125,9 @@ class LatticeDeformation:
         return float(self.jacobian_determinant(pts).min())
 
     # -- refinement -----------------------------------------------------------------------------
-    def _common_shape(self) -> tuple[int, int, int]:
+    def common_shape(self) -> tuple[int, int, int]:
+        """Cells per axis of the coarsest lattice refining every level (the least common
+        multiple of their cell counts)."""
         return tuple(  # type: ignore[return-value]
             reduce(_lcm, (lat.shape[a] for lat in self.levels)) for a in range(3)
         )
@@ -146,7 +148,7 @@ class LatticeDeformation:
         """
         if not self.levels:
             raise ValueError("cannot refine the identity deformation: it has no lattice")
-        common = self._common_shape()
+        common = self.common_shape()
         if shape is None:
             shape = common
         elif isinstance(shape, (int, np.integer)):

@@ -14,11 +14,15 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+import open3d as o3d
 import scipy.sparse as sp
+from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays, as_transformation, check_positive
+from ..io.mesh import to_open3d
+from ..volume.cleaning import mesh_components
 from ._cost import LevelProblem, Robustness
 from ._solvers import solve
 from .deformation import LatticeDeformation, PartitionedDeformation
@@ -35,7 +39,7 @@ from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances
 from .rigid import registration_rigid
 from .sampling import morton_order, spatial_subsample
 
-__all__ = ["canonical_mesh", "evaluate_elastic", "lattice_box", "registration_elastic"]
+__all__ = ["evaluate_elastic", "registration_elastic"]
 
 logger = logging.getLogger("o3dreg")
 
@@ -112,7 +116,9 @@ def registration_elastic(
         The hierarchy, coarse to fine, at most 16 levels. Default :func:`~o3dreg.default_levels`
         (2, 4, 8, 16 cells per axis).
     estimation_method : DistanceEstimation, optional
-        What is minimised. Default ``DistanceEstimation(symmetric=True)``.
+        What is minimised. Default ``DistanceEstimation()``: the symmetric distance with the
+        robust settings for real scans (partial targets, debris);
+        ``DistanceEstimation.paper()`` is the paper's plain least squares.
     criteria : ElasticCriteria, optional
         Default stopping rule of every level. Default ``ElasticCriteria()``.
     padding : float, optional
@@ -220,6 +226,9 @@ def registration_elastic(
             if lev.simplify_target
         ],
     )
+    orientation = 1.0
+    if estimation_method.max_normal_angle is not None:
+        orientation = _relative_orientation(points, fs, query)
     surface_samples, sample_weights = _surface_samples(points, fs)
     target_samples: dict[int, np.ndarray] = {}
     deformation = LatticeDeformation(())
@@ -269,7 +278,7 @@ def registration_elastic(
         )
         normals = None
         if estimation_method.max_normal_angle is not None:
-            normals = vertex_normals(points + previous, fs)[use]
+            normals = orientation * vertex_normals(points + previous, fs)[use]
         offsets = None
         if use_target is not None and estimation_method.barycentre_correction:
             offsets = _barycentre_offsets(
@@ -330,7 +339,7 @@ def registration_elastic(
     moved = points + previous
     distances = _distances(moved, fs, query, vt)
     det = float(deformation.jacobian_determinant(points).min()) if deformation.levels else 1.0
-    supported = _supported(moved, fs, query, estimation_method, last_problem)
+    supported = _supported(moved, fs, query, estimation_method, last_problem, orientation)
     success = not failures
     message = "all levels converged" if success else "; ".join(failures)
     return ElasticRegistrationResult(
@@ -352,12 +361,10 @@ def registration_elastic(
 def connected_components(number_of_vertices: int, faces: np.ndarray) -> np.ndarray:
     """Component label of every vertex (through shared triangle edges), numbered by first
     vertex; isolated vertices get their own labels."""
-    from scipy.sparse.csgraph import connected_components as cc
-
     a = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
     b = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
     graph = sp.csr_matrix((np.ones(a.size), (a, b)), shape=(number_of_vertices, number_of_vertices))
-    _, labels = cc(graph, directed=False)
+    _, labels = csgraph.connected_components(graph, directed=False)
     return np.asarray(labels, dtype=np.int64)
 
 
@@ -513,11 +520,34 @@ def _min_cell_determinant(deformation: LatticeDeformation, points: np.ndarray) -
     holds a template vertex."""
     if not deformation.levels:
         return 1.0
-    shape = deformation._common_shape()
+    shape = deformation.common_shape()
     lat = TrilinearLattice.zeros(deformation.levels[0].origin, deformation.levels[0].size, shape)
     cells, _, _ = lat.locate(points)
     pts = lat.cell_samples(np.unique(cells, axis=0))
     return float(deformation.jacobian_determinant(pts).min())
+
+
+def _relative_orientation(
+    points: np.ndarray, faces: np.ndarray, query: SurfaceDistanceQuery
+) -> float:
+    """``-1`` when the target is oriented the other way round from the (aligned) template, else 1.
+
+    Meshes from different tools disagree on which side is out (marching cubes, scanners). The
+    median cosine between each template vertex normal and the normal of the target triangle
+    holding its closest point tells which: near +1 when both face the same way, near -1 when
+    one is inside out. The normal test of ``max_normal_angle`` then compares the normals reversed
+    rather than rejecting every correspondence.
+    """
+    _, face, _ = query.closest(points)
+    cos = (vertex_normals(points, faces) * query.face_normal(face)).sum(axis=1)
+    if cos.size and float(np.median(cos)) < 0.0:
+        logger.info(
+            "the target is oriented inside out relative to the template (median normal cosine "
+            "%.2f): normals are compared reversed",
+            float(np.median(cos)),
+        )
+        return -1.0
+    return 1.0
 
 
 def _supported(
@@ -526,6 +556,7 @@ def _supported(
     query: SurfaceDistanceQuery,
     method: DistanceEstimation,
     problem: LevelProblem | None,
+    orientation: float = 1.0,
 ) -> np.ndarray:
     """Whether each template vertex has data: the masks of the last level, on all vertices and
     the full target at the final positions."""
@@ -534,7 +565,7 @@ def _supported(
     if method.reject_boundary:
         keep &= ~query.beyond_boundary(moved, face, closest)
     if method.max_normal_angle is not None:
-        cos = (vertex_normals(moved, faces) * query.face_normal(face)).sum(axis=1)
+        cos = orientation * (vertex_normals(moved, faces) * query.face_normal(face)).sum(axis=1)
         keep &= cos >= np.cos(np.radians(method.max_normal_angle))
     if method.max_distance_factor is not None and problem is not None:
         keep &= dist <= method.max_distance_factor * problem.sigma
@@ -567,10 +598,6 @@ class _TargetLevelsOfDetail:
         self.cache: dict[float, SurfaceDistanceQuery] = {}
         # Finest first, each copy clustered from the previous one: a million-vertex target is
         # clustered once, the coarser copies cost a fraction of that.
-        import open3d as o3d
-
-        from ..io.mesh import to_open3d
-
         mesh = None
         for voxel in sorted({v for v in voxels if v >= 2.0 * self.edge}):
             source = mesh if mesh is not None else to_open3d(vertices, faces)
@@ -594,8 +621,6 @@ def _drop_small_components(
     vertices: np.ndarray, faces: np.ndarray, fraction: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """The target without its connected components smaller than ``fraction`` of the largest."""
-    from ..volume.cleaning import mesh_components
-
     components = mesh_components(vertices, faces)
     big = components.vertex_counts >= fraction * components.vertex_counts[0]
     keep = big[components.labels]
