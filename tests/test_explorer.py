@@ -213,28 +213,33 @@ def _screenshot(url: str, png: str) -> np.ndarray:
     return (matplotlib.image.imread(png)[..., :3] * 255).astype(np.int16)
 
 
-def _state(url: str) -> dict:
+def _state(url: str) -> tuple[dict, str]:
     done = _chromium(url, "--dump-dom")
     found = re.search(r'data-state="([^"]*)"', done.stdout)
     assert found is not None, done.stderr[-2000:]
-    return json.loads(html.unescape(found.group(1)))
+    return json.loads(html.unescape(found.group(1))), done.stdout
 
 
 @needs_browser
 def test_browser_draws_the_model_and_its_sliders_move_it(folder, tmp_path):
     url = (folder / "explorer.html").as_uri()
     model = ShapeModel.load(folder / "model.npz")
+    one = tmp_path / "one.html"
+    command = ["register", str(folder / "template.ply"), str(folder.parent / "p1.ply"), "-o",
+               str(tmp_path / "r.ply"), "--levels", "2", "--html", str(one), "-q"]  # fmt: skip
+    assert main(command) in (0, 1)
     jobs = {
         "minus": (_screenshot, f"{url}#view=model&mode1=-3", str(tmp_path / "minus.png")),
         "plus": (_screenshot, f"{url}#view=model&mode1=3", str(tmp_path / "plus.png")),
         "state": (_state, f"{url}#view=model&mode1=3&mode2=-1.5"),
         "patient": (_screenshot, f"{url}#view=p2", str(tmp_path / "p2.png")),
+        "register": (_screenshot, one.as_uri(), str(tmp_path / "one.png")),
     }
-    # Four browsers at once: each mostly waits for its start-up.
+    # Five browsers at once: each mostly waits for its start-up.
     with ThreadPoolExecutor(len(jobs)) as pool:
         futures = {k: pool.submit(f, *a) for k, (f, *a) in jobs.items()}
         out = {k: f.result() for k, f in futures.items()}
-    views = {k: out[k][:, PANEL + 10 :] for k in ("minus", "plus", "patient")}
+    views = {k: out[k][:, PANEL + 10 :] for k in ("minus", "plus", "patient", "register")}
     for name, view in views.items():
         assert view.shape[:2] == (WINDOW[1], WINDOW[0] - PANEL - 10)
         drawn = np.any(view < 235, axis=2).mean()  # the background is white
@@ -243,8 +248,10 @@ def test_browser_draws_the_model_and_its_sliders_move_it(folder, tmp_path):
     changed = np.any(np.abs(views["minus"] - views["plus"]) > 30, axis=2).mean()
     assert changed > 0.01, f"mode 1 at -3 and +3 SD look the same ({changed:.2%} differ)"
     # The page's shape is the model's: mean + sum_k slider_k sqrt(variance_k) mode_k.
-    state = out["state"]
+    state, dom = out["state"]
     assert state["view"] == "model" and state["drawn"] is True
+    # Every patient is listed with its verdict.
+    assert all(f">p{i} (ok)</option>" in dom for i in range(4)), dom[:2000]
     assert state["sliders"][:2] == [3, -1.5]
     expected = model.synthesize([3.0, -1.5], standardized=True)[0]
     np.testing.assert_allclose(state["vertex0"], expected, atol=1e-3)  # float32 in the page

@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import atexit
 import logging
-import multiprocessing
 import os
+import subprocess
+import sys
 import tempfile
 from collections.abc import Sequence
 from typing import Any
@@ -155,31 +156,57 @@ def _render_open3d(
     return np.asarray(renderer.render_to_image())[..., :3]
 
 
-def _open3d_child(args: tuple[Any, ...], out: str) -> None:
-    np.save(out, _render_open3d(*args))
+def _open3d_worker(folder: str) -> None:
+    """The child process's side of :func:`_render_open3d_limited`: ``args.npz`` -> ``image.npy``."""
+    with np.load(os.path.join(folder, "args.npz")) as a:
+        rgb = {k: (a[k] if a[k].size else None) for k in ("face_rgb", "vertex_rgb")}
+        image = _render_open3d(
+            a["vertices"],
+            a["faces"],
+            rgb["face_rgb"],
+            rgb["vertex_rgb"],
+            (float(a["view"][0]), float(a["view"][1])),
+            a["up"],
+            (int(a["size"][0]), int(a["size"][1])),
+        )
+    np.save(os.path.join(folder, "image.npy"), image)
+
+
+_WORKER_ARGS = ("vertices", "faces", "face_rgb", "vertex_rgb", "view", "up", "size")
 
 
 def _render_open3d_limited(args: tuple[Any, ...], time_limit: float | None) -> np.ndarray:
     """``_render_open3d(*args)``, in a child process stopped after ``time_limit`` seconds."""
     if time_limit is None:
         return _render_open3d(*args)
-    # "spawn": a fresh interpreter, so that neither a hung Filament nor the parent's threads
-    # (fork copies locks held by other threads) can block the parent.
-    context = multiprocessing.get_context("spawn")
+    # A fresh interpreter running only the renderer: a hung Filament cannot block this process,
+    # and (unlike multiprocessing's "spawn") the caller's main script is not run again there.
+    package_root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
     with tempfile.TemporaryDirectory(prefix="o3dreg-render-") as folder:
-        out = os.path.join(folder, "image.npy")
-        child = context.Process(target=_open3d_child, args=(args, out), daemon=True)
-        child.start()
-        child.join(time_limit)
-        if child.is_alive():
-            child.kill()
-            child.join()
+        arrays = {
+            k: np.zeros(0) if v is None else np.asarray(v) for k, v in zip(_WORKER_ARGS, args)
+        }
+        np.savez(os.path.join(folder, "args.npz"), **arrays)  # type: ignore[arg-type]
+        code = "import sys; from o3dreg.app import render; render._open3d_worker(sys.argv[1])"
+        try:
+            done = subprocess.run(
+                [sys.executable, "-c", code, folder],
+                env=env,
+                capture_output=True,
+                text=True,
+                timeout=time_limit,
+            )
+        except subprocess.TimeoutExpired:  # the child has been killed
             raise RuntimeError(
                 f"Open3D did not render within the time limit of {time_limit:g} s (no GPU? "
                 "Filament on software Vulkan can hang); use backend='matplotlib'"
-            )
-        if child.exitcode != 0 or not os.path.exists(out):
-            raise RuntimeError(f"Open3D's renderer exited with status {child.exitcode}")
+            ) from None
+        out = os.path.join(folder, "image.npy")
+        if done.returncode != 0 or not os.path.exists(out):
+            tail = done.stderr.strip().splitlines()[-1:] or [""]
+            raise RuntimeError(f"Open3D's renderer exited with status {done.returncode}: {tail[0]}")
         return np.load(out)
 
 
