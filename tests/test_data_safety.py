@@ -6,11 +6,14 @@ inputs, tracebacks, signals) and checks the documented outcome.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import numpy as np
@@ -555,3 +558,154 @@ def test_obj_faces_past_the_vertices_are_refused(tmp_path):
     path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 4\n")  # no header comments
     with pytest.raises(OSError, match="refers to vertex 4"):
         read_triangle_mesh(path)
+
+
+# -- 5/6. tracebacks, exit statuses, signals ---------------------------------------------------
+
+
+def test_levels_too_fine_for_memory_is_one_line_exit_2(meshes):
+    # Under a 3 GB address-space limit: a 1000^3 lattice must be refused, not allocated.
+    done = python(
+        """
+        import resource, sys
+        resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
+        from o3dreg.cli import main
+        sys.exit(main(sys.argv[1:]))
+        """,
+        "register", str(meshes / "t.ply"), str(meshes / "p.ply"), "-o", str(meshes / "r.ply"),
+        "--levels", "1000",
+    )  # fmt: skip
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert not (meshes / "r.ply").exists() and parts(meshes) == []
+
+
+def test_memory_error_is_one_line_exit_2(meshes, capsys, monkeypatch):
+    from o3dreg.cli import _register
+
+    def exhausted(args):
+        raise MemoryError
+
+    monkeypatch.setattr(_register, "run", exhausted)
+    code, err = run_main(capsys, "register", str(meshes / "t.ply"), str(meshes / "p.ply"),
+                         "-o", str(meshes / "r.ply"))  # fmt: skip
+    assert code == 2 and "out of memory" in err and len(err.strip().splitlines()) == 1
+
+
+def test_sigterm_is_one_line_exit_143_and_nothing_half_written(tmp_path):
+    write_triangle_mesh(tmp_path / "t.ply", sphere(40))
+    write_triangle_mesh(tmp_path / "p.ply", sphere(80))
+    code = "import sys; from o3dreg.cli import main; sys.exit(main(sys.argv[1:]))"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, "register", str(tmp_path / "t.ply"), str(tmp_path / "p.ply"),
+         "-o", str(tmp_path / "r.ply"), "--report", str(tmp_path / "r.json"),
+         "--levels", "2,4,8,16,32"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )  # fmt: skip
+    assert proc.stdout is not None
+    assert proc.stdout.readline().startswith("source")  # printed before the registration
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err[-2000:]
+    assert err.strip().splitlines()[-1] == "o3dreg register: terminated"
+    assert "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.ply", "t.ply"]
+
+
+def test_native_output_stays_off_stdout_so_json_is_valid(tmp_path):
+    # Open3D and RPly print on file descriptor 1; inside the CLI that goes to stderr.
+    done = python(
+        """
+        import json, os, sys
+        from o3dreg.cli import _signals_and_streams
+        with _signals_and_streams():
+            os.write(1, b"[Open3D WARNING] from C++\\n")
+            print(json.dumps({"ok": True}))
+        """
+    )
+    assert json.loads(done.stdout) == {"ok": True}
+    assert "[Open3D WARNING] from C++" in done.stderr
+
+
+def test_register_json_is_valid_json(meshes):
+    done = cli("register", str(meshes / "t.ply"), str(meshes / "p.ply"), "-o",
+               str(meshes / "r.ply"), "--levels", "2", "--json")  # fmt: skip
+    assert done.returncode in (0, 1), done.stderr[-2000:]
+    assert json.loads(done.stdout)["output"] == str(meshes / "r.ply")
+
+
+def test_unreachable_scheduler_is_found_before_any_work(meshes):
+    pytest.importorskip("distributed")
+    out = meshes / "model"
+    done = cli("build-model", str(meshes / "t.ply"), str(meshes / "p.ply"), str(meshes / "p.ply"),
+               "-o", str(out), "--scheduler", "tcp://127.0.0.1:9")  # fmt: skip
+    assert done.returncode == 2 and "cannot reach" in done.stderr, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr and not out.exists()
+
+
+def _children(pid: int) -> list[int]:
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    return [int(p) for p in path.read_text().split()] if path.exists() else []
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc")
+def test_workers_end_with_a_killed_parent(tmp_path):
+    write_triangle_mesh(tmp_path / "t.ply", sphere(30))
+    for i in range(4):
+        write_triangle_mesh(tmp_path / f"p{i}.ply", sphere(60 + i))
+    code = "import sys; from o3dreg.cli import main; sys.exit(main(sys.argv[1:]))"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, "build-model", str(tmp_path / "t.ply"),
+         *[str(tmp_path / f"p{i}.ply") for i in range(4)], "-o", str(tmp_path / "model"),
+         "--jobs", "2", "--levels", "2,4,8,16,32"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )  # fmt: skip
+    deadline = time.monotonic() + 60
+    workers: list[int] = []
+    while time.monotonic() < deadline and len(workers) < 2:
+        time.sleep(0.2)
+        workers = [c for c in _children(proc.pid) if _alive(c)]
+    assert len(workers) >= 2, "the workers did not start"
+    time.sleep(1.0)
+    proc.kill()  # SIGKILL: no Python code runs in the parent
+    proc.wait()
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and any(_alive(w) for w in workers):
+        time.sleep(0.2)
+    assert not any(_alive(w) for w in workers)
+
+
+def test_demo_deletes_only_what_it_wrote(tmp_path):
+    from o3dreg.cli._demo import MARKER, _write_marker, prepare_output
+
+    folder = tmp_path / "demo"
+    (folder / "images").mkdir(parents=True)
+    (folder / "report.md").write_text("old report")
+    (folder / "images" / "a.png").write_bytes(b"png")
+    _write_marker(str(folder), {"report.md", os.path.join("images", "a.png")})
+    (folder / "notes.txt").write_text("mine")  # added by the user since
+    with pytest.raises(OSError, match="notes.txt"):
+        prepare_output(str(folder))
+    assert (folder / "report.md").exists() and (folder / "notes.txt").read_text() == "mine"
+    (folder / "notes.txt").unlink()
+    prepare_output(str(folder))
+    assert sorted(p.name for p in folder.iterdir()) == [MARKER]
+
+
+def test_build_model_quiet_prints_nothing(meshes, capsys):
+    from o3dreg.cli import main
+
+    code = main(["build-model", str(meshes / "t.ply"), str(meshes / "p.ply"),
+                 str(meshes / "p.ply"), "-o", str(meshes / "m"), "--levels", "2", "-q"])  # fmt: skip
+    captured = capsys.readouterr()
+    assert code in (0, 1, 2) and captured.out == ""

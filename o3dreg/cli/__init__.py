@@ -1,15 +1,20 @@
 """The ``o3dreg`` command line: one sub-command per module in this package.
 
 Exit codes: 0 success; 1 the job ran and wrote its outputs but did not converge; 2 bad input or
-a failure before any output was written; 130 interrupted.
+a failure before any output was written; 130 interrupted (Ctrl-C), 143 terminated (SIGTERM).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import os
+import signal
 import sys
-from collections.abc import Sequence
+import threading
+from collections.abc import Iterator, Sequence
+from typing import Any
 
 from .. import __version__
 from . import _demo, _model, _reconstruct, _register, _view
@@ -24,7 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="o3dreg",
         description="Elastic registration of surface meshes and statistical shape models.",
         epilog="exit status: 0 success; 1 the job ran and wrote its outputs but did not converge "
-        "(or some patients failed); 2 bad input, nothing written; 130 interrupted. "
+        "(or some patients failed); 2 bad input, nothing written; 130 interrupted (SIGINT), 143 terminated (SIGTERM); "
         "`o3dreg COMMAND --help` shows each command's options and examples.",
     )
     parser.add_argument("--version", action="version", version=f"o3dreg {__version__}")
@@ -90,6 +95,56 @@ def _add_verbosity(parser: argparse.ArgumentParser, default=None) -> None:
     )
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that every ``finally`` (temporary files) runs."""
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    raise Terminated
+
+
+@contextlib.contextmanager
+def _signals_and_streams() -> Iterator[None]:
+    """SIGTERM handled like SIGINT; native (Open3D, RPly) output on fd 1 sent to stderr.
+
+    Python's ``sys.stdout`` keeps the real standard output, so ``--json`` stays valid JSON
+    whatever the C++ libraries print. Nothing is redirected when ``sys.stdout`` is not fd 1
+    (an embedding program, a test capturing output).
+    """
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
+    try:
+        real = sys.stdout.fileno() == 1
+    except (AttributeError, OSError, ValueError):
+        real = False
+    saved, python_stdout = -1, sys.stdout
+    if real:
+        sys.stdout.flush()
+        saved = os.dup(1)
+        os.dup2(2, 1)
+        sys.stdout = open(  # closed in the finally below
+            saved, "w", encoding=python_stdout.encoding, closefd=False, buffering=1
+        )
+    try:
+        yield
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+        if real:
+            try:
+                sys.stdout.flush()
+            except BrokenPipeError:
+                pass
+            sys.stdout.close()
+            sys.stdout = python_stdout
+            os.dup2(saved, 1)
+            os.close(saved)
+
+
+#: Exit status of each outcome (documented in docs/cli.md).
+EXIT_OK, EXIT_INCOMPLETE, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -101,18 +156,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):
         parser.print_help()
-        return 2
+        return EXIT_BAD_INPUT
+    command = f"o3dreg {args.command}"
     try:
-        return int(args.func(args))
-    except (TypeError, ValueError, OSError, RuntimeError) as exc:
-        print(f"o3dreg {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        with _signals_and_streams():
+            return int(args.func(args))
     except BrokenPipeError:  # e.g. piped into `head`: not an error of ours
         sys.stderr.close()
-        return 0
+        return EXIT_OK
+    except (TypeError, ValueError, OSError, RuntimeError) as exc:
+        # The documented exception types of the API: bad input, unreadable or unwritable files.
+        print(f"{command}: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except MemoryError:
+        print(
+            f"{command}: error: out of memory (an input or an option asks for more than this "
+            "machine has; e.g. fewer or coarser --levels)",
+            file=sys.stderr,
+        )
+        return EXIT_BAD_INPUT
+    except Terminated:
+        print(f"{command}: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
-        print(f"o3dreg {args.command}: interrupted", file=sys.stderr)
-        return 130
+        print(f"{command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":  # pragma: no cover

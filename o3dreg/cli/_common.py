@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import concurrent.futures as cf
+import contextlib
 import json
 import math
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 from ..io.mesh import atomic_write_text
@@ -106,3 +108,47 @@ def emit(text: str, args: argparse.Namespace) -> None:
 def emit_json(data: Any) -> None:
     json.dump(data, sys.stdout, indent=2)
     sys.stdout.write("\n")
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the worker processes
+    """Worker initializer: SIGTERM this process when its parent dies (Linux), even by SIGKILL."""
+    import ctypes
+    import signal
+
+    # A forked worker inherits the CLI's SIGTERM handler, which raises an exception that the
+    # pool would catch and return: the worker must simply end.
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    parent = os.getppid()
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return  # not Linux: workers end when the pool's queue closes
+    if os.getppid() != parent:  # the parent died before prctl
+        os._exit(1)
+
+
+@contextlib.contextmanager
+def process_pool(jobs: int) -> Iterator[cf.ProcessPoolExecutor | None]:
+    """A pool of ``jobs`` worker processes (None for one job) that never outlives the command.
+
+    Workers get SIGTERM when the parent dies; on an exception (Ctrl-C, SIGTERM) pending work is
+    cancelled and the running workers are terminated instead of waited for.
+    """
+    if jobs <= 1:
+        yield None
+        return
+    pool = cf.ProcessPoolExecutor(jobs, initializer=_die_with_parent)
+    try:
+        yield pool
+    except BaseException:
+        # shutdown(wait=True) would wait for every running registration: end them now.
+        workers = list(getattr(pool, "_processes", {}).values())  # no public handle
+        pool.shutdown(wait=False, cancel_futures=True)
+        for worker in workers:
+            worker.terminate()
+        for worker in workers:
+            worker.join(timeout=10)
+        raise
+    else:
+        pool.shutdown()

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import concurrent.futures as cf
 import os
-import shutil
 import sys
 
 from ..app.demo import run_demo
-from ._common import emit, emit_json
+from ..io.mesh import atomic_write_text
+from ._common import emit, emit_json, process_pool
 
 MARKER = ".o3dreg-demo"
 
@@ -36,8 +35,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "-o",
         "--output",
         default="o3dreg-demo",
-        help="output folder (default ./o3dreg-demo; a folder from an earlier demo is replaced, "
-        "any other non-empty folder is refused)",
+        help="output folder (default ./o3dreg-demo; the files an earlier demo wrote there are "
+        "replaced; a folder holding any other file is refused)",
     )
     p.add_argument("--patients", type=int, default=8, help="patients in the model (default 8)")
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic population")
@@ -46,22 +45,59 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+_MARKER_HEADER = "made by o3dreg demo; the files it wrote (removed by the next demo run):"
+
+
+def _files_under(folder: str) -> set[str]:
+    found = set()
+    for root, _, files in os.walk(folder):
+        for name in files:
+            found.add(os.path.relpath(os.path.join(root, name), folder))
+    return found - {MARKER}
+
+
 def prepare_output(folder: str) -> str:
-    """Create ``folder``; replace it only if an earlier demo made it."""
+    """Create ``folder``; in a folder of an earlier demo remove only the files that demo wrote.
+
+    Refused: a non-empty folder without the demo's marker, and a demo folder holding any file
+    the marker does not list (added since, or left by a demo that was killed).
+    """
     folder = os.path.abspath(folder)
-    if os.path.exists(folder):
-        if not os.path.isdir(folder):
-            raise OSError(f"--output: {folder!r} exists and is not a folder")
-        if os.listdir(folder) and not os.path.isfile(os.path.join(folder, MARKER)):
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise OSError(f"--output: {folder!r} exists and is not a folder")
+    present = _files_under(folder) if os.path.isdir(folder) else set()
+    marker = os.path.join(folder, MARKER)
+    if present:
+        if not os.path.isfile(marker):
             raise OSError(
                 f"--output: {folder!r} is not empty and was not made by `o3dreg demo`; "
                 "choose another folder"
             )
-        shutil.rmtree(folder)
-    os.makedirs(folder)
-    with open(os.path.join(folder, MARKER), "w", encoding="utf-8") as fh:
-        fh.write("made by o3dreg demo; replaced by the next demo run\n")
+        with open(marker, encoding="utf-8") as fh:
+            listed = {line.strip() for line in fh.read().splitlines()[1:] if line.strip()}
+        foreign = sorted(present - listed)
+        if foreign:
+            raise OSError(
+                f"--output: {folder!r} holds {len(foreign)} file(s) an earlier `o3dreg demo` "
+                f"did not write ({', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}); "
+                "move them or choose another folder"
+            )
+        for name in present:
+            os.unlink(os.path.join(folder, name))
+        for root, _, _ in sorted(os.walk(folder), key=lambda w: -len(w[0])):
+            if root != folder and not os.listdir(root):
+                os.rmdir(root)
+    os.makedirs(folder, exist_ok=True)
+    _write_marker(folder, set())
     return folder
+
+
+def _write_marker(folder: str, files: set[str]) -> None:
+    atomic_write_text(
+        os.path.join(folder, MARKER),
+        "\n".join([_MARKER_HEADER, *sorted(files)]) + "\n",
+        overwrite=True,
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -72,14 +108,18 @@ def run(args: argparse.Namespace) -> int:
     folder = prepare_output(args.output)
     show = not args.quiet and not args.json
     emit(f"o3dreg demo: CT -> bone -> template -> {args.patients} patients -> shape model", args)
-    pool = cf.ProcessPoolExecutor(args.jobs) if args.jobs > 1 else None
     try:
-        result = run_demo(
-            folder, number_of_patients=args.patients, seed=args.seed, progress=show, executor=pool
-        )
+        with process_pool(args.jobs) as pool:
+            result = run_demo(
+                folder,
+                number_of_patients=args.patients,
+                seed=args.seed,
+                progress=show,
+                executor=pool,
+            )
     finally:
-        if pool is not None:
-            pool.shutdown()
+        # Everything in the folder now was written by this run (it started empty).
+        _write_marker(folder, _files_under(folder))
     emit(result.batch.table(), args)
     emit("", args)
     emit(result.model.variance_table(), args)

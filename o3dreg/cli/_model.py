@@ -7,11 +7,12 @@ documents the model folder's layout.
 from __future__ import annotations
 
 import argparse
-import concurrent.futures as cf
+import contextlib
 import json
 import logging
 import os
 import sys
+from collections.abc import Iterator
 from typing import Any
 
 from ..app.explorer import write_model_explorer
@@ -26,7 +27,7 @@ from ..shape.landmarks import (
     write_landmarks,
 )
 from ..shape.model import ShapeModel
-from ._common import check_outputs, emit, finite_float, int_list
+from ._common import check_outputs, emit, finite_float, int_list, process_pool
 
 logger = logging.getLogger("o3dreg")
 
@@ -105,25 +106,31 @@ def _levels(values: list[int] | None) -> Any:
     return None if values is None else [ElasticLevel(v) for v in values]
 
 
-def _executor(args: argparse.Namespace) -> tuple[Any, Any]:
+@contextlib.contextmanager
+def _executor(args: argparse.Namespace) -> Iterator[Any]:
+    """The executor of the registrations: a Dask client's, a process pool, or None (serial)."""
     if args.scheduler:
         try:
             from distributed import Client  # optional (the dask extra), seconds to import
         except ImportError as exc:
             raise RuntimeError("--scheduler needs Dask: pip install 'o3dreg[dask]'") from exc
-        client = Client(args.scheduler)
-        return client.get_executor(), client
-    if args.jobs and args.jobs > 1:
-        pool = cf.ProcessPoolExecutor(args.jobs)
-        return pool, pool
-    return None, None
+        try:
+            client = Client(args.scheduler, timeout="10s")
+        except OSError as exc:  # TimeoutError included
+            raise OSError(f"--scheduler: cannot reach {args.scheduler!r}: {exc}") from exc
+        try:
+            yield client.get_executor()
+        finally:
+            client.close()
+        return
+    with process_pool(args.jobs or 1) as pool:
+        yield pool
 
 
 def run_build(args: argparse.Namespace) -> int:
     _check_model_folder(args.output, args.overwrite)
     template = read_triangle_mesh(args.template, name="TEMPLATE")
-    executor, closer = _executor(args)
-    try:
+    with _executor(args) as executor:
         folder = build_model_folder(
             template,
             args.targets,
@@ -135,11 +142,6 @@ def run_build(args: argparse.Namespace) -> int:
             scaling=args.scaling,
             slide=args.slide,
         )
-    finally:
-        if hasattr(closer, "close"):  # a Dask client
-            closer.close()
-        elif closer is not None:
-            closer.shutdown()
     batch, model = folder.batch, folder.model
     emit(batch.table(), args)
     if model is None:
