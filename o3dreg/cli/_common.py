@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import concurrent.futures as cf
 import contextlib
+import ctypes
 import json
 import math
 import os
+import signal
 import sys
 from collections.abc import Iterator, Sequence
 from typing import Any
@@ -112,9 +114,6 @@ def emit_json(data: Any) -> None:
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the worker processes
     """Worker initializer: SIGTERM this process when its parent dies (Linux), even by SIGKILL."""
-    import ctypes
-    import signal
-
     # A forked worker inherits the CLI's SIGTERM handler, which raises an exception that the
     # pool would catch and return: the worker must simply end.
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
