@@ -21,11 +21,34 @@ INTRO = """# Command line
 Global options come before the sub-command: `--version`, `-q/--quiet` (errors only),
 `-v/--verbose` (progress logging; `-vv` for debug details).
 
-Exit status: **0** success; **1** the job ran and wrote its outputs but did not converge (or a
-batch had failed patients); **2** bad input or a failure before any output was written (one line
-on standard error, no partial files); **130** interrupted.
+Exit status:
 
-Outputs are never overwritten unless `--overwrite` is given, and are written atomically.
+| status | meaning |
+|---|---|
+| **0** | success |
+| **1** | the job ran and wrote its outputs but did not converge, or a batch (`build-model`, `demo`) had failed patients (the model is built from the others; the failures are listed on standard error) |
+| **2** | bad input, or a failure before any output was written: one line on standard error, no traceback, no partial file (also a full disk, a read-only folder, out of memory) |
+| **130** | interrupted (Ctrl-C, SIGINT): one line; finished files are kept, no partial file |
+| **143** | terminated (SIGTERM): as for SIGINT |
+
+Outputs: no existing file is replaced unless `--overwrite` is given; two outputs of one command
+never share a path; an output never names one of the command's inputs (even with
+`--overwrite`); every output's suffix, folder and write permission are checked before any work.
+Files are written atomically (a hidden temporary file beside the output, flushed to disk and,
+for meshes, read back before it is renamed), so an output name holds a complete file or nothing.
+`build-model` refuses a folder that already holds a model unless `--overwrite` (finished
+registrations are reused either way; a patient is registered again when the template, its file
+or the options changed). Worker processes (`--jobs`) end with the command. Messages of the C++
+libraries (Open3D, RPly) go to standard error, so `--json` output is always valid JSON.
+
+The Python API raises these types (the command line turns each into exit status 2): `TypeError`
+for an argument of the wrong kind; `ValueError` for a wrong shape or value, and for a file whose
+content is unusable (a truncated or corrupt `.npz`, NaN values in an archive, a volume header
+with zero or NaN spacing); `OSError` for a missing, unreadable or truncated file and for an output
+that cannot be written (exists without `overwrite`, folder missing or read-only, disk full);
+`RuntimeError` for a missing optional dependency or a failed renderer; `MemoryError` only when
+the machine runs out of memory. See [Robustness](robustness.md#data-safety-issue-12) for the faults
+tried.
 
 Pictures and pages without a GPU: `o3dreg view MESH --screenshot PNG` draws with matplotlib by
 default (a second or two, on any machine); `--backend open3d` uses Open3D's Filament renderer,
