@@ -712,3 +712,16 @@ def test_build_model_quiet_prints_nothing(meshes, capsys):
                  str(meshes / "p.ply"), "-o", str(meshes / "m"), "--levels", "2", "-q"])  # fmt: skip
     captured = capsys.readouterr()
     assert code in (0, 1, 2) and captured.out == ""
+
+
+def test_every_output_option_follows_the_rule(meshes, capsys, model_dir):
+    from o3dreg.shape.model import ShapeModel
+
+    missing, p = str(meshes / "absent.ply"), str(meshes / "p.ply")
+    code, err = run_main(capsys, "register", missing, p, "-o", str(meshes / "r.ply"),
+                         "--html", str(meshes / "page.txt"))  # fmt: skip
+    assert code == 2 and "--html must end with one of .html" in err
+    code, err = run_main(capsys, "view", p, "--screenshot", str(meshes / "shot.jpg"))
+    assert code == 2 and "--screenshot must end with .png" in err
+    with pytest.raises(ValueError, match="`standard_deviations` must be finite"):
+        ShapeModel.load(model_dir / "model.npz").mode_shape(0, float("nan"))

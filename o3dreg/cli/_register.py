@@ -213,7 +213,12 @@ def run(args: argparse.Namespace) -> int:
         },
         args.overwrite,
         inputs={"SOURCE": args.source, "TARGET": args.target},
-        suffixes={"--output": MESH_SUFFIXES, "--deformation": (".npz",), "--report": (".json",)},
+        suffixes={
+            "--output": MESH_SUFFIXES,
+            "--deformation": (".npz",),
+            "--report": (".json",),
+            "--html": (".html", ".htm"),
+        },
     )
     levels = build_levels(args)
     source = read_triangle_mesh(args.source, name="SOURCE")

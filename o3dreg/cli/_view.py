@@ -11,7 +11,7 @@ import open3d as o3d
 from ..app.render import BACKENDS, OPEN3D_TIME_LIMIT, render_mesh
 from ..io.mesh import read_triangle_mesh
 from ..registration.distance import SurfaceDistanceQuery
-from ._common import emit, int_list
+from ._common import check_outputs, emit, int_list
 
 EPILOG = """examples:
   o3dreg view template.ply patient.ply
@@ -87,10 +87,13 @@ def run(args: argparse.Namespace) -> int:
             args,
         )
     if args.screenshot:
-        if os.path.exists(args.screenshot) and not args.overwrite:
-            raise OSError(
-                f"--screenshot: {args.screenshot!r} exists; pass --overwrite to replace it"
-            )
+        check_outputs(
+            {"--screenshot": args.screenshot},
+            args.overwrite,
+            inputs={f"MESH {k + 1}": m for k, m in enumerate(args.meshes)}
+            | {"--distance-to": args.distance_to},
+            suffixes={"--screenshot": (".png",)},
+        )
         if len(args.size) != 2:
             raise ValueError(f"--size must be W,H, got {args.size}")
         render_mesh(

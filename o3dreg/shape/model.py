@@ -281,6 +281,8 @@ class ShapeModel:
         if not 0 <= mode < self.number_of_modes:
             raise ValueError(f"`mode` must be in [0, {self.number_of_modes - 1}], got {mode}")
         c = float(standard_deviations)
+        if not np.isfinite(c):
+            raise ValueError(f"`standard_deviations` must be finite, got {standard_deviations}")
         return self.mean + c * self.standard_deviations[mode] * self.modes[mode]
 
     def mode_meshes(
