@@ -44,6 +44,19 @@ def test_connected_components_sorted_by_size(three_parts):
     assert repr(components) == "Components(n=3, vertex_counts=[1742, 182, 4])"
 
 
+def test_components_join_through_edges_not_through_a_lone_vertex():
+    # A fan of three triangles on one edge (non-manifold) is one component; a fourth triangle
+    # touching it at a single vertex is another; the vertex they share counts in both.
+    vertices = np.array(
+        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [2, 1, 0], [2, -1, 0]], float
+    )
+    faces = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4], [1, 5, 6]])
+    components = connected_components((vertices, faces))
+    assert components.labels.tolist() == [0, 0, 0, 1]
+    assert components.vertex_counts.tolist() == [5, 3]
+    assert components.triangle_counts.tolist() == [3, 1]
+
+
 def test_keep_largest_components(three_parts):
     before = snapshot(three_parts)
     one = keep_largest_components(three_parts)

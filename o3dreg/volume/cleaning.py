@@ -87,26 +87,36 @@ def connected_components(mesh: Any) -> Components:
 
 
 def _triangle_labels(n_vertices: int, faces: np.ndarray) -> np.ndarray:
-    """Component of each triangle, triangles sharing an edge being connected.
+    """Component of each triangle, triangles sharing an edge being connected, numbered in order
+    of first triangle.
 
-    A graph of triangles and edges solved with SciPy: 5-10x faster than Open3D's
-    ``cluster_connected_triangles`` on meshes of 10^5-10^6 triangles.
+    Each edge is one int64 key; sorting the keys puts the triangles sharing an edge next to each
+    other, and those neighbours are the links of a graph of triangles solved with SciPy (5-10x
+    faster than Open3D's ``cluster_connected_triangles`` on meshes of 10^5-10^6 triangles).
     """
     m = faces.shape[0]
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    _, edge_ids = np.unique(edges[:, 0] * n_vertices + edges[:, 1], return_inverse=True)
-    size = m + int(edge_ids.max()) + 1
-    graph = sparse.csr_matrix(
-        (np.ones(edge_ids.size, dtype=np.int8), (np.repeat(np.arange(m), 3), m + edge_ids.ravel())),
-        shape=(size, size),
-    )
+    n = np.int64(n_vertices)
+    key = np.empty((m, 3), dtype=np.int64)
+    for k in range(3):
+        a, b = faces[:, k], faces[:, (k + 1) % 3]
+        key[:, k] = np.minimum(a, b) * n + np.maximum(a, b)
+    key = key.ravel()  # entry e belongs to triangle e // 3
+    order = np.argsort(key, kind="stable")
+    same = key[order[1:]] == key[order[:-1]]
+    triangle = order // 3
+    # Consecutive triangles on the same edge are linked (a chain when 3+ share it).
+    i, j = triangle[:-1][same], triangle[1:][same]
+    graph = sparse.csr_matrix((np.ones(i.size, dtype=np.int8), (i, j)), shape=(m, m))
     _, labels = graph_components(graph, directed=False)
-    # Renumber in order of first triangle: 0, 1, ... (edge nodes carry the same labels).
-    _, first_index, raw = np.unique(labels[:m], return_index=True, return_inverse=True)
-    order = np.argsort(first_index)
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.size)
-    return rank[raw.ravel()].astype(np.int64)
+    labels = labels.astype(np.int64)
+    # SciPy numbers components as it meets them in node order; renumber only if it did not.
+    previous = np.maximum.accumulate(np.concatenate([[-1], labels[:-1]]))
+    if labels.size and not np.all(labels <= previous + 1):
+        _, first_index, raw = np.unique(labels, return_index=True, return_inverse=True)
+        rank = np.empty(first_index.size, dtype=np.int64)
+        rank[np.argsort(first_index)] = np.arange(first_index.size)
+        labels = rank[raw.ravel()]
+    return labels
 
 
 def mesh_components(vertices: np.ndarray, faces: np.ndarray) -> Components:
@@ -116,8 +126,14 @@ def mesh_components(vertices: np.ndarray, faces: np.ndarray) -> Components:
     k = int(raw.max()) + 1 if raw.size else 0
     # Vertex count per component: count each (component, vertex) pair once (components may
     # touch at a single vertex).
-    pairs = np.unique(np.repeat(raw, 3) * vertices.shape[0] + faces.ravel())
-    vertex_counts = np.bincount(pairs // vertices.shape[0], minlength=k)
+    if k == 1:
+        # One component (the common case of a large surface): its used vertices, no sort.
+        used = np.zeros(vertices.shape[0], dtype=bool)
+        used[faces.ravel()] = True
+        vertex_counts = np.array([np.count_nonzero(used)], dtype=np.int64)
+    else:
+        pairs = np.unique(np.repeat(raw, 3) * vertices.shape[0] + faces.ravel())
+        vertex_counts = np.bincount(pairs // vertices.shape[0], minlength=k)
     triangle_counts = np.bincount(raw, minlength=k)
     a, b, c = (vertices[faces[:, i]] for i in range(3))
     tri_area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
