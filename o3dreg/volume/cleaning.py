@@ -96,11 +96,11 @@ def _triangle_labels(n_vertices: int, faces: np.ndarray) -> np.ndarray:
     """
     m = faces.shape[0]
     n = np.int64(n_vertices)
-    key = np.empty((m, 3), dtype=np.int64)
+    keys = np.empty((m, 3), dtype=np.int64)
     for k in range(3):
         a, b = faces[:, k], faces[:, (k + 1) % 3]
-        key[:, k] = np.minimum(a, b) * n + np.maximum(a, b)
-    key = key.ravel()  # entry e belongs to triangle e // 3
+        keys[:, k] = np.minimum(a, b) * n + np.maximum(a, b)
+    key = keys.ravel()  # entry e belongs to triangle e // 3
     order = np.argsort(key, kind="stable")
     same = key[order[1:]] == key[order[:-1]]
     triangle = order // 3
