@@ -108,7 +108,9 @@ def test_the_symmetric_distance_fixes_the_cone_to_sphere_mismatch():
     assert symmetric.distances.target_to_source_mean < 0.1 * single.distances.target_to_source_mean
     assert symmetric.distances.target_to_source_mean < 1.5
     # The defaults (the hierarchy drops the term on its finest level; robust loss and masks)
-    # fix the mismatch too: the spreading done on the coarse levels stays.
+    # fix the mismatch too, less completely: the Cauchy weights discount the far, still
+    # uncovered sphere points whose pull opens the cone (measured 3.5 mm; 1.56 mm for the plain
+    # sum with the default levels).
     default = registration_elastic(cone, sphere, init=np.eye(4))
     assert default.distances.target_to_source_mean < 0.1 * single.distances.target_to_source_mean
 
