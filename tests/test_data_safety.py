@@ -464,6 +464,23 @@ def test_truncated_nifti_is_an_error_not_zeros(tmp_path, suffix):
         read_volume(path)
 
 
+@pytest.mark.parametrize("suffix", [".mha", ".mhd"])
+def test_truncated_metaimage_is_an_error(tmp_path, suffix):
+    import SimpleITK as sitk
+
+    from o3dreg import read_volume
+
+    path = tmp_path / f"ct{suffix}"
+    data = np.random.default_rng(0).integers(0, 1000, (20, 30, 40)).astype(np.int16)
+    sitk.WriteImage(sitk.GetImageFromArray(data), str(path))
+    assert read_volume(path).shape == (20, 30, 40)
+    stored = path if suffix == ".mha" else path.with_suffix(".raw")
+    raw = stored.read_bytes()
+    stored.write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(OSError, match="could not read"):
+        read_volume(path)
+
+
 @pytest.mark.parametrize(
     ("header", "message"),
     [
