@@ -742,3 +742,17 @@ def test_every_output_option_follows_the_rule(meshes, capsys, model_dir):
     assert code == 2 and "--screenshot must end with .png" in err
     with pytest.raises(ValueError, match="`standard_deviations` must be finite"):
         ShapeModel.load(model_dir / "model.npz").mode_shape(0, float("nan"))
+
+
+def test_a_concurrent_writer_is_never_overwritten(tmp_path):
+    from o3dreg.io.mesh import atomic_write
+
+    target = tmp_path / "r.txt"
+
+    def writer(tmp):  # another process finishes the same output while this one writes
+        target.write_text("the other writer's result")
+        Path(tmp).write_text("mine")
+
+    with pytest.raises(OSError, match="another writer"):
+        atomic_write(target, writer)
+    assert target.read_text() == "the other writer's result" and parts(tmp_path) == []

@@ -153,11 +153,30 @@ def atomic_write(
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            _place_new(tmp, path, name)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
     return path
+
+
+def _place_new(tmp: str, path: str, name: str) -> None:
+    """Move ``tmp`` to ``path`` unless ``path`` exists, atomically (another writer may have
+    finished first since the check): a hard link fails where ``os.replace`` would overwrite."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise OSError(
+            f"`{name}`: {path!r} was created by another writer meanwhile; pass overwrite=True "
+            "to replace it"
+        ) from None
+    except OSError:  # a file system without hard links: check, then rename
+        if os.path.exists(path):
+            raise OSError(f"`{name}`: {path!r} exists; pass overwrite=True to replace it") from None
+        os.replace(tmp, path)
 
 
 # Host name as it appears in temporary names (no dots: they separate the name's fields).
