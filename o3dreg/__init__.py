@@ -31,7 +31,8 @@ from .registration.options import (  # noqa: E402
     default_levels,
 )
 from .registration.result import ElasticRegistrationResult, LevelReport, SurfaceDistances  # noqa: E402
-from .registration.rigid import registration_rigid  # noqa: E402
+from .registration.rigid import RigidRegistrationResult, registration_rigid  # noqa: E402
+from .registration.verdict import assess_registration, population_outliers  # noqa: E402
 
 __all__ += [
     "DistanceEstimation",
@@ -41,11 +42,14 @@ __all__ += [
     "LatticeDeformation",
     "LevelReport",
     "PartitionedDeformation",
+    "RigidRegistrationResult",
     "SurfaceDistances",
     "TrilinearLattice",
+    "assess_registration",
     "default_levels",
     "evaluate_elastic",
     "load_deformation",
+    "population_outliers",
     "registration_elastic",
     "registration_rigid",
 ]

@@ -101,3 +101,83 @@ def test_same_input_gives_a_bit_identical_pose(bunny_template, bunny_target):
         np.testing.assert_array_equal(
             registration_rigid(bunny_template, target).transformation, first
         )
+
+
+def pose_error(result, truth, points):
+    """Mean distance between the points placed by the found pose and by the true one."""
+    t = np.asarray(result.transformation)
+    found = points @ t[:3, :3].T + t[:3, 3]
+    return float(np.linalg.norm(found - (points @ truth[:3, :3].T + truth[:3, 3]), axis=1).mean())
+
+
+@pytest.mark.parametrize(
+    ("angle", "axis"), [(90.0, (0.0, 0.0, 1.0)), (150.0, (1.0, 0.2, 0.0)), (-120.0, (0.3, 1, 1))]
+)
+def test_recovers_large_rotations(bunny_template, bunny_target, angle, axis):
+    truth = known_transform(angle_deg=angle, axis=axis)
+    result = registration_rigid(bunny_template, moved(bunny_target, truth))
+    # As in test_recovers_a_known_rigid_transform: the decimated template bounds the accuracy.
+    assert pose_error(result, truth, np.asarray(bunny_template.vertices)) < 0.3
+    assert not result.ambiguous and result.warnings == ()
+    # The runner-up is a distinct, clearly worse pose.
+    assert result.runner_up_score is None or result.runner_up_score > 1.2 * result.score
+
+
+def test_the_demos_patient08_does_not_flip():
+    # On main (e26566b) the moment frames alone put patient08 122 degrees off (82 mm mean
+    # correspondence error after the elastic step): its two largest principal values are 6%
+    # apart, so the frames' axes in their plane are arbitrary. The input pose is within 10
+    # degrees (the population's rotations) and must win.
+    from scipy.spatial.transform import Rotation as R
+
+    from o3dreg.app.datasets import headsq_path
+    from o3dreg.app.demo import bone_mesh, make_population
+    from o3dreg.volume.cleaning import decimate
+    from o3dreg.volume.volume import read_volume
+
+    reference = bone_mesh(read_volume(headsq_path()))
+    template = decimate(reference, 2500)
+    patient = make_population(reference, 9, seed=0)[7]
+    assert patient.name == "patient08"
+    result = registration_rigid(template, patient.mesh)
+    t = np.asarray(result.transformation)
+    off = np.degrees(R.from_matrix(t[:3, :3] @ patient.motion[:3, :3].T).magnitude())
+    # The patient is also warped (3% of the diagonal per mode): the best rigid fit is a few
+    # degrees from the motion, the flip was 122.
+    assert off < 15.0
+    assert result.runner_up_score is not None and result.runner_up_score > 1.5 * result.score
+
+
+def test_a_sphere_is_ambiguous_and_says_so():
+    sphere = synthetic_form("sphere", 1000)
+    target = moved(synthetic_form("sphere", 3000), known_transform(angle_deg=60.0))
+    result = registration_rigid(sphere, target)
+    # Every rotation fits a sphere: distinct poses tie, and the result says so.
+    assert result.ambiguous
+    assert any("ambiguous" in w for w in result.warnings)
+    assert result.score < 0.5  # the fit itself is good (marching-cubes spheres, radius 40)
+
+
+def test_the_input_pose_is_a_candidate():
+    from o3dreg.registration.rigid import rigid_candidates
+
+    sphere = synthetic_form("sphere", 500)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    names = [name for name, _ in rigid_candidates((v, f), (v + 5.0, f))]
+    assert names[:2] == ["input pose", "centroids matched"]
+    assert names[2:6] == [f"moment frame {k}" for k in range(1, 5)]
+    # A sphere's principal values are equal: rotations are sampled too.
+    assert sum(n.startswith("sampled") for n in names) == 72
+    box = o3d.geometry.TriangleMesh.create_box(10.0, 20.0, 40.0)
+    vb, fb = np.asarray(box.vertices), np.asarray(box.triangles)
+    assert len(rigid_candidates((vb, fb), (vb, fb))) == 6
+
+
+def test_sizes_in_other_units_stop_with_the_fix(bunny_template, bunny_target):
+    metres = moved(bunny_target, known_transform(scale=1e-3))
+    with pytest.raises(ValueError, match=r"`target` is 0\.001 times the size.*with_scaling=True"):
+        registration_rigid(bunny_template, metres)
+    # The named fix works: a similarity start finds the factor.
+    truth = known_transform(angle_deg=10.0, scale=0.1)
+    result = registration_rigid(bunny_template, moved(bunny_target, truth), with_scaling=True)
+    assert np.cbrt(np.linalg.det(result.transformation[:3, :3])) == pytest.approx(0.1, rel=0.01)

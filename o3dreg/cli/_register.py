@@ -27,8 +27,13 @@ EPILOG = """examples:
   o3dreg register template.ply patient.ply -o single.ply --no-symmetric
   o3dreg register template.ply scan.ply -o out.ply --loss cauchy --max-normal-angle 60
 
-exit status: 0 converged, 1 finished without meeting every level's criteria (outputs are
-still written), 2 bad input (nothing written)."""
+verdict: every registration is judged 'ok', 'suspect' or 'failed' from measured facts (folds,
+flipped triangles, distances for the target's size, supported fraction, an ambiguous rigid
+start, sizes in other units, a degenerate target); the reasons are printed.
+
+exit status: 0 verdict 'ok' and every level met its stopping criteria; 1 verdict 'suspect' or
+'failed', or a level stopped at --max-iteration (outputs are still written: look at them);
+2 bad input (nothing written)."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -175,6 +180,8 @@ def build_levels(args: argparse.Namespace) -> list[ElasticLevel]:
 def report_dict(result: ElasticRegistrationResult, **extra) -> dict:
     return {
         **extra,
+        "status": result.status,
+        "warnings": list(result.warnings),
         "success": result.success,
         "message": result.message,
         "distances": result.distances.as_dict(),
@@ -284,10 +291,20 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(report)
     emit(result.distances.table(), args)
+    emit(verdict_text(result), args)
     emit(
-        f"converged: {'yes' if result.success else 'no'} ({result.message}); "
+        f"stopping criteria: {'met at every level' if result.success else result.message}; "
         f"min Jacobian determinant {result.min_jacobian_determinant:.3g}; {seconds:.2f} s; "
         f"wrote {args.output}",
         args,
     )
-    return 0 if result.success else 1
+    if result.status != "ok" and (args.quiet or args.json):
+        print(f"o3dreg register: verdict {result.status}", file=sys.stderr)
+    return 0 if result.status == "ok" and result.success else 1
+
+
+def verdict_text(result: ElasticRegistrationResult) -> str:
+    """``verdict: STATUS`` and one indented line per reason."""
+    lines = [f"verdict: {result.status}" + ("" if result.warnings else " (nothing looked wrong)")]
+    lines += [f"  - {w}" for w in result.warnings]
+    return "\n".join(lines)

@@ -6,7 +6,8 @@ from .elastic import evaluate_elastic, registration_elastic
 from .lattice import TrilinearLattice
 from .options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
 from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances
-from .rigid import registration_rigid
+from .rigid import RigidRegistrationResult, registration_rigid
+from .verdict import assess_registration, population_outliers
 
 __all__ = [
     "BatchResult",
@@ -18,11 +19,14 @@ __all__ = [
     "LevelReport",
     "PartitionedDeformation",
     "PatientRecord",
+    "RigidRegistrationResult",
     "SurfaceDistances",
     "TrilinearLattice",
+    "assess_registration",
     "default_levels",
     "evaluate_elastic",
     "load_deformation",
+    "population_outliers",
     "register_batch",
     "registration_elastic",
     "registration_rigid",

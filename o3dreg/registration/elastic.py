@@ -38,6 +38,7 @@ from .options import (
 from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances
 from .rigid import registration_rigid
 from .sampling import morton_order, spatial_subsample
+from .verdict import assess_registration
 
 __all__ = ["evaluate_elastic", "registration_elastic"]
 
@@ -141,7 +142,8 @@ def registration_elastic(
     -------
     ElasticRegistrationResult
         ``success`` is ``False`` (with a ``message``) when a level stopped at ``max_iteration``;
-        no exception is raised for non-convergence.
+        no exception is raised for non-convergence. ``status`` and ``warnings`` are the verdict
+        of :func:`~o3dreg.assess_registration`: only ``'ok'`` means nothing looked wrong.
 
     Raises
     ------
@@ -188,8 +190,10 @@ def registration_elastic(
     if parts not in ("joint", "connected"):
         raise ValueError(f"`parts` must be 'joint' or 'connected', got {parts!r}")
 
+    rigid_start = None
     if init is None:
-        rigid = np.array(registration_rigid((vs, fs), (vt, ft)).transformation)
+        rigid_start = registration_rigid((vs, fs), (vt, ft))
+        rigid = np.array(rigid_start.transformation)
     else:
         rigid = as_transformation(init, "init")
 
@@ -197,7 +201,7 @@ def registration_elastic(
     if parts == "connected":
         labels = connected_components(vs.shape[0], fs)
         if labels.max() > 0:
-            return _register_parts(
+            parts_result = _register_parts(
                 vs,
                 fs,
                 vt,
@@ -210,6 +214,7 @@ def registration_elastic(
                 padding,
                 callback,
             )
+            return assess_registration(parts_result, (vs, fs), (vt, ft), rigid=rigid_start)
     query = SurfaceDistanceQuery(vt, ft)
     origin, size = lattice_box([points, vt], padding)
     weight = estimation_method.symmetric_weight if estimation_method.symmetric else 0.0
@@ -342,7 +347,7 @@ def registration_elastic(
     supported = _supported(moved, fs, query, estimation_method, last_problem, orientation)
     success = not failures
     message = "all levels converged" if success else "; ".join(failures)
-    return ElasticRegistrationResult(
+    result = ElasticRegistrationResult(
         transformation=rigid,
         deformation=deformation,
         vertices=moved,
@@ -356,6 +361,7 @@ def registration_elastic(
         flipped_triangles=flipped_triangles(points, moved, fs),
         supported=supported,
     )
+    return assess_registration(result, (vs, fs), (vt, ft), rigid=rigid_start)
 
 
 def connected_components(number_of_vertices: int, faces: np.ndarray) -> np.ndarray:

@@ -142,7 +142,7 @@ class ElasticRegistrationResult:
         Smallest ``det(dT/dx)`` at the source vertices (``<= 0`` means the map folds there).
     success : bool
         Whether every level met its stopping criteria (``False``: some level hit
-        ``max_iteration``; the result is still usable).
+        ``max_iteration``). Says nothing about whether the result is right: see ``status``.
     message : str
     min_cell_jacobian_determinant : float
         Smallest ``det(dT/dx)`` over 8 interior samples (local coordinates 1/4 and 3/4) of every
@@ -164,6 +164,13 @@ class ElasticRegistrationResult:
     part_sites : (n, 3) ndarray or None
         With ``parts='connected'``: the rigidly aligned source vertices, which route each point
         of :meth:`transform` to the component of its nearest site.
+    status : {'ok', 'suspect', 'failed'}
+        The verdict (:func:`~o3dreg.assess_registration`) from measured facts: folds, flipped
+        triangles, distances for the target's size, the supported fraction, an ambiguous rigid
+        start, a size mismatch, a degenerate target. Only ``'ok'`` results belong in a model
+        without a look.
+    warnings : tuple of str
+        One plain sentence per finding behind ``status`` (empty when ``'ok'``).
     """
 
     transformation: np.ndarray
@@ -181,11 +188,14 @@ class ElasticRegistrationResult:
     part_labels: np.ndarray | None = field(default=None, repr=False)
     part_deformations: tuple[LatticeDeformation, ...] = field(default=(), repr=False)
     part_sites: np.ndarray | None = field(default=None, repr=False)
+    status: str = "ok"
+    warnings: tuple[str, ...] = ()
 
     def __repr__(self) -> str:
         d = self.distances
         return (
-            f"ElasticRegistrationResult(levels={len(self.history)}, success={self.success}, "
+            f"ElasticRegistrationResult(status={self.status!r}, levels={len(self.history)}, "
+            f"success={self.success}, "
             f"source->target mean={d.source_to_target_mean:.4g}, "
             f"target->source mean={d.target_to_source_mean:.4g}, "
             f"min_jacobian_determinant={self.min_jacobian_determinant:.3g})"

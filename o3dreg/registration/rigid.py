@@ -1,7 +1,11 @@
 """Rigid (or similarity) pre-alignment: the paper's initial rototranslation.
 
-A moment-based initial guess (area-weighted centroids and principal axes of both surfaces, trying
-the four proper sign choices of the axes) refined by Open3D's ICP.
+Several starting poses are refined by Open3D's ICP and ranked by the symmetric surface distance
+on the whole target: the input pose (as given, and with centroids matched), the four moment
+frames (area-weighted centroids and principal axes, one per proper choice of axis signs) and,
+where two principal values are close (a head, a sphere-like bone: the axes in their plane are
+then arbitrary), a deterministic sampling of rotations. The winner and the best distinct other
+pose are both reported; a near tie is an ambiguity and comes with a warning.
 """
 
 from __future__ import annotations
@@ -17,11 +21,40 @@ from scipy.spatial import cKDTree
 
 from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays, as_transformation, check_positive
+from .distance import SurfaceDistanceQuery
+from .sampling import spatial_subsample
 
-__all__ = ["moment_alignments", "registration_rigid", "surface_moments"]
+__all__ = [
+    "RigidRegistrationResult",
+    "moment_alignments",
+    "registration_rigid",
+    "rigid_candidates",
+    "surface_moments",
+]
 
 logger = logging.getLogger("o3dreg")
 reg = o3d.pipelines.registration
+
+#: Two principal values closer than this (relative to the larger) leave the principal axes in
+#: their plane undetermined: a 20% difference is within the variation between patients of a
+#: near-round bone (the demo's head: 6% to 28%), so the moment frames alone cannot be trusted.
+CLOSE_PRINCIPAL_VALUES = 0.2
+#: Rotations sampled (super-Fibonacci, deterministic) when principal values are close; the
+#: :data:`SAMPLED_KEPT` best before ICP (by a cheap nearest-point score) are refined.
+SAMPLED_ROTATIONS = 72
+SAMPLED_KEPT = 8
+#: Sizes (RMS radius about the centroid) differing by more than this factor are taken for
+#: different units (10 for cm vs mm, 25.4 for inches, 1000 for m), not anatomy: adult bones of
+#: one kind vary far less than 3 times in linear size.
+MAX_SIZE_RATIO = 3.0
+#: A distinct pose whose score is within this factor of the winner's is an ambiguity: the
+#: demo's flipped poses score 1.7-2.5 times the right one.
+AMBIGUITY_RATIO = 1.2
+#: Points of the source and of the coarse target the search from many starts works on.
+SEARCH_POINTS = 1000
+#: Two poses are distinct when the source vertices they place differ by more than this fraction
+#: of the target's bounding-box diagonal (RMS): about what ICP's basin of attraction spans.
+DISTINCT_POSE = 0.05
 
 
 def surface_moments(
@@ -86,21 +119,140 @@ def moment_alignments(
     return out
 
 
-def _cloud(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.PointCloud:
-    mesh = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(faces.astype(np.int32))
+def _sampled_rotations(count: int) -> np.ndarray:
+    """``count`` rotations spread evenly over SO(3), deterministic (super-Fibonacci spirals,
+    Alexa 2022, :doi:`10.1109/CVPR52688.2022.00801`)."""
+    phi, psi = np.sqrt(2.0), 1.533751168755204288118041
+    s = np.arange(count) + 0.5
+    r, big = np.sqrt(s / count), np.sqrt(1.0 - s / count)
+    alpha, beta = 2.0 * np.pi * s / phi, 2.0 * np.pi * s / psi
+    x, y, z, w = r * np.sin(alpha), r * np.cos(alpha), big * np.sin(beta), big * np.cos(beta)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=1,
     )
-    mesh.compute_vertex_normals()
-    pcd = o3d.geometry.PointCloud(mesh.vertices)
-    pcd.normals = mesh.vertex_normals
-    return pcd
 
 
-def _chamfer(a: np.ndarray, b: np.ndarray, tree_b: cKDTree) -> float:
-    """Mean nearest-vertex distance both ways (a cheap score to rank candidates)."""
-    d_ab = tree_b.query(a, workers=-1)[0].mean()
-    d_ba = cKDTree(a).query(b, workers=-1)[0].mean()
-    return float(d_ab + d_ba)
+def _has_close_principal_values(covariance: np.ndarray) -> bool:
+    values = np.clip(np.linalg.eigvalsh(covariance), 0.0, None)
+    gaps = np.diff(values) / np.maximum(values[1:], 1e-300)
+    return bool(np.any(gaps < CLOSE_PRINCIPAL_VALUES))
+
+
+def rigid_candidates(
+    source: tuple[np.ndarray, np.ndarray],
+    target: tuple[np.ndarray, np.ndarray],
+    *,
+    with_scaling: bool = False,
+) -> list[tuple[str, np.ndarray]]:
+    """The starting poses :func:`registration_rigid` refines and ranks.
+
+    Parameters
+    ----------
+    source, target : tuple of (n, 3) ndarray and (m, 3) int ndarray
+        Valid triangle meshes (vertices, faces).
+    with_scaling : bool, optional
+        Scale the source to the target's size (RMS radius about the centroid) in every pose but
+        the input pose.
+
+    Returns
+    -------
+    list of (str, (4, 4) ndarray)
+        A name and a transformation for each: ``'input pose'`` (the identity),
+        ``'centroids matched'``, ``'moment frame 1'`` to ``'moment frame 4'`` and, when two
+        principal values of either surface are within :data:`CLOSE_PRINCIPAL_VALUES` of each
+        other, ``'sampled rotation k'`` (:data:`SAMPLED_ROTATIONS` rotations about the
+        centroids, in a fixed order).
+    """
+    _, cs, covs = surface_moments(*source)
+    _, ct, covt = surface_moments(*target)
+    scale = _size_ratio(covs, covt) if with_scaling else 1.0
+    out: list[tuple[str, np.ndarray]] = [("input pose", np.eye(4))]
+    matched = np.eye(4)
+    matched[:3, :3] *= scale
+    matched[:3, 3] = ct - scale * cs
+    out.append(("centroids matched", matched))
+    moments = moment_alignments(source, target, with_scaling=with_scaling)
+    out += [(f"moment frame {k + 1}", t) for k, t in enumerate(moments)]
+    if _has_close_principal_values(covs) or _has_close_principal_values(covt):
+        for k, rot in enumerate(_sampled_rotations(SAMPLED_ROTATIONS)):
+            t = np.eye(4)
+            t[:3, :3] = scale * rot
+            t[:3, 3] = ct - scale * rot @ cs
+            out.append((f"sampled rotation {k + 1}", t))
+    return out
+
+
+def _size_ratio(cov_source: np.ndarray, cov_target: np.ndarray) -> float:
+    """Target size over source size (RMS radius about the centroid)."""
+    return float(np.sqrt(max(np.trace(cov_target), 1e-300) / max(np.trace(cov_source), 1e-300)))
+
+
+class RigidRegistrationResult(reg.RegistrationResult):  # type: ignore[misc]
+    """Open3D's ``RegistrationResult``, plus how the starting pose was chosen.
+
+    Attributes
+    ----------
+    transformation : (4, 4) ndarray
+        Maps the source onto the target (``init`` included).
+    fitness, inlier_rmse : float
+        As Open3D's ICP computes them at ``max_correspondence_distance``.
+    correspondence_set : open3d.utility.Vector2iVector
+    score : float
+        The winner's symmetric surface distance: the mean of the mean source->target
+        point-to-surface distance and the mean target->source one (target points to the moved
+        source surface), on the whole target, in the input's units.
+    runner_up_score : float or None
+        The same for the best pose distinct from the winner (its source vertices more than
+        :data:`DISTINCT_POSE` of the target's diagonal away, RMS), after the same refinement;
+        ``None`` when there was none (a given ``init``, or every start reached one pose).
+    runner_up_transformation : (4, 4) ndarray or None
+    candidates : int
+        Starting poses tried.
+    warnings : tuple of str
+        Plain sentences: an ambiguity (``runner_up_score < AMBIGUITY_RATIO * score``).
+    """
+
+    def __init__(
+        self,
+        icp: Any = None,
+        *,
+        score: float = float("nan"),
+        runner_up_score: float | None = None,
+        runner_up_transformation: np.ndarray | None = None,
+        candidates: int = 0,
+        warnings: tuple[str, ...] = (),
+    ) -> None:
+        super().__init__()
+        if icp is not None:
+            self.transformation = icp.transformation
+            self.fitness = icp.fitness
+            self.inlier_rmse = icp.inlier_rmse
+            self.correspondence_set = icp.correspondence_set
+        self.score = float(score)
+        self.runner_up_score = None if runner_up_score is None else float(runner_up_score)
+        self.runner_up_transformation = runner_up_transformation
+        self.candidates = int(candidates)
+        self.warnings = tuple(warnings)
+
+    @property
+    def ambiguous(self) -> bool:
+        """Whether a distinct pose scored within :data:`AMBIGUITY_RATIO` of the winner."""
+        return self.runner_up_score is not None and self.runner_up_score < AMBIGUITY_RATIO * (
+            self.score
+        )
+
+    def __repr__(self) -> str:
+        runner = "none" if self.runner_up_score is None else f"{self.runner_up_score:.4g}"
+        return (
+            f"RigidRegistrationResult(fitness={self.fitness:.4g}, "
+            f"inlier_rmse={self.inlier_rmse:.4g}, score={self.score:.4g}, runner_up={runner}, "
+            f"candidates={self.candidates}, ambiguous={self.ambiguous})"
+        )
 
 
 def registration_rigid(
@@ -112,16 +264,23 @@ def registration_rigid(
     with_scaling: bool = False,
     estimation_method: Any = None,
     criteria: Any = None,
-) -> Any:
+) -> RigidRegistrationResult:
     """Rigid or similarity alignment of ``source`` onto ``target``.
+
+    Without ``init``, every pose of :func:`rigid_candidates` is refined by ICP (at four times
+    ``max_correspondence_distance``, against a coarse copy of the target) and scored by the
+    symmetric surface distance on the whole target; the best and the best distinct other pose
+    are refined at ``max_correspondence_distance`` against the full target and scored again.
+    The lower score wins. Open3D runs on one thread here, so the same input gives a
+    bit-identical pose.
 
     Parameters
     ----------
     source, target : open3d.geometry.TriangleMesh or (vertices, faces)
         ``source`` moves. Not modified.
     init : (4, 4) array_like, optional
-        Initial transformation. When given, the moment-based guess is skipped and ICP starts
-        from it.
+        Initial transformation. When given, the candidate search (and the size check) is
+        skipped and ICP starts from it.
     max_correspondence_distance : float, optional
         ICP's inlier distance, in the input's units. Default: 5% of the target's bounding-box
         diagonal (after a first pass at 4 times that).
@@ -136,9 +295,19 @@ def registration_rigid(
 
     Returns
     -------
-    open3d.pipelines.registration.RegistrationResult
-        ``transformation`` maps ``source`` onto ``target`` (``init`` included); ``fitness`` and
-        ``inlier_rmse`` as Open3D computes them at ``max_correspondence_distance``.
+    RigidRegistrationResult
+        An ``open3d.pipelines.registration.RegistrationResult``: ``transformation`` maps
+        ``source`` onto ``target`` (``init`` included), ``fitness`` and ``inlier_rmse`` as
+        Open3D computes them at ``max_correspondence_distance``; plus the winner's and the
+        runner-up's scores and ``warnings`` (a near tie between distinct poses: the shape is
+        nearly symmetric and the pose may be wrong; start from landmarks then).
+
+    Raises
+    ------
+    ValueError
+        Without ``init`` and ``with_scaling``, when the two surfaces' sizes differ by more than
+        :data:`MAX_SIZE_RATIO` (different units): convert one of them, or pass
+        ``with_scaling=True`` for a similarity start.
 
     Examples
     --------
@@ -152,10 +321,14 @@ def registration_rigid(
     """
     vs, fs = as_mesh_arrays(source, "source", drop_degenerate=True)
     vt, ft = as_mesh_arrays(target, "target", drop_degenerate=True)
-    if init is not None:
-        candidates = [as_transformation(init, "init")]
+    if not isinstance(with_scaling, bool):
+        raise TypeError(f"`with_scaling` must be a bool, got {type(with_scaling).__name__}")
+    given = init is not None
+    if given:
+        candidates = [("init", as_transformation(init, "init"))]
     else:
-        candidates = moment_alignments((vs, fs), (vt, ft), with_scaling=with_scaling)
+        _check_sizes(vs, fs, vt, ft, with_scaling)
+        candidates = rigid_candidates((vs, fs), (vt, ft), with_scaling=with_scaling)
     diagonal = float(np.linalg.norm(np.ptp(vt, axis=0)))
     if max_correspondence_distance is None:
         max_correspondence_distance = 0.05 * diagonal
@@ -163,8 +336,6 @@ def registration_rigid(
         max_correspondence_distance = check_positive(
             max_correspondence_distance, "max_correspondence_distance"
         )
-    if not isinstance(with_scaling, bool):
-        raise TypeError(f"`with_scaling` must be a bool, got {type(with_scaling).__name__}")
     if estimation_method is None:
         estimation_method = (
             reg.TransformationEstimationPointToPoint(with_scaling=True)
@@ -184,8 +355,29 @@ def registration_rigid(
             f"got {type(criteria).__name__}"
         )
     with _single_thread():
-        return _icp(
-            vs, fs, vt, ft, candidates, max_correspondence_distance, estimation_method, criteria
+        search = _CandidateSearch(vs, fs, vt, ft, max_correspondence_distance, diagonal)
+        if given:
+            final = search.refine(candidates[0][1], estimation_method, criteria)
+            return RigidRegistrationResult(
+                final, score=search.score(np.asarray(final.transformation)), candidates=1
+            )
+        return search.run(candidates, estimation_method, criteria)
+
+
+def _check_sizes(
+    vs: np.ndarray, fs: np.ndarray, vt: np.ndarray, ft: np.ndarray, with_scaling: bool
+) -> None:
+    if with_scaling:
+        return
+    _, _, covs = surface_moments(vs, fs)
+    _, _, covt = surface_moments(vt, ft)
+    ratio = _size_ratio(covs, covt)
+    if ratio > MAX_SIZE_RATIO or ratio < 1.0 / MAX_SIZE_RATIO:
+        size_s, size_t = np.sqrt(np.trace(covs)), np.sqrt(np.trace(covt))
+        raise ValueError(
+            f"`target` is {ratio:.3g} times the size of `source` (RMS radius {size_t:.4g} vs "
+            f"{size_s:.4g}): are they in the same units? Convert one of them, or start from a "
+            "similarity: `with_scaling=True` (o3dreg register --with-scaling)"
         )
 
 
@@ -202,35 +394,132 @@ def _single_thread() -> Iterator[None]:
         o3d.utility.set_max_threads(previous)
 
 
-def _icp(
-    vs: np.ndarray,
-    fs: np.ndarray,
-    vt: np.ndarray,
-    ft: np.ndarray,
-    candidates: list[np.ndarray],
-    max_correspondence_distance: float,
-    estimation_method: Any,
-    criteria: Any,
-) -> Any:
-    src, tgt = _cloud(vs, fs), _cloud(vt, ft)
-    # Rank the candidates on a coarse copy of the target (about as many points as the source):
-    # the ranking needs the shape, not the detail. Only the winner is refined on all points.
-    coarse_tgt = tgt.voxel_down_sample(_voxel_for(vt, max(vs.shape[0], 1000)))
-    coarse_pts = np.asarray(coarse_tgt.points)
-    tree_t = cKDTree(coarse_pts)
-    best, best_score = np.eye(4), np.inf
-    for guess in candidates:
-        coarse = reg.registration_icp(
-            src, coarse_tgt, 4.0 * max_correspondence_distance, guess, estimation_method, criteria
+class _CandidateSearch:
+    """ICP from many starts, scored by the symmetric surface distance on the whole target."""
+
+    def __init__(
+        self,
+        vs: np.ndarray,
+        fs: np.ndarray,
+        vt: np.ndarray,
+        ft: np.ndarray,
+        max_correspondence_distance: float,
+        diagonal: float,
+    ) -> None:
+        self.vs, self.fs = vs, fs
+        self.src, self.tgt = _cloud(vs, fs), _cloud(vt, ft)
+        self.distance = max_correspondence_distance
+        self.diagonal = diagonal
+        # ICP from many starts runs with a spatial subsample of the source against a coarse copy
+        # of the target (about SEARCH_POINTS points each): the basin needs the shape, not the
+        # detail. Only the two best poses are refined on all points.
+        keep = spatial_subsample(vs, SEARCH_POINTS) if vs.shape[0] > SEARCH_POINTS else None
+        self.search_src = self.src if keep is None else self.src.select_by_index(keep.tolist())
+        self.search_points = np.asarray(self.search_src.points)
+        self.coarse = self.tgt.voxel_down_sample(_voxel_for(vt, SEARCH_POINTS))
+        self.coarse_points = np.asarray(self.coarse.points)
+        self.query = SurfaceDistanceQuery(vt, ft)
+        self.source_query = SurfaceDistanceQuery(vs, fs)
+
+    def score(self, transformation: np.ndarray) -> float:
+        """Mean of the mean point-to-surface distances both ways (the source subsample to the
+        whole target, the coarse target's points to the moved source surface)."""
+        forward = self.query.distance(apply_transformation(transformation, self.search_points))
+        # A similarity scales distances by its scale: measure in the source's frame, once built.
+        scale = float(np.cbrt(abs(np.linalg.det(transformation[:3, :3]))))
+        back = apply_transformation(np.linalg.inv(transformation), self.coarse_points)
+        backward = scale * self.source_query.distance(back)
+        return float(0.5 * (forward.mean() + backward.mean()))
+
+    def refine(self, start: np.ndarray, method: Any, criteria: Any) -> Any:
+        return reg.registration_icp(self.src, self.tgt, self.distance, start, method, criteria)
+
+    def _preselect(self, candidates: list[tuple[str, np.ndarray]]) -> list[tuple[str, np.ndarray]]:
+        """All named poses, and the sampled rotations nearest the target before ICP."""
+        fixed = [c for c in candidates if not c[0].startswith("sampled")]
+        sampled = [c for c in candidates if c[0].startswith("sampled")]
+        if len(sampled) <= SAMPLED_KEPT:
+            return fixed + sampled
+        tree = cKDTree(self.coarse_points)
+        pts = self.search_points
+
+        def cheap(t: np.ndarray) -> float:
+            moved = apply_transformation(t, pts)
+            return float(
+                tree.query(moved)[0].mean() + cKDTree(moved).query(self.coarse_points)[0].mean()
+            )
+
+        order = np.argsort([cheap(t) for _, t in sampled], kind="stable")
+        return fixed + [sampled[k] for k in order[:SAMPLED_KEPT]]
+
+    def _distinct(self, a: np.ndarray, b: np.ndarray) -> bool:
+        pa, pb = apply_transformation(a, self.vs), apply_transformation(b, self.vs)
+        rms = float(np.sqrt(((pa - pb) ** 2).sum(axis=1).mean()))
+        return rms > DISTINCT_POSE * self.diagonal
+
+    def run(
+        self, candidates: list[tuple[str, np.ndarray]], method: Any, criteria: Any
+    ) -> RigidRegistrationResult:
+        tried = self._preselect(candidates)
+        scored: list[tuple[float, str, np.ndarray]] = []
+        for name, guess in tried:
+            icp = reg.registration_icp(
+                self.search_src, self.coarse, 4.0 * self.distance, guess, method, criteria
+            )
+            t = np.asarray(icp.transformation)
+            score = self.score(t)
+            logger.debug("rigid candidate %s: fitness %.3f, score %.4g", name, icp.fitness, score)
+            scored.append((score, name, t))
+        order = sorted(range(len(scored)), key=lambda k: (scored[k][0], k))
+        best = scored[order[0]]
+        runner = next((scored[k] for k in order[1:] if self._distinct(best[2], scored[k][2])), None)
+        finals = []
+        for entry in (best, runner):
+            if entry is None:
+                continue
+            icp = self.refine(entry[2], method, criteria)
+            finals.append((self.score(np.asarray(icp.transformation)), entry[1], icp))
+        finals.sort(key=lambda f: f[0])
+        win_score, win_name, win = finals[0]
+        runner_score: float | None = None
+        runner_t: np.ndarray | None = None
+        if len(finals) > 1:
+            other = np.asarray(finals[1][2].transformation)
+            if self._distinct(np.asarray(win.transformation), other):
+                runner_score, runner_t = finals[1][0], other
+        warnings: list[str] = []
+        if runner_score is not None and runner_score < AMBIGUITY_RATIO * win_score:
+            warnings.append(
+                f"the rigid start is ambiguous: two distinct poses fit almost equally well "
+                f"(symmetric distances {win_score:.3g} and {runner_score:.3g}); the shape is "
+                "nearly symmetric, so correspondences may be wrong: start from landmarks"
+            )
+            logger.warning("registration_rigid: %s", warnings[-1])
+        logger.info(
+            "rigid start: %s wins of %d (score %.4g, runner-up %s)",
+            win_name,
+            len(tried),
+            win_score,
+            "none" if runner_score is None else f"{runner_score:.4g}",
         )
-        t = np.asarray(coarse.transformation)
-        score = _chamfer(apply_transformation(t, vs), coarse_pts, tree_t)
-        logger.debug("rigid candidate: fitness %.3f, score %.4g", coarse.fitness, score)
-        if score < best_score:
-            best, best_score = t, score
-    return reg.registration_icp(
-        src, tgt, max_correspondence_distance, best, estimation_method, criteria
+        return RigidRegistrationResult(
+            win,
+            score=win_score,
+            runner_up_score=runner_score,
+            runner_up_transformation=runner_t,
+            candidates=len(tried),
+            warnings=tuple(warnings),
+        )
+
+
+def _cloud(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.PointCloud:
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(faces.astype(np.int32))
     )
+    mesh.compute_vertex_normals()
+    pcd = o3d.geometry.PointCloud(mesh.vertices)
+    pcd.normals = mesh.vertex_normals
+    return pcd
 
 
 def _voxel_for(points: np.ndarray, count: int) -> float:

@@ -1,0 +1,280 @@
+"""A verdict on every registration: ``'ok'``, ``'suspect'`` or ``'failed'``, with its reasons.
+
+A wrong registration looks like a good one in its convergence flag: the optimiser met its
+criteria wherever it ended. The verdict is made from measured facts instead, each compared with
+a threshold stated here with its reason:
+
+* folds: the map of space is not one-to-one where a cell's Jacobian determinant is ``<= 0``;
+* flipped triangles: template triangles turned inside out;
+* distances large for the target's size (95th percentiles both ways, over the target's
+  bounding-box diagonal);
+* the fraction of template vertices the target supports;
+* a rigid start with two distinct, almost equally good poses (a near-symmetric shape);
+* sizes that still differ by a large factor after the rigid step (different units);
+* a degenerate target (a few triangles, or almost no area next to the template).
+
+In a batch, :func:`population_outliers` marks patients whose distances or Procrustes residual
+stand out among the others (a robust z-score), which catches a registration that is wrong but
+locally tidy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from .._geometry import apply_transformation
+from .._validation import as_mesh_arrays
+from .distance import SurfaceDistanceQuery
+
+__all__ = ["STATUSES", "assess_registration", "population_outliers", "worst_status"]
+
+#: The verdicts, best first.
+STATUSES = ("ok", "suspect", "failed")
+
+#: Flipped triangles beyond this fraction of the template's are suspect, beyond the second a
+#: failure. Where the map does not fold (every cell's determinant positive) the surface keeps its
+#: orientation and a flip is one thin triangle's linear interpolation on a tightly curved part
+#: (the demo's right registrations have 0-1 of 5000): one, or a handful, is not a finding; a
+#: fold is.
+FLIPPED_SUSPECT_FRACTION = 0.001
+FLIPPED_FAILED_FRACTION = 0.01
+#: 95% of the supported template vertices within this fraction of the target's diagonal of it:
+#: the demo's good registrations reach 0.2%; a wrong part of the anatomy is several percent away.
+DISTANCE_SUSPECT = 0.02
+DISTANCE_FAILED = 0.05
+#: The same for target vertices to the registered template. Looser: a target may hold more than
+#: the template models (a longer scan, debris the cleaning kept).
+TARGET_DISTANCE_SUSPECT = 0.05
+#: Fraction of template vertices the target supports: half is expected when the template
+#: covers twice the target (a face-only scan, a partial bone); below 30% most of the shape is
+#: invented by the regularisation.
+SUPPORTED_SUSPECT = 0.3
+SUPPORTED_FAILED = 0.1
+#: Sizes (RMS radius about the centroid) of the rigidly aligned template and the target
+#: differing by more than this factor: different units (see registration.rigid.MAX_SIZE_RATIO).
+SIZE_RATIO_FAILED = 3.0
+#: A target with fewer triangles, or with less than this fraction of the aligned template's
+#: area, cannot determine a registration.
+MIN_TARGET_TRIANGLES = 4
+MIN_TARGET_AREA_FRACTION = 0.01
+#: Population check: modified z-score (Iglewicz and Hoaglin 1993) above which a value is an
+#: outlier, and how many times the median it must also exceed (a wrong registration stands out
+#: by far; natural variation between patients does not double a registration's distances).
+OUTLIER_Z = 3.5
+OUTLIER_MEDIAN_FACTOR = 2.0
+#: Fewer patients than this give no reliable median absolute deviation: no population check.
+MIN_POPULATION = 5
+
+
+def worst_status(*statuses: str) -> str:
+    """The worst of several verdicts (``'ok'`` when none is given)."""
+    return max(statuses, key=STATUSES.index, default="ok")
+
+
+def assess_registration(result: Any, source: Any, target: Any, *, rigid: Any = None) -> Any:
+    """The registration with its verdict: ``status`` and ``warnings`` filled in.
+
+    Parameters
+    ----------
+    result : ElasticRegistrationResult
+        A registration of ``source`` onto ``target``.
+    source, target : open3d.geometry.TriangleMesh or (vertices, faces)
+        The template and the surface it was registered onto. Not modified.
+    rigid : RigidRegistrationResult, optional
+        The rigid start, when it was searched for: its ambiguity warning is carried over.
+
+    Returns
+    -------
+    ElasticRegistrationResult
+        A copy with ``status`` in ``{'ok', 'suspect', 'failed'}`` and ``warnings``, one plain
+        sentence per finding (empty for ``'ok'``). ``success`` (the stopping criteria were
+        met) is unchanged: it says nothing about whether the result is right.
+    """
+    vs, fs = as_mesh_arrays(source, "source")
+    vt, ft = as_mesh_arrays(target, "target", drop_degenerate=True)
+    aligned = apply_transformation(np.asarray(result.transformation), vs)
+    findings: list[tuple[str, str]] = []
+    findings += _degenerate_target(aligned, fs, vt, ft)
+    findings += _folds(result)
+    findings += _distances(result, vt, ft)
+    findings += _support(result)
+    findings += _sizes(aligned, fs, vt, ft)
+    if rigid is not None:
+        findings += [("suspect", w) for w in getattr(rigid, "warnings", ())]
+    status = worst_status(*(s for s, _ in findings))
+    return dataclasses.replace(result, status=status, warnings=tuple(w for _, w in findings))
+
+
+def _area(vertices: np.ndarray, faces: np.ndarray) -> float:
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+
+
+def _diagonal(vertices: np.ndarray) -> float:
+    return float(np.linalg.norm(np.ptp(vertices, axis=0))) if vertices.shape[0] else 0.0
+
+
+def _degenerate_target(
+    aligned: np.ndarray, fs: np.ndarray, vt: np.ndarray, ft: np.ndarray
+) -> list[tuple[str, str]]:
+    if ft.shape[0] < MIN_TARGET_TRIANGLES:
+        return [("failed", f"the target is degenerate: {ft.shape[0]} triangle(s)")]
+    area_t, area_s = _area(vt, ft), _area(aligned, fs)
+    if area_t < MIN_TARGET_AREA_FRACTION * area_s:
+        return [
+            (
+                "failed",
+                f"the target is degenerate: its area ({area_t:.3g}) is "
+                f"{100 * area_t / area_s:.2g}% of the template's",
+            )
+        ]
+    return []
+
+
+def _folds(result: Any) -> list[tuple[str, str]]:
+    out = []
+    det = float(result.min_cell_jacobian_determinant)
+    det = min(det, float(result.min_jacobian_determinant))
+    flipped = int(result.flipped_triangles)
+    triangles = max(int(result.faces.shape[0]), 1)
+    if det <= 0.0:
+        out.append(
+            (
+                "suspect",
+                f"the deformation folds space (smallest Jacobian determinant {det:.3g} <= 0): "
+                "it is not one-to-one there",
+            )
+        )
+    if flipped > FLIPPED_FAILED_FRACTION * triangles:
+        out.append(
+            (
+                "failed",
+                f"{flipped} of {triangles} template triangles are turned inside out",
+            )
+        )
+    elif flipped > max(1.0, FLIPPED_SUSPECT_FRACTION * triangles):
+        out.append(("suspect", f"{flipped} template triangles turned inside out"))
+    return out
+
+
+def _distances(result: Any, vt: np.ndarray, ft: np.ndarray) -> list[tuple[str, str]]:
+    diagonal = _diagonal(vt)
+    if diagonal <= 0.0 or ft.shape[0] == 0:
+        return []
+    out = []
+    forward = SurfaceDistanceQuery(vt, ft).distance(result.vertices)
+    supported = getattr(result, "supported", None)
+    if supported is not None and supported.any():
+        forward = forward[supported]
+    p95 = float(np.percentile(forward, 95))
+    if p95 > DISTANCE_SUSPECT * diagonal:
+        status = "failed" if p95 > DISTANCE_FAILED * diagonal else "suspect"
+        out.append(
+            (
+                status,
+                f"template vertices are far from the target: 5% of them beyond {p95:.3g} "
+                f"({100 * p95 / diagonal:.2g}% of the target's size)",
+            )
+        )
+    backward = SurfaceDistanceQuery(result.vertices, result.faces).distance(vt)
+    b95 = float(np.percentile(backward, 95))
+    if b95 > TARGET_DISTANCE_SUSPECT * diagonal:
+        out.append(
+            (
+                "suspect",
+                f"parts of the target are far from the registered template: 5% of its "
+                f"vertices beyond {b95:.3g} ({100 * b95 / diagonal:.2g}% of its size)",
+            )
+        )
+    return out
+
+
+def _support(result: Any) -> list[tuple[str, str]]:
+    supported = getattr(result, "supported", None)
+    if supported is None or supported.size == 0:
+        return []
+    fraction = float(np.count_nonzero(supported)) / supported.size
+    if fraction < SUPPORTED_SUSPECT:
+        status = "failed" if fraction < SUPPORTED_FAILED else "suspect"
+        return [
+            (
+                status,
+                f"the target supports only {100 * fraction:.0f}% of the template's vertices; "
+                "the rest follow the regularisation",
+            )
+        ]
+    return []
+
+
+def _sizes(
+    aligned: np.ndarray, fs: np.ndarray, vt: np.ndarray, ft: np.ndarray
+) -> list[tuple[str, str]]:
+    from .rigid import surface_moments
+
+    if ft.shape[0] == 0 or fs.shape[0] == 0:
+        return []
+    try:
+        _, _, cov_s = surface_moments(aligned, fs)
+        _, _, cov_t = surface_moments(vt, ft)
+    except ValueError:  # zero area: reported as a degenerate target
+        return []
+    ratio = float(np.sqrt(max(np.trace(cov_t), 1e-300) / max(np.trace(cov_s), 1e-300)))
+    if ratio > SIZE_RATIO_FAILED or ratio < 1.0 / SIZE_RATIO_FAILED:
+        return [
+            (
+                "failed",
+                f"after the rigid step the target is {ratio:.3g} times the template's size: "
+                "different units? Convert one of them, or start from a similarity "
+                "(--with-scaling)",
+            )
+        ]
+    return []
+
+
+def population_outliers(
+    values: Mapping[str, float], *, threshold: float = OUTLIER_Z
+) -> dict[str, float]:
+    """The names whose value is far above the others' (a robust z-score).
+
+    ``z = 0.6745 (x - median) / MAD`` (the modified z-score of Iglewicz and Hoaglin, 1993: the
+    median absolute deviation ``MAD`` scaled to a standard deviation for normal data). A value is
+    an outlier when ``z > threshold`` and it is also more than :data:`OUTLIER_MEDIAN_FACTOR`
+    times the median. Only large values are outliers: a registration is never wrong for being
+    too close.
+
+    Parameters
+    ----------
+    values : mapping of str to float
+        One value per patient (a distance, a Procrustes residual). Non-finite values are left
+        out of the statistics and not reported.
+    threshold : float, optional
+        Default :data:`OUTLIER_Z` (3.5, the value Iglewicz and Hoaglin recommend).
+
+    Returns
+    -------
+    dict of str to float
+        The outliers and their z-scores. Empty with fewer than :data:`MIN_POPULATION` finite
+        values, or when the values do not vary.
+    """
+    finite = {k: float(v) for k, v in values.items() if np.isfinite(v)}
+    if len(finite) < MIN_POPULATION:
+        return {}
+    x = np.array(list(finite.values()))
+    median = float(np.median(x))
+    mad = float(np.median(np.abs(x - median)))
+    if mad <= 0.0:
+        # More than half the values equal: the mean absolute deviation, scaled alike.
+        # For normal data MAD = 0.6745 sigma and the mean deviation 0.7979 sigma.
+        mad = float(np.mean(np.abs(x - median))) * 0.6745 / 0.7979
+    if mad <= 0.0:
+        return {}
+    out = {}
+    for name, v in finite.items():
+        z = 0.6745 * (v - median) / mad
+        if z > threshold and v > OUTLIER_MEDIAN_FACTOR * median:
+            out[name] = float(z)
+    return out

@@ -1,0 +1,141 @@
+"""The verdict on a registration: each path from a constructed case, and the population check."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from o3dreg import (
+    ElasticCriteria,
+    ElasticLevel,
+    assess_registration,
+    population_outliers,
+    registration_elastic,
+)
+from o3dreg.app.synthetic import synthetic_form
+from o3dreg.registration.verdict import worst_status
+
+LEVELS = [ElasticLevel(2), ElasticLevel(4)]
+
+
+@pytest.fixture(scope="module")
+def spheres():
+    """A 40 mm sphere registered onto a 44 mm one: a right registration."""
+    template = synthetic_form("sphere", 400)
+    target = synthetic_form("sphere", 2000)
+    target.scale(1.1, center=(0.0, 0.0, 0.0))
+    source = (np.asarray(template.vertices), np.asarray(template.triangles))
+    patient = (np.asarray(target.vertices), np.asarray(target.triangles))
+    result = registration_elastic(source, patient, init=np.eye(4), levels=LEVELS)
+    return source, patient, result
+
+
+def test_a_right_registration_is_ok(spheres):
+    _, _, result = spheres
+    assert result.status == "ok" and result.warnings == ()
+    assert "status='ok'" in repr(result)
+
+
+def test_a_fold_is_never_ok(spheres):
+    source, patient, result = spheres
+    folded = dataclasses.replace(result, min_cell_jacobian_determinant=-0.02)
+    judged = assess_registration(folded, source, patient)
+    assert judged.status == "suspect"
+    assert any("folds space" in w for w in judged.warnings)
+    # `success` keeps its meaning (the criteria were met) beside the verdict.
+    assert judged.success == result.success
+
+
+def test_flipped_triangles(spheres):
+    source, patient, result = spheres
+    triangles = result.faces.shape[0]
+    few = assess_registration(dataclasses.replace(result, flipped_triangles=1), source, patient)
+    assert few.status == "ok"  # one thin triangle of 796, the map one-to-one: no finding
+    some = dataclasses.replace(result, flipped_triangles=int(0.005 * triangles) + 1)
+    assert assess_registration(some, source, patient).status == "suspect"
+    many = dataclasses.replace(result, flipped_triangles=int(0.05 * triangles))
+    judged = assess_registration(many, source, patient)
+    assert judged.status == "failed"
+    assert any("inside out" in w for w in judged.warnings)
+
+
+def test_distances_large_for_the_target(spheres):
+    source, patient, result = spheres
+    diagonal = np.linalg.norm(np.ptp(patient[0], axis=0))  # ~152 mm
+    # Every vertex 3% of the diagonal off the surface (radially out): suspect; 8%: failed.
+    for fraction, status in ((0.03, "suspect"), (0.08, "failed")):
+        v = result.vertices
+        out = v + fraction * diagonal * v / np.linalg.norm(v, axis=1, keepdims=True)
+        judged = assess_registration(dataclasses.replace(result, vertices=out), source, patient)
+        assert judged.status == status
+        assert any("far from the target" in w for w in judged.warnings)
+
+
+def test_supported_fraction(spheres):
+    source, patient, result = spheres
+    n = result.vertices.shape[0]
+    for fraction, status in ((0.5, "ok"), (0.2, "suspect"), (0.05, "failed")):
+        supported = np.arange(n) < fraction * n
+        judged = assess_registration(
+            dataclasses.replace(result, supported=supported), source, patient
+        )
+        assert judged.status == status, fraction
+    assert any("supports only 5%" in w for w in judged.warnings)
+
+
+def test_rigid_ambiguity_is_carried(spheres):
+    source, patient, result = spheres
+
+    class Rigid:
+        warnings = ("the rigid start is ambiguous: ...",)
+
+    judged = assess_registration(result, source, patient, rigid=Rigid())
+    assert judged.status == "suspect" and judged.warnings == Rigid.warnings
+
+
+def test_a_scale_mismatch_fails():
+    # Template in millimetres, patient in metres, started from the identity (no rigid step,
+    # which would stop with a message naming --with-scaling).
+    template = synthetic_form("sphere", 400)
+    patient = synthetic_form("sphere", 1000)
+    patient.scale(1e-3, center=(0.0, 0.0, 0.0))
+    result = registration_elastic(
+        template,
+        patient,
+        init=np.eye(4),
+        levels=LEVELS,
+        criteria=ElasticCriteria(max_iteration=3),
+    )
+    assert result.status == "failed"
+    assert any("times the template's size" in w for w in result.warnings)
+
+
+def test_a_one_triangle_target_fails():
+    template = synthetic_form("sphere", 400)
+    triangle = (np.array([[0.0, 0, 0], [40, 0, 0], [0, 40, 0]]), np.array([[0, 1, 2]]))
+    result = registration_elastic(
+        template, triangle, init=np.eye(4), levels=LEVELS, criteria=ElasticCriteria(3)
+    )
+    assert result.status == "failed"
+    assert any("degenerate" in w for w in result.warnings)
+
+
+def test_worst_status():
+    assert worst_status() == "ok"
+    assert worst_status("ok", "failed", "suspect") == "failed"
+    assert worst_status("suspect", "ok") == "suspect"
+
+
+def test_population_outliers():
+    values = {f"p{k}": v for k, v in enumerate([0.50, 0.52, 0.48, 0.55, 0.51, 0.49, 0.53])}
+    assert population_outliers(values) == {}
+    z = population_outliers({**values, "wrong": 3.0})
+    assert list(z) == ["wrong"] and z["wrong"] > 3.5
+    # Too close is never an outlier; a large z for a small absolute excess is not one either.
+    assert population_outliers({**values, "tight": 0.01}) == {}
+    assert population_outliers({**values, "a bit": 0.7}) == {}
+    # Fewer than five values: no population to compare with.
+    assert population_outliers({"a": 0.5, "b": 0.5, "c": 0.5, "d": 9.0}) == {}
+    # Constant values but one (MAD zero): the mean deviation takes over.
+    assert list(population_outliers({**{f"q{k}": 1.0 for k in range(6)}, "x": 5.0})) == ["x"]
+    assert population_outliers({"a": np.nan, **values}) == {}
