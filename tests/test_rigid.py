@@ -132,8 +132,8 @@ def test_the_demos_patient08_does_not_flip():
 
     from o3dreg.app.datasets import headsq_path
     from o3dreg.app.demo import bone_mesh, make_population
+    from o3dreg.volume import read_volume
     from o3dreg.volume.cleaning import decimate
-    from o3dreg.volume.volume import read_volume
 
     reference = bone_mesh(read_volume(headsq_path()))
     template = decimate(reference, 2500)
