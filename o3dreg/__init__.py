@@ -23,6 +23,7 @@ from .registration.deformation import (  # noqa: E402
     load_deformation,
 )
 from .registration.elastic import evaluate_elastic, registration_elastic  # noqa: E402
+from .registration.landmarks import LandmarkRegistrationResult, registration_landmarks  # noqa: E402
 from .registration.lattice import TrilinearLattice  # noqa: E402
 from .registration.options import (  # noqa: E402
     DistanceEstimation,
@@ -32,6 +33,7 @@ from .registration.options import (  # noqa: E402
 )
 from .registration.result import ElasticRegistrationResult, LevelReport, SurfaceDistances  # noqa: E402
 from .registration.rigid import RigidRegistrationResult, registration_rigid  # noqa: E402
+from .registration.settings import RegistrationSettings  # noqa: E402
 from .registration.verdict import assess_registration, population_outliers  # noqa: E402
 
 __all__ += [
@@ -39,9 +41,11 @@ __all__ += [
     "ElasticCriteria",
     "ElasticLevel",
     "ElasticRegistrationResult",
+    "LandmarkRegistrationResult",
     "LatticeDeformation",
     "LevelReport",
     "PartitionedDeformation",
+    "RegistrationSettings",
     "RigidRegistrationResult",
     "SurfaceDistances",
     "TrilinearLattice",
@@ -51,6 +55,7 @@ __all__ += [
     "load_deformation",
     "population_outliers",
     "registration_elastic",
+    "registration_landmarks",
     "registration_rigid",
 ]
 

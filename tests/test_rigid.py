@@ -148,14 +148,27 @@ def test_the_demos_patient08_does_not_flip():
     assert result.runner_up_score is not None and result.runner_up_score > 1.5 * result.score
 
 
-def test_a_sphere_is_ambiguous_and_says_so():
-    sphere = synthetic_form("sphere", 1000)
-    target = moved(synthetic_form("sphere", 3000), known_transform(angle_deg=60.0))
-    result = registration_rigid(sphere, target)
-    # Every rotation fits a sphere: distinct poses tie, and the result says so.
+def test_a_cube_turned_far_from_the_input_pose_is_ambiguous_and_says_so():
+    cube = synthetic_form("cube", 600)
+    # 24 rotations fit a cube; turned 45 degrees about z and 30 about x, every one of them is
+    # more than 20 degrees from the input pose, so the input pose cannot break the tie.
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("zx", [45.0, 30.0], degrees=True).as_matrix()
+    result = registration_rigid(cube, moved(synthetic_form("cube", 3000), turn))
     assert result.ambiguous
     assert any("ambiguous" in w for w in result.warnings)
-    assert result.score < 0.5  # the fit itself is good (marching-cubes spheres, radius 40)
+    assert result.runner_up_score < 1.2 * result.score
+    assert result.score < 1.0  # the fit itself is good (cube of side 70 mm)
+
+
+def test_a_near_tie_near_the_input_pose_is_broken_by_it():
+    # A sphere turned by 10 degrees: every pose ties, and the input pose breaks the tie.
+    sphere = synthetic_form("sphere", 1000)
+    result = registration_rigid(
+        sphere, moved(synthetic_form("sphere", 3000), known_transform(10.0))
+    )
+    assert result.runner_up_score is not None and result.runner_up_score < 1.2 * result.score
+    assert not result.ambiguous and result.warnings == ()
 
 
 def test_the_input_pose_is_a_candidate():

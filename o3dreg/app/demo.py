@@ -45,6 +45,7 @@ from ..volume.isosurface import isosurface
 from ..volume.readers import read_volume
 from ..volume.volume import Volume
 from .datasets import headsq_path
+from .population import check_population
 from .report import write_report
 from .synthetic import SmoothWarp
 
@@ -247,14 +248,32 @@ def run_demo(
         executor=executor,
         progress=progress,
     )
+    batch = check_population(batch)
     names, shapes = batch.shapes()
+    index = {name: k for k, name in enumerate(names)}
     truth_error = {
-        p.name: float(np.linalg.norm(shapes[i] - p.truth(template_vertices), axis=1).mean())
-        for i, p in enumerate(patients)
-        if p.name in names
+        p.name: float(
+            np.linalg.norm(shapes[index[p.name]] - p.truth(template_vertices), axis=1).mean()
+        )
+        for p in patients
+        if p.name in index
     }
     figures["truth_error"] = truth_error
-    step(f"batch: {len(batch.registered)} registered, {len(batch.failed)} failed")
+    figures["verdicts"] = {r.name: (r.verdict, r.warnings) for r in batch.records}
+    flagged = [r.name for r in batch.flagged]
+    step(
+        f"batch: {len(batch.registered)} registered ({len(batch.accepted)} with verdict ok"
+        + (f"; flagged and left out of the model: {', '.join(flagged)}" if flagged else "")
+        + f"), {len(batch.failed)} failed"
+    )
+    # The model is built from the patients whose verdict is 'ok' only.
+    kept = [index[r.name] for r in batch.accepted]
+    names, shapes = tuple(names[k] for k in kept), shapes[kept]
+    if len(names) < 2:
+        raise RuntimeError(
+            f"only {len(names)} patient(s) registered with verdict 'ok': no model "
+            f"({figures['verdicts']})"
+        )
 
     model = build_shape_model(shapes, np.asarray(template.triangles), names=names)
     model.save(out / "model.npz")

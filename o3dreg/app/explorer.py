@@ -42,6 +42,7 @@ MAX_DISPLAY_TRIANGLES = 4000
 # Fields of a registration record shown as its verdict (``status``/``warnings`` where the record
 # has them).
 _VERDICT_KEYS = (
+    "verdict",
     "status",
     "success",
     "message",

@@ -24,12 +24,14 @@ import open3d as o3d
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 from ..registration.batch import BatchResult, register_batch
 from ..registration.options import ElasticLevel
+from ..registration.settings import RegistrationSettings
 from ..shape.build import build_shape_model
 from ..shape.model import ShapeModel
 from ..shape.quality import QualityCurve, compactness, generalization, specificity
 from ..shape.sliding import SlidingResult, slide_semilandmarks
 from ..shape.statismo import write_statismo
 from .explorer import write_model_explorer
+from .population import check_population
 
 logger = logging.getLogger("o3dreg")
 
@@ -69,6 +71,32 @@ class ModelFolder:
         )
 
 
+#: Suffixes tried, in order, for a patient's landmark file beside its mesh.
+LANDMARK_SUFFIXES = (".mrk.json", ".csv")
+
+
+def patient_landmark_file(mesh_path: str | os.PathLike[str]) -> str:
+    """The landmark file of a patient mesh: ``PATH/NAME.mrk.json``, else ``PATH/NAME.csv``.
+
+    ``NAME`` is the mesh file name without its suffix (``.nii.gz`` counted as one).
+
+    Raises
+    ------
+    OSError
+        When neither exists (naming both).
+    """
+    path = os.fspath(mesh_path)
+    folder, base = os.path.split(path)
+    stem = (
+        base[: -len(".nii.gz")] if base.lower().endswith(".nii.gz") else os.path.splitext(base)[0]
+    )
+    tried = [os.path.join(folder, stem + suffix) for suffix in LANDMARK_SUFFIXES]
+    for candidate in tried:
+        if os.path.isfile(candidate):
+            return candidate
+    raise OSError(f"no landmark file for patient {path!r}: expected {' or '.join(tried)}")
+
+
 def build_model_folder(
     template: o3d.geometry.TriangleMesh,
     targets: Sequence[str],
@@ -77,6 +105,9 @@ def build_model_folder(
     executor: Executor | None = None,
     force: bool = False,
     progress: bool = False,
+    settings: RegistrationSettings | None = None,
+    landmarks: str | os.PathLike[str] | None = None,
+    keep_flagged: bool = False,
     levels: Sequence[ElasticLevel] | None = None,
     scaling: bool = False,
     slide: bool = False,
@@ -98,8 +129,21 @@ def build_model_folder(
         Register finished patients again.
     progress : bool, optional
         Show a progress bar.
+    settings : RegistrationSettings, optional
+        How each patient is registered: the same settings as ``o3dreg register`` (levels,
+        regularisation, single/symmetric distance, robust settings, start). Default
+        ``RegistrationSettings()``.
+    landmarks : str or path-like, optional
+        The template's landmark file. Each patient ``PATH/NAME.EXT`` is then started from the
+        landmarks of :func:`patient_landmark_file` (``PATH/NAME.mrk.json``, else
+        ``PATH/NAME.csv``), paired by label: a rigid fit, or a similarity when
+        ``settings.start == 'similarity'``. A patient without one raises before any work.
+    keep_flagged : bool, optional
+        Put patients whose verdict is ``'suspect'`` or ``'failed'`` in the model too. Default
+        ``False``: only ``'ok'`` patients; the others are listed in ``report.json`` with their
+        reasons.
     levels : sequence of ElasticLevel, optional
-        The lattice hierarchy (default :func:`~o3dreg.default_levels`).
+        Shorthand for ``settings=RegistrationSettings(levels=levels)``.
     scaling : bool, optional
         Similarity Procrustes (size removed).
     slide : bool, optional
@@ -110,6 +154,18 @@ def build_model_folder(
     ModelFolder
         What was written; ``model`` is ``None`` when fewer than two patients were registered.
     """
+    if levels is not None:
+        if settings is not None:
+            raise TypeError("pass `levels` inside `settings`, not both")
+        settings = RegistrationSettings(levels=tuple(levels))
+    settings = settings if settings is not None else RegistrationSettings()
+    if not isinstance(settings, RegistrationSettings):
+        raise TypeError(f"`settings` must be a RegistrationSettings, got {type(settings).__name__}")
+    inits = None
+    if landmarks is not None:
+        inits = np.stack(
+            [settings.landmark_start(landmarks, patient_landmark_file(t)) for t in targets]
+        )
     out = output
     os.makedirs(out, exist_ok=True)
     template_path = os.path.join(out, "template.ply")
@@ -128,15 +184,18 @@ def build_model_folder(
         executor=executor,
         force=force,
         progress=progress,
-        levels=None if levels is None else list(levels),
+        settings=settings,
+        init=inits,
     )
-    names, shapes = batch.shapes()
+    batch = check_population(batch)
+    names, shapes = batch.shapes(accepted_only=not keep_flagged)
     if len(names) < 2:
         return ModelFolder(out, batch, None, [], None, {})
     faces = np.asarray(template.triangles)
     slid = None
     if slide:
-        surfaces = [read_triangle_mesh(r.source) for r in batch.registered]
+        used = set(names)
+        surfaces = [read_triangle_mesh(r.source) for r in batch.registered if r.name in used]
         slid = slide_semilandmarks(shapes, surfaces, scaling=scaling)
         shapes = slid.shapes
     model = build_shape_model(shapes, faces, names=names, scaling=scaling)
@@ -161,8 +220,14 @@ def build_model_folder(
     report = {
         "model_dir": out,
         "patients": batch.as_dicts(),
-        "registered": list(names),
+        "settings": settings.as_dict(),
+        "in_model": list(names),
+        "registered": [r.name for r in batch.registered],
         "failed": [r.name for r in batch.failed],
+        "flagged": {
+            r.name: {"verdict": r.verdict, "warnings": list(r.warnings)} for r in batch.flagged
+        },
+        "keep_flagged": keep_flagged,
         "variances": model.variance_records(),
         "quality": {c.name: c.as_dict() for c in curves},
         "sliding": None

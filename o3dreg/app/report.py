@@ -221,8 +221,20 @@ def write_report(
         batch.table(),
         "```",
         "",
-        "Correspondence error against the ground truth (mean, mm): "
-        + ", ".join(f"{k} {v:.2f}" for k, v in figures["truth_error"].items()),
+        "Each patient's verdict beside its correspondence error against the ground truth (mean "
+        "distance of every registered template vertex from its known position, mm). Only "
+        "patients with verdict `ok` are in the model.",
+        "",
+        "| patient | verdict | correspondence error (mm) | in the model | reasons |",
+        "|---|---|---|---|---|",
+        *[
+            f"| {name} | {verdict} | "
+            + (f"{figures['truth_error'][name]:.2f}" if name in figures["truth_error"] else "-")
+            + f" | {'yes' if name in model.names else 'no'} | "
+            + ("; ".join(warnings) if warnings else "")
+            + " |"
+            for name, (verdict, warnings) in figures["verdicts"].items()
+        ],
         "",
         "## Shape model (paper Table 4)",
         "",

@@ -18,7 +18,6 @@ from typing import Any
 from ..app.explorer import write_model_explorer
 from ..app.model_folder import build_model_folder
 from ..io.mesh import read_triangle_mesh
-from ..registration.options import ElasticLevel
 from ..shape.landmarks import (
     landmark_errors,
     load_template_landmarks,
@@ -27,9 +26,26 @@ from ..shape.landmarks import (
     write_landmarks,
 )
 from ..shape.model import ShapeModel
-from ._common import check_outputs, emit, finite_float, int_list, process_pool
+from ._common import check_outputs, emit, finite_float, process_pool
+from ._registration_options import add_registration_options, settings_from_args
 
 logger = logging.getLogger("o3dreg")
+
+
+BUILD_EPILOG = """The registration options are those of `o3dreg register` (one option set).
+
+verdict: every patient's registration is judged 'ok', 'suspect' or 'failed' (as by o3dreg
+register), then checked against the others: a patient whose mean distances or Procrustes
+residual are outliers among the registered patients (robust z-score > 3.5 and more than twice
+the median; five patients or more) becomes 'suspect'. Only 'ok' patients enter the model unless
+--keep-flagged; the table lists every flagged patient with its reasons.
+
+landmarks: with --landmarks TEMPLATE_FILE, patient PATH/NAME.EXT is started from the landmarks
+in PATH/NAME.mrk.json or else PATH/NAME.csv (the first that exists; labels paired with the
+template's). A patient without a landmark file stops the command before any registration.
+
+exit status: 0 every patient registered with verdict 'ok'; 1 a patient failed or was flagged
+(the model is built from the others), or fewer than 2 'ok' patients; 2 bad input."""
 
 
 def add_parser(subparsers: Any) -> None:
@@ -38,6 +54,8 @@ def add_parser(subparsers: Any) -> None:
         help="register a template onto many patients and build a shape model",
         description="Batch elastic registration of TEMPLATE onto every TARGET (resumable), "
         "generalised Procrustes alignment, PCA; writes the model folder.",
+        epilog=BUILD_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     build.add_argument("template", help="template mesh (moves; ~1k-4k vertices)")
     build.add_argument("targets", nargs="+", help="patient meshes")
@@ -45,11 +63,17 @@ def add_parser(subparsers: Any) -> None:
     build.add_argument("--jobs", type=int, default=1, help="parallel registrations (processes)")
     build.add_argument("--scheduler", help="Dask scheduler ADDRESS (tcp://host:8786) to run on")
     build.add_argument("--force", action="store_true", help="register finished patients again")
+    add_registration_options(build)
     build.add_argument(
-        "--levels",
-        type=int_list,
-        default=None,
-        help="lattice resolutions, coarse to fine, e.g. 2,4,8,16 (default)",
+        "--landmarks",
+        metavar="TEMPLATE_FILE",
+        help="start each registration from landmarks: TEMPLATE_FILE on the template, and per "
+        "patient PATIENT.mrk.json or PATIENT.csv beside PATIENT's mesh (same stem)",
+    )
+    build.add_argument(
+        "--keep-flagged",
+        action="store_true",
+        help="also put patients whose verdict is 'suspect' or 'failed' in the model",
     )
     build.add_argument(
         "--scaling", action="store_true", help="similarity Procrustes (size removed)"
@@ -102,10 +126,6 @@ def add_parser(subparsers: Any) -> None:
     model.set_defaults(func=lambda args: (model.print_help(), 2)[1])
 
 
-def _levels(values: list[int] | None) -> Any:
-    return None if values is None else [ElasticLevel(v) for v in values]
-
-
 @contextlib.contextmanager
 def _executor(args: argparse.Namespace) -> Iterator[Any]:
     """The executor of the registrations: a Dask client's, a process pool, or None (serial)."""
@@ -138,7 +158,9 @@ def run_build(args: argparse.Namespace) -> int:
             executor=executor,
             force=args.force,
             progress=not args.json and sys.stderr.isatty(),
-            levels=_levels(args.levels),
+            settings=settings_from_args(args),
+            landmarks=args.landmarks,
+            keep_flagged=args.keep_flagged,
             scaling=args.scaling,
             slide=args.slide,
         )
@@ -146,8 +168,8 @@ def run_build(args: argparse.Namespace) -> int:
     emit(batch.table(), args)
     if model is None:
         print(
-            f"o3dreg build-model: only {len(batch.registered)} patient(s) registered; "
-            "a model needs at least 2",
+            f"o3dreg build-model: only {len(batch.accepted)} patient(s) registered with verdict "
+            "'ok'; a model needs at least 2 (--keep-flagged also uses flagged ones)",
             file=sys.stderr,
         )
         return 1
@@ -158,14 +180,27 @@ def run_build(args: argparse.Namespace) -> int:
         emit(model.variance_table(), args)
         for curve in folder.curves[1:]:
             emit(curve.table(), args)
+    code = 0
     if batch.failed:
         print(
             f"o3dreg build-model: {len(batch.failed)} patient(s) failed: "
             f"{', '.join(r.name for r in batch.failed)}; the model was built without them",
             file=sys.stderr,
         )
-        return 1
-    return 0
+        code = 1
+    if batch.flagged:
+        kept = (
+            "kept in the model (--keep-flagged)"
+            if args.keep_flagged
+            else ("left out of the model (--keep-flagged keeps them)")
+        )
+        print(
+            f"o3dreg build-model: {len(batch.flagged)} patient(s) flagged, {kept}: "
+            + "; ".join(f"{r.name} ({r.verdict}: {'; '.join(r.warnings)})" for r in batch.flagged),
+            file=sys.stderr,
+        )
+        code = 1
+    return code
 
 
 def _check_model_folder(output: str, overwrite: bool) -> None:

@@ -6,18 +6,17 @@ import argparse
 import os
 import sys
 import time
-from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
 from ..app.explorer import write_registration_explorer
 from ..io.mesh import MESH_SUFFIXES, read_triangle_mesh, write_triangle_mesh
-from ..registration.elastic import registration_elastic
-from ..registration.options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
+from ..registration.landmarks import registration_landmarks
+from ..registration.options import default_levels
 from ..registration.result import ElasticRegistrationResult, LevelReport
-from ..registration.rigid import registration_rigid
-from ._common import check_outputs, emit, emit_json, float_list, int_list, write_json
+from ._common import check_outputs, emit, emit_json, write_json
+from ._registration_options import add_registration_options, settings_from_args
 
 EPILOG = """examples:
   o3dreg register template.ply patient.ply -o registered.ply
@@ -26,6 +25,7 @@ EPILOG = """examples:
       --html registration.html
   o3dreg register template.ply patient.ply -o single.ply --no-symmetric
   o3dreg register template.ply scan.ply -o out.ply --loss cauchy --max-normal-angle 60
+  o3dreg register template.ply scan.ply -o out.ply --landmarks template.mrk.json scan.mrk.json
 
 verdict: every registration is judged 'ok', 'suspect' or 'failed' from measured facts (folds,
 flipped triangles, distances for the target's size, supported fraction, an ambiguous rigid
@@ -51,78 +51,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("target", help="patient mesh it is matched to")
     p.add_argument("-o", "--output", required=True, help="semilandmark mesh to write")
+    add_registration_options(p)
     p.add_argument(
-        "--levels",
-        type=int_list,
-        default=None,
-        help="cells per axis of each level, coarse to fine (default 2,4,8,16)",
+        "--landmarks",
+        nargs=2,
+        metavar=("TEMPLATE_FILE", "PATIENT_FILE"),
+        help="start from corresponding landmarks (CSV label,x,y,z or Slicer .mrk.json, paired "
+        "by label): a rigid fit, a similarity with --with-scaling; replaces the rigid search",
     )
-    p.add_argument(
-        "--regularization",
-        type=float_list,
-        default=None,
-        help="bending-energy weight, one value or one per level (default 0.1)",
-    )
-    p.add_argument("--no-symmetric", action="store_true", help="single distance (paper eq. 2)")
-    p.add_argument(
-        "--symmetric-weight", type=float, default=1.0, help="weight of the barycentre term"
-    )
-    p.add_argument(
-        "--barycentre-correction",
-        action="store_true",
-        help="compare barycentres with the template's own Voronoi centroids (dense targets)",
-    )
-    robust = p.add_argument_group(
-        "robustness (the defaults handle partial scans, debris and outliers)"
-    )
-    robust.add_argument(
-        "--paper",
-        action="store_true",
-        help="the paper's plain least squares: linear loss, no boundary or normal rejection, "
-        "every target component (the options below still apply on top)",
-    )
-    robust.add_argument(
-        "--loss",
-        choices=["linear", "huber", "cauchy", "tukey"],
-        default=None,
-        help="robust loss of both distance terms (default cauchy; linear: least squares)",
-    )
-    robust.add_argument(
-        "--max-normal-angle",
-        type=float,
-        default=None,
-        metavar="DEG",
-        help="drop matches whose normals differ by more than DEG degrees (default 90; 180: off)",
-    )
-    robust.add_argument(
-        "--max-distance-factor",
-        type=float,
-        default=None,
-        metavar="K",
-        help="drop matches farther than K robust scales",
-    )
-    robust.add_argument(
-        "--min-target-component",
-        type=float,
-        default=None,
-        metavar="F",
-        help="ignore target islands smaller than F times its largest component "
-        "(default 0.01; 0: keep all)",
-    )
-    robust.add_argument(
-        "--keep-boundary",
-        action="store_true",
-        help="do not drop matches beyond the target's open boundary",
-    )
-    robust.add_argument(
-        "--parts",
-        choices=["joint", "connected"],
-        default="joint",
-        help="'connected': one deformation per connected piece of the template",
-    )
-    p.add_argument("--max-iteration", type=int, default=20, help="LM steps per level (default 20)")
-    p.add_argument("--no-rigid", action="store_true", help="skip the rigid pre-alignment")
-    p.add_argument("--with-scaling", action="store_true", help="similarity pre-alignment")
     p.add_argument("--project", action="store_true", help="move vertices onto the target surface")
     p.add_argument("--deformation", help="also write the deformation (.npz)")
     p.add_argument("--report", help="also write a JSON report")
@@ -134,47 +70,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
     p.set_defaults(func=run)
-
-
-def estimation_method(args: argparse.Namespace) -> DistanceEstimation:
-    """The library's defaults (or ``--paper``'s plain least squares), with the given options."""
-    changes: dict[str, Any] = {
-        "symmetric": not args.no_symmetric,
-        "symmetric_weight": args.symmetric_weight,
-        "barycentre_correction": args.barycentre_correction,
-    }
-    if args.loss is not None:
-        changes["loss"] = args.loss
-    if args.max_normal_angle is not None:
-        changes["max_normal_angle"] = args.max_normal_angle
-    if args.max_distance_factor is not None:
-        changes["max_distance_factor"] = args.max_distance_factor
-    if args.min_target_component is not None:
-        changes["min_target_component"] = args.min_target_component or None
-    if args.keep_boundary:
-        changes["reject_boundary"] = False
-    if args.paper:
-        return DistanceEstimation.paper(**changes)
-    return DistanceEstimation(**changes)
-
-
-def build_levels(args: argparse.Namespace) -> list[ElasticLevel]:
-    resolutions = args.levels or [lev.resolution for lev in default_levels()]
-    weights = args.regularization or [default_levels()[0].regularization]
-    if len(weights) == 1:
-        weights = weights * len(resolutions)
-    if len(weights) != len(resolutions):
-        raise ValueError(
-            f"--regularization must give 1 or {len(resolutions)} values, got {len(weights)}"
-        )
-    # The default hierarchy keeps its barycentre-term schedule; levels given on the command line
-    # use the term at full weight (eq. 3 at every level, as published).
-    scales = (
-        [lev.symmetric_scale for lev in default_levels()]
-        if args.levels is None
-        else [1.0] * len(resolutions)
-    )
-    return [ElasticLevel(r, w, symmetric_scale=s) for r, w, s in zip(resolutions, weights, scales)]
 
 
 def report_dict(result: ElasticRegistrationResult, **extra) -> dict:
@@ -227,7 +122,10 @@ def run(args: argparse.Namespace) -> int:
             "--html": (".html", ".htm"),
         },
     )
-    levels = build_levels(args)
+    settings = settings_from_args(args)
+    if args.landmarks and args.no_rigid:
+        raise ValueError("--landmarks and --no-rigid: choose one start")
+    levels = settings.levels or default_levels()
     source = read_triangle_mesh(args.source, name="SOURCE")
     target = read_triangle_mesh(args.target, name="TARGET")
     emit(
@@ -252,20 +150,15 @@ def run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     init = None
-    if args.no_rigid:
-        init = np.eye(4)
-    elif args.with_scaling:
-        init = np.asarray(registration_rigid(source, target, with_scaling=True).transformation)
-    result = registration_elastic(
-        source,
-        target,
-        init=init,
-        levels=levels,
-        estimation_method=estimation_method(args),
-        parts=args.parts,
-        criteria=ElasticCriteria(max_iteration=args.max_iteration),
-        callback=progress,
-    )
+    if args.landmarks:
+        fit = registration_landmarks(*args.landmarks, with_scaling=args.with_scaling)
+        emit(
+            f"start from {len(fit.labels)} landmark pairs: residual rms {fit.rms:.3g}, "
+            f"max {float(fit.residuals.max()):.3g}, scale {fit.scale:.4g}",
+            args,
+        )
+        init = fit.transformation
+    result = settings.register(source, target, init=init, callback=progress)
     seconds = time.perf_counter() - start
     if bar is not None:
         bar.close()

@@ -3,10 +3,12 @@
 from .batch import BatchResult, PatientRecord, register_batch
 from .deformation import LatticeDeformation, PartitionedDeformation, load_deformation
 from .elastic import evaluate_elastic, registration_elastic
+from .landmarks import LandmarkRegistrationResult, registration_landmarks
 from .lattice import TrilinearLattice
 from .options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
 from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances
 from .rigid import RigidRegistrationResult, registration_rigid
+from .settings import RegistrationSettings
 from .verdict import assess_registration, population_outliers
 
 __all__ = [
@@ -15,10 +17,12 @@ __all__ = [
     "ElasticCriteria",
     "ElasticLevel",
     "ElasticRegistrationResult",
+    "LandmarkRegistrationResult",
     "LatticeDeformation",
     "LevelReport",
     "PartitionedDeformation",
     "PatientRecord",
+    "RegistrationSettings",
     "RigidRegistrationResult",
     "SurfaceDistances",
     "TrilinearLattice",
@@ -29,5 +33,6 @@ __all__ = [
     "population_outliers",
     "register_batch",
     "registration_elastic",
+    "registration_landmarks",
     "registration_rigid",
 ]

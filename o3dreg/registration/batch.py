@@ -36,6 +36,8 @@ import numpy as np
 
 from .._validation import as_mesh_arrays, as_transformation
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
+from .settings import RegistrationSettings, resolve_settings
+from .verdict import STATUSES
 
 __all__ = ["BatchResult", "PatientRecord", "register_batch", "resume_key"]
 
@@ -66,6 +68,13 @@ class PatientRecord:
         The rigid pre-alignment, row-major (empty for a failure).
     source : str
         The target file, or ``"<array>"``.
+    verdict : {'ok', 'suspect', 'failed', 'unknown'}
+        The registration's verdict (:func:`~o3dreg.assess_registration`), made worse by a
+        population check (:func:`o3dreg.app.population.check_population`) where one was run;
+        ``'failed'`` for an error, ``'unknown'`` for a record written before verdicts existed
+        (registered again on the next run).
+    warnings : tuple of str
+        The reasons behind ``verdict``, one plain sentence each.
     skipped : bool
         ``True`` when the record was read back from an earlier run.
     """
@@ -79,6 +88,8 @@ class PatientRecord:
     min_jacobian_determinant: float = float("nan")
     transformation: tuple[float, ...] = ()
     source: str = ""
+    verdict: str = "unknown"
+    warnings: tuple[str, ...] = ()
     skipped: bool = False
 
     def __repr__(self) -> str:
@@ -90,13 +101,15 @@ class PatientRecord:
             else ""
         )
         return (
-            f"PatientRecord({self.name!r}, {self.status}, success={self.success}{extra}, "
+            f"PatientRecord({self.name!r}, {self.status}, verdict={self.verdict}, "
+            f"success={self.success}{extra}, "
             f"seconds={self.seconds:.2f})"
         )
 
     def as_dict(self) -> dict[str, Any]:
         out = dict(self.__dict__)
         out["transformation"] = list(self.transformation)
+        out["warnings"] = list(self.warnings)
         out.pop("skipped")
         return out
 
@@ -133,23 +146,36 @@ class BatchResult:
     def failed(self) -> tuple[PatientRecord, ...]:
         return tuple(r for r in self.records if r.status == "failed")
 
+    @property
+    def accepted(self) -> tuple[PatientRecord, ...]:
+        """Registered patients whose verdict is ``'ok'``: what a model is built from."""
+        return tuple(r for r in self.registered if r.verdict == "ok")
+
+    @property
+    def flagged(self) -> tuple[PatientRecord, ...]:
+        """Registered patients whose verdict is not ``'ok'`` (left out of a model by default)."""
+        return tuple(r for r in self.registered if r.verdict != "ok")
+
     def mesh_path(self, name: str) -> str:
         return os.path.join(self.output_dir, f"{_checked_name(name)}.ply")
 
     def deformation_path(self, name: str) -> str:
         return os.path.join(self.output_dir, f"{_checked_name(name)}.npz")
 
-    def shapes(self) -> tuple[tuple[str, ...], np.ndarray]:
-        """Names and semilandmark vertices ``(s, n, 3)`` of the registered patients."""
-        names = tuple(r.name for r in self.registered)
+    def shapes(self, *, accepted_only: bool = False) -> tuple[tuple[str, ...], np.ndarray]:
+        """Names and semilandmark vertices ``(s, n, 3)`` of the registered patients (only those
+        whose verdict is ``'ok'`` with ``accepted_only``)."""
+        chosen = self.accepted if accepted_only else self.registered
+        names = tuple(r.name for r in chosen)
         shapes = [np.asarray(read_triangle_mesh(self.mesh_path(n)).vertices) for n in names]
         return names, (np.stack(shapes) if shapes else np.zeros((0, 0, 3)))
 
     def table(self, unit: str = "mm") -> str:
-        """Summary: distances both ways (mean / max), convergence and time per patient."""
+        """Summary: verdict, distances both ways (mean / max), whether every level met its
+        stopping criteria, and time per patient; the reasons under each flagged patient."""
         head = (
-            f"{'patient':<24}{'status':<12}{'s->t mean':>10}{'s->t max':>10}"
-            f"{'t->s mean':>10}{'t->s max':>10}{'converged':>11}{'seconds':>9}"
+            f"{'patient':<24}{'verdict':<9}{'s->t mean':>10}{'s->t max':>10}"
+            f"{'t->s mean':>10}{'t->s max':>10}{'criteria met':>13}{'seconds':>9}"
         )
         lines = [f"distances in {unit}", head]
         for r in self.records:
@@ -166,12 +192,12 @@ class BatchResult:
                 )
             else:
                 nums = f"{'-':>10}" * 4
-            lines.append(
-                f"{r.name[:23]:<24}{r.status:<12}{nums}{('yes' if r.success else 'no'):>11}"
-                f"{r.seconds:>9.1f}"
-            )
+            met = ("yes" if r.success else "no") if r.status == "registered" else "-"
+            lines.append(f"{r.name[:23]:<24}{r.verdict:<9}{nums}{met:>13}{r.seconds:>9.1f}")
             if r.status == "failed":
                 lines.append(f"{'':<24}error: {r.message}")
+            else:
+                lines += [f"{'':<24}- {w}" for w in r.warnings]
         return "\n".join(lines)
 
     def as_dicts(self) -> list[dict[str, Any]]:
@@ -231,11 +257,12 @@ def _file_digest(path: str) -> str:
     return h.hexdigest()
 
 
-def _options_key(options: dict[str, Any]) -> dict[str, Any]:
-    """Options with the defaults of :func:`registration_elastic` filled in, canonical form."""
+def _options_key(settings: RegistrationSettings) -> dict[str, Any]:
+    """The settings with the defaults of :func:`registration_elastic` filled in, canonical."""
     from .options import DistanceEstimation, ElasticCriteria, default_levels
 
-    filled = {k: v for k, v in options.items() if v is not None}
+    filled = {k: v for k, v in settings.elastic_options().items() if v is not None}
+    filled["start"] = settings.start
     filled.setdefault("levels", default_levels())
     filled.setdefault("estimation_method", DistanceEstimation())
     filled.setdefault("criteria", ElasticCriteria())
@@ -254,12 +281,20 @@ def _key(template_digest: str, target: Any, init: Any, options_key: Any) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 
-def resume_key(template: Any, target: Any, *, init: Any = None, **options: Any) -> str:
+def resume_key(
+    template: Any,
+    target: Any,
+    *,
+    init: Any = None,
+    settings: RegistrationSettings | None = None,
+    **options: Any,
+) -> str:
     """The key :func:`register_batch` stores with a finished registration.
 
     A hash of the template's vertices and triangles, the target (a file's bytes, or a mesh's
-    arrays), ``init`` and the registration options with their defaults filled in: a finished
-    patient whose key differs from the current one is registered again. Pass it to
+    arrays), ``init`` and the registration settings (``settings``, or its fields as keywords)
+    with their defaults filled in: a finished patient whose key differs from the current one is
+    registered again. Pass it to
     :func:`save_registered` for a registration made outside a batch.
     """
     tv, tf = as_mesh_arrays(template, "template")
@@ -269,7 +304,7 @@ def resume_key(template: Any, target: Any, *, init: Any = None, **options: Any) 
         target = as_mesh_arrays(target, "target", drop_degenerate=True)
     if init is not None:
         init = as_transformation(init, "init")
-    return _key(_digest(tv, tf), target, init, _options_key(options))
+    return _key(_digest(tv, tf), target, init, _options_key(resolve_settings(settings, options)))
 
 
 def _default_name(target: Any, index: int) -> str:
@@ -283,15 +318,13 @@ def _default_name(target: Any, index: int) -> str:
 
 
 def _register_one(
-    template: tuple[np.ndarray, np.ndarray], target: Any, init: Any, options: dict[str, Any]
+    template: tuple[np.ndarray, np.ndarray], target: Any, init: Any, settings: RegistrationSettings
 ) -> tuple[Any, float]:
     """Worker: load (when a path) and register; returns (result, seconds). Runs anywhere."""
-    from .elastic import registration_elastic
-
     start = time.perf_counter()
     if isinstance(target, (str, os.PathLike)):
         target = read_triangle_mesh(target, name="target")
-    result = registration_elastic(template, target, init=init, **options)
+    result = settings.register(template, target, init=init)
     return result, time.perf_counter() - start
 
 
@@ -302,6 +335,7 @@ def _read_record(path: str, name: str, key: str) -> PatientRecord | None:
             data = json.load(fh)
         stored_key = data.pop("resume_key", None)
         data["transformation"] = tuple(data.get("transformation", ()))
+        data["warnings"] = tuple(data.get("warnings", ()))
         record = PatientRecord(**data, skipped=True)
     except FileNotFoundError:
         return None
@@ -356,6 +390,8 @@ def save_registered(
         min_jacobian_determinant=float(result.min_jacobian_determinant),
         transformation=tuple(float(v) for v in np.asarray(result.transformation).ravel()),
         source=source,
+        verdict=str(result.status),
+        warnings=tuple(result.warnings),
     )
     logger.info(
         "batch: %s registered in %.1f s (mean distances %.3g / %.3g)",
@@ -378,6 +414,7 @@ def register_batch(
     force: bool = False,
     progress: bool = False,
     callback: Callable[[PatientRecord], Any] | None = None,
+    settings: RegistrationSettings | None = None,
     **options: Any,
 ) -> BatchResult:
     """Register ``template`` elastically onto every target; save each patient as it finishes.
@@ -406,16 +443,23 @@ def register_batch(
         stderr. Default ``False``.
     callback : callable, optional
         Called with each :class:`PatientRecord` as it is saved (also for skipped ones).
+    settings : RegistrationSettings, optional
+        How each patient is registered (the same settings ``o3dreg register`` and
+        ``o3dreg build-model`` take). Default ``RegistrationSettings()``.
     **options
-        Passed to :func:`~o3dreg.registration_elastic` (``init``, ``levels``,
-        ``estimation_method``, ``criteria``, ``padding``). ``init`` may also be one ``(4, 4)``
-        transformation per target, shape ``(len(targets), 4, 4)`` (e.g. from landmarks).
+        ``init``: one ``(4, 4)`` transformation for every target, or one per target, shape
+        ``(len(targets), 4, 4)`` (e.g. from landmarks, see
+        :meth:`RegistrationSettings.landmark_start`); it replaces the settings' ``start``.
+        Instead of ``settings``, its fields may be given as keywords (``levels``,
+        ``estimation_method``, ``criteria``, ``padding``, ``parts``, ``start``).
 
     Returns
     -------
     BatchResult
-        Failures are records with ``status='failed'`` and the error message; nothing is raised
-        for a failing patient. ``KeyboardInterrupt`` cancels pending work and propagates, after
+        Every record carries its registration's ``verdict`` and ``warnings``
+        (:func:`o3dreg.app.population.check_population` adds the comparison with the other
+        patients, as ``build_model_folder`` does). Failures are records with ``status='failed'`` and the error
+        message; nothing is raised for a failing patient. ``KeyboardInterrupt`` cancels pending work and propagates, after
         which every finished patient is on disk.
     """
     tv, tf = as_mesh_arrays(template, "template")
@@ -438,12 +482,7 @@ def register_batch(
         )
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable, got {type(callback).__name__}")
-    allowed = {"init", "levels", "estimation_method", "criteria", "padding"}
-    unknown = set(options) - allowed
-    if unknown:
-        raise TypeError(
-            f"unexpected registration option(s) {sorted(unknown)}; allowed: {sorted(allowed)}"
-        )
+    settings_ = resolve_settings(settings, {k: v for k, v in options.items() if k != "init"})
     if names is None:
         names_ = [_default_name(t, i) for i, t in enumerate(targets)]
     else:
@@ -462,7 +501,6 @@ def register_batch(
             )
     else:
         inits = [None] * len(targets)
-    options = {k: v for k, v in options.items() if k != "init"}
     names_ = [_safe_name(n) for n in names_]
     seen: dict[str, int] = {}
     for i, n in enumerate(names_):
@@ -477,7 +515,16 @@ def register_batch(
             prepared.append(as_mesh_arrays(t, f"targets[{i}]", drop_degenerate=True))
     os.makedirs(output_dir, exist_ok=True)
     return _run_batch(
-        (tv, tf), prepared, names_, inits, output_dir, executor, force, progress, callback, options
+        (tv, tf),
+        prepared,
+        names_,
+        inits,
+        output_dir,
+        executor,
+        force,
+        progress,
+        callback,
+        settings_,
     )
 
 
@@ -491,13 +538,13 @@ def _run_batch(
     force: bool,
     progress: bool,
     callback: Callable[[PatientRecord], Any] | None,
-    options: dict[str, Any],
+    settings: RegistrationSettings,
 ) -> BatchResult:
     from tqdm.auto import tqdm
 
     records: dict[str, PatientRecord] = {}
     todo: list[int] = []
-    template_digest, options_key = _digest(*template), _options_key(options)
+    template_digest, options_key = _digest(*template), _options_key(settings)
     keys = [_key(template_digest, t, init, options_key) for t, init in zip(targets, inits)]
     for i, name in enumerate(names):
         path = os.path.join(output_dir, f"{name}.json")
@@ -505,6 +552,7 @@ def _run_batch(
         if (
             record is not None
             and record.status == "registered"
+            and record.verdict in STATUSES
             and os.path.isfile(os.path.join(output_dir, f"{name}.ply"))
         ):
             records[name] = record
@@ -532,7 +580,9 @@ def _run_batch(
             msg = f"{type(error).__name__}: {error}"
             logger.warning("batch: %s failed: %s", name, msg)
             logger.debug("".join(traceback.format_exception(error)))
-            record = PatientRecord(name, "failed", False, msg, source=source_of(i))
+            record = PatientRecord(
+                name, "failed", False, msg, source=source_of(i), verdict="failed"
+            )
         else:
             assert outcome is not None
             record = save_registered(output_dir, name, *outcome, source=source_of(i), key=keys[i])
@@ -549,7 +599,7 @@ def _run_batch(
             for i in todo:
                 bar.set_postfix_str(f"current: {names[i]}")
                 try:
-                    outcome = _register_one(template, targets[i], inits[i], options)
+                    outcome = _register_one(template, targets[i], inits[i], settings)
                 except KeyboardInterrupt:
                     raise
                 except Exception as exc:
@@ -558,7 +608,7 @@ def _run_batch(
                     finish(i, outcome, None)
         else:
             futures = {
-                executor.submit(_register_one, template, targets[i], inits[i], options): i
+                executor.submit(_register_one, template, targets[i], inits[i], settings): i
                 for i in todo
             }
             try:

@@ -50,6 +50,12 @@ MAX_SIZE_RATIO = 3.0
 #: A distinct pose whose score is within this factor of the winner's is an ambiguity: the
 #: demo's flipped poses score 1.7-2.5 times the right one.
 AMBIGUITY_RATIO = 1.2
+#: A near tie is broken by the input pose when one of the two poses is within the first of these
+#: rotations of it and the other beyond the second: scans of one protocol come in a common
+#: orientation (the demo's patients within 10 degrees, the test populations within 40), while the
+#: poses a near-symmetric shape confuses are a half-turn apart. The nearer pose is kept.
+INPUT_POSE_NEAR = 45.0
+INPUT_POSE_FAR = 90.0
 #: Points of the source and of the coarse target the search from many starts works on.
 SEARCH_POINTS = 1000
 #: Two poses are distinct when the source vertices they place differ by more than this fraction
@@ -208,13 +214,14 @@ class RigidRegistrationResult(reg.RegistrationResult):  # type: ignore[misc]
         source surface), on the whole target, in the input's units.
     runner_up_score : float or None
         The same for the best pose distinct from the winner (its source vertices more than
-        :data:`DISTINCT_POSE` of the target's diagonal away, RMS), after the same refinement;
-        ``None`` when there was none (a given ``init``, or every start reached one pose).
+        :data:`DISTINCT_POSE` of the target's diagonal away, RMS), after the same refinement; lower
+        than ``score`` when the input pose broke a near tie in its favour. ``None`` when there
+        was none (a given ``init``, or every start reached one pose).
     runner_up_transformation : (4, 4) ndarray or None
     candidates : int
         Starting poses tried.
     warnings : tuple of str
-        Plain sentences: an ambiguity (``runner_up_score < AMBIGUITY_RATIO * score``).
+        Plain sentences: an ambiguity (:attr:`ambiguous`).
     """
 
     def __init__(
@@ -241,10 +248,9 @@ class RigidRegistrationResult(reg.RegistrationResult):  # type: ignore[misc]
 
     @property
     def ambiguous(self) -> bool:
-        """Whether a distinct pose scored within :data:`AMBIGUITY_RATIO` of the winner."""
-        return self.runner_up_score is not None and self.runner_up_score < AMBIGUITY_RATIO * (
-            self.score
-        )
+        """Whether a distinct pose scored within :data:`AMBIGUITY_RATIO` of the winner and the
+        input pose did not tell them apart (:data:`INPUT_POSE_NEAR`, :data:`INPUT_POSE_FAR`)."""
+        return bool(self.warnings)
 
     def __repr__(self) -> str:
         runner = "none" if self.runner_up_score is None else f"{self.runner_up_score:.4g}"
@@ -488,7 +494,24 @@ class _CandidateSearch:
             if self._distinct(np.asarray(win.transformation), other):
                 runner_score, runner_t = finals[1][0], other
         warnings: list[str] = []
-        if runner_score is not None and runner_score < AMBIGUITY_RATIO * win_score:
+        near_tie = runner_score is not None and runner_score < AMBIGUITY_RATIO * win_score
+        if near_tie and runner_t is not None:
+            turns = (_rotation_angle(np.asarray(win.transformation)), _rotation_angle(runner_t))
+            if min(turns) <= INPUT_POSE_NEAR and max(turns) >= INPUT_POSE_FAR:
+                if turns[1] < turns[0]:  # the runner-up agrees with the input pose: it wins
+                    previous = win
+                    win, runner_t = finals[1][2], np.asarray(previous.transformation)
+                    win_score, runner_score = float(finals[1][0]), win_score
+                    win_name = finals[1][1]
+                logger.info(
+                    "registration_rigid: near tie (%.4g vs %.4g) broken by the input pose "
+                    "(poses %.0f and %.0f degrees from it)",
+                    win_score,
+                    runner_score,
+                    *turns,
+                )
+                near_tie = False
+        if near_tie:
             warnings.append(
                 f"the rigid start is ambiguous: two distinct poses fit almost equally well "
                 f"(symmetric distances {win_score:.3g} and {runner_score:.3g}); the shape is "
@@ -510,6 +533,13 @@ class _CandidateSearch:
             candidates=len(tried),
             warnings=tuple(warnings),
         )
+
+
+def _rotation_angle(transformation: np.ndarray) -> float:
+    """Rotation angle (degrees) of a rigid or similarity transformation."""
+    m = transformation[:3, :3]
+    r = m / max(float(np.cbrt(abs(np.linalg.det(m)))), 1e-300)
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def _cloud(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.PointCloud:

@@ -15,7 +15,7 @@ a threshold stated here with its reason:
 
 In a batch, :func:`population_outliers` marks patients whose distances or Procrustes residual
 stand out among the others (a robust z-score), which catches a registration that is wrong but
-locally tidy.
+locally tidy (:func:`o3dreg.app.population.check_population`).
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import numpy as np
 from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays
 from .distance import SurfaceDistanceQuery
+from .rigid import surface_moments
 
 __all__ = ["STATUSES", "assess_registration", "population_outliers", "worst_status"]
 
@@ -213,8 +214,6 @@ def _support(result: Any) -> list[tuple[str, str]]:
 def _sizes(
     aligned: np.ndarray, fs: np.ndarray, vt: np.ndarray, ft: np.ndarray
 ) -> list[tuple[str, str]]:
-    from .rigid import surface_moments
-
     if ft.shape[0] == 0 or fs.shape[0] == 0:
         return []
     try:

@@ -1,0 +1,169 @@
+"""The registration options, defined once: ``o3dreg register`` and ``o3dreg build-model`` both
+add this group and turn it into one :class:`~o3dreg.registration.settings.RegistrationSettings`.
+
+Every option defaults to ``None`` (not given), so an unset option keeps the library's default
+(:class:`~o3dreg.DistanceEstimation`, :class:`~o3dreg.ElasticLevel`, ...): the command line
+never carries a second copy of a default.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+from ..registration.options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
+from ..registration.settings import RegistrationSettings
+from ._common import float_list, int_list
+
+#: DistanceEstimation fields set by the options below (option dest -> field).
+_ESTIMATION = {
+    "symmetric_weight": "symmetric_weight",
+    "loss": "loss",
+    "max_normal_angle": "max_normal_angle",
+    "max_distance_factor": "max_distance_factor",
+    "min_target_component": "min_target_component",
+}
+
+
+def add_registration_options(parser: argparse.ArgumentParser) -> None:
+    """The options saying how a template is registered onto a patient."""
+    reg = parser.add_argument_group("registration (the same for register and build-model)")
+    reg.add_argument(
+        "--levels",
+        type=int_list,
+        default=None,
+        help="cells per axis of each level, coarse to fine (default 2,4,8,16)",
+    )
+    reg.add_argument(
+        "--regularization",
+        type=float_list,
+        default=None,
+        help="bending-energy weight, one value or one per level (default 0.1)",
+    )
+    reg.add_argument("--no-symmetric", action="store_true", help="single distance (paper eq. 2)")
+    reg.add_argument(
+        "--symmetric-weight", type=float, default=None, help="weight of the barycentre term"
+    )
+    reg.add_argument(
+        "--barycentre-correction",
+        action="store_true",
+        help="compare barycentres with the template's own Voronoi centroids (dense targets)",
+    )
+    reg.add_argument(
+        "--max-iteration", type=int, default=None, help="LM steps per level (default 20)"
+    )
+    start = reg.add_mutually_exclusive_group()
+    start.add_argument(
+        "--no-rigid",
+        action="store_true",
+        help="no pre-alignment: the meshes are already aligned",
+    )
+    start.add_argument(
+        "--with-scaling",
+        action="store_true",
+        help="similarity pre-alignment (a uniform scale too; from landmarks as well)",
+    )
+    reg.add_argument(
+        "--parts",
+        choices=["joint", "connected"],
+        default=None,
+        help="'connected': one deformation per connected piece of the template",
+    )
+    robust = parser.add_argument_group(
+        "robustness (the defaults handle partial scans, debris and outliers)"
+    )
+    robust.add_argument(
+        "--paper",
+        action="store_true",
+        help="the paper's plain least squares: linear loss, no boundary or normal rejection, "
+        "every target component (the options below still apply on top)",
+    )
+    robust.add_argument(
+        "--loss",
+        choices=["linear", "huber", "cauchy", "tukey"],
+        default=None,
+        help="robust loss of both distance terms (default cauchy; linear: least squares)",
+    )
+    robust.add_argument(
+        "--max-normal-angle",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="drop matches whose normals differ by more than DEG degrees (default 90; 180: off)",
+    )
+    robust.add_argument(
+        "--max-distance-factor",
+        type=float,
+        default=None,
+        metavar="K",
+        help="drop matches farther than K robust scales",
+    )
+    robust.add_argument(
+        "--min-target-component",
+        type=float,
+        default=None,
+        metavar="F",
+        help="ignore target islands smaller than F times its largest component "
+        "(default 0.01; 0: keep all)",
+    )
+    robust.add_argument(
+        "--keep-boundary",
+        action="store_true",
+        help="do not drop matches beyond the target's open boundary",
+    )
+
+
+def build_levels(args: argparse.Namespace) -> list[ElasticLevel] | None:
+    """The hierarchy from ``--levels`` and ``--regularization`` (``None``: the default)."""
+    if args.levels is None and args.regularization is None:
+        return None
+    resolutions = args.levels or [lev.resolution for lev in default_levels()]
+    weights = args.regularization or [default_levels()[0].regularization]
+    if len(weights) == 1:
+        weights = weights * len(resolutions)
+    if len(weights) != len(resolutions):
+        raise ValueError(
+            f"--regularization must give 1 or {len(resolutions)} values, got {len(weights)}"
+        )
+    # The default hierarchy keeps its barycentre-term schedule; levels given on the command line
+    # use the term at full weight (eq. 3 at every level, as published).
+    scales = (
+        [lev.symmetric_scale for lev in default_levels()]
+        if args.levels is None
+        else [1.0] * len(resolutions)
+    )
+    return [ElasticLevel(r, w, symmetric_scale=s) for r, w, s in zip(resolutions, weights, scales)]
+
+
+def settings_from_args(args: argparse.Namespace) -> RegistrationSettings:
+    """One :class:`RegistrationSettings` from the options of :func:`add_registration_options`."""
+    changes = {
+        field: getattr(args, dest)
+        for dest, field in _ESTIMATION.items()
+        if getattr(args, dest) is not None
+    }
+    if args.no_symmetric:
+        changes["symmetric"] = False
+    if args.barycentre_correction:
+        changes["barycentre_correction"] = True
+    if args.keep_boundary:
+        changes["reject_boundary"] = False
+    if "min_target_component" in changes:
+        changes["min_target_component"] = changes["min_target_component"] or None  # 0: keep all
+    estimation = None
+    if args.paper:
+        estimation = DistanceEstimation.paper(**changes)
+    elif changes:
+        estimation = dataclasses.replace(DistanceEstimation(), **changes)
+    criteria = None
+    if args.max_iteration is not None:
+        criteria = ElasticCriteria(max_iteration=args.max_iteration)
+    levels = build_levels(args)
+    start = "identity" if args.no_rigid else "similarity" if args.with_scaling else "rigid"
+    return RegistrationSettings(
+        levels=None if levels is None else tuple(levels),
+        estimation_method=estimation,
+        criteria=criteria,
+        parts=args.parts or "joint",
+        start=start,
+    )

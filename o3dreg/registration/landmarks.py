@@ -1,0 +1,195 @@
+"""A start from landmarks: the rigid (or similarity) transformation of corresponding points.
+
+Where a shape is nearly symmetric (a head, a sphere-like bone) or a scan shows only part of it,
+no search over poses can be trusted; a few landmarks placed on the template and on the patient
+(eye corners, nose tip, a bony prominence) fix the pose. The transformation is the least-squares
+fit of the pairs (Kabsch; Umeyama with a scale) and becomes the ``init`` of the elastic step.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .._validation import as_points
+from ..io.landmarks import read_landmarks
+
+__all__ = ["LandmarkRegistrationResult", "registration_landmarks"]
+
+#: Landmarks are degenerate (collinear, or all in one point) when the second singular value of
+#: the centred points is below this fraction of the first: a rotation about their line is then
+#: undetermined.
+COLLINEAR_TOLERANCE = 1e-3
+
+
+@dataclass(frozen=True, eq=False)
+class LandmarkRegistrationResult:
+    """The outcome of :func:`registration_landmarks`.
+
+    Attributes
+    ----------
+    transformation : (4, 4) ndarray
+        Maps source (template) landmarks onto target (patient) landmarks; rigid, or a
+        similarity with ``with_scaling``.
+    labels : tuple of str
+        The pairs used, in order.
+    residuals : (l,) ndarray
+        Distance of each mapped source landmark from its target landmark, in the target's
+        units: a large one points at a misplaced (or mislabelled) landmark.
+    scale : float
+        The uniform scale of ``transformation`` (1 when rigid).
+    """
+
+    transformation: np.ndarray
+    labels: tuple[str, ...]
+    residuals: np.ndarray = field(repr=False)
+    scale: float = 1.0
+
+    @property
+    def rms(self) -> float:
+        """Root mean square of :attr:`residuals`."""
+        return float(np.sqrt(np.mean(self.residuals**2)))
+
+    def __repr__(self) -> str:
+        return (
+            f"LandmarkRegistrationResult(pairs={len(self.labels)}, scale={self.scale:.4g}, "
+            f"rms={self.rms:.4g}, max={float(self.residuals.max()):.4g})"
+        )
+
+
+def _umeyama(source: np.ndarray, target: np.ndarray, scaling: bool) -> np.ndarray:
+    """Least-squares rotation (no reflection), translation and optional scale of ``source``
+    onto ``target`` (Umeyama 1991; the fit of ``shape.procrustes``, which sits above this
+    stage)."""
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+    a, b = source - mu_s, target - mu_t
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = 1.0 if np.linalg.det(vt.T @ u.T) >= 0 else -1.0
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    s = float(((a @ r.T) * b).sum() / (a * a).sum()) if scaling else 1.0
+    t = np.eye(4)
+    t[:3, :3] = s * r
+    t[:3, 3] = mu_t - s * r @ mu_s
+    return t
+
+
+def _as_landmarks(value: Any, name: str) -> tuple[tuple[str, ...] | None, np.ndarray]:
+    """Labels (or ``None``) and points from a file, a ``(labels, points)`` pair or points."""
+    if isinstance(value, (str, os.PathLike)):
+        labels, points = read_landmarks(value)
+        return tuple(labels), points
+    if (
+        isinstance(value, tuple)
+        and len(value) == 2
+        and not isinstance(value[0], np.ndarray)
+        and all(isinstance(v, str) for v in value[0])
+    ):
+        labels = tuple(value[0])
+        points = as_points(value[1], name)
+        if len(labels) != points.shape[0]:
+            raise ValueError(f"`{name}` has {len(labels)} labels for {points.shape[0]} points")
+        return labels, points
+    return None, as_points(value, name)
+
+
+def _pair(source: Any, target: Any) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+    ls, ps = _as_landmarks(source, "source")
+    lt, pt = _as_landmarks(target, "target")
+    if ls is None or lt is None:
+        if ps.shape != pt.shape:
+            raise ValueError(
+                f"`source` and `target` must hold as many landmarks (paired by order), "
+                f"got {ps.shape[0]} and {pt.shape[0]}"
+            )
+        labels = ls or lt or tuple(f"L{k + 1}" for k in range(ps.shape[0]))
+        return tuple(labels), ps, pt
+    for name, labels in (("source", ls), ("target", lt)):
+        repeated = sorted({lab for lab in labels if labels.count(lab) > 1})
+        if repeated:
+            raise ValueError(f"`{name}` repeats landmark labels {repeated}")
+    missing_t = [lab for lab in ls if lab not in lt]
+    missing_s = [lab for lab in lt if lab not in ls]
+    if missing_t or missing_s:
+        raise ValueError(
+            "`source` and `target` landmark labels must match: "
+            + "; ".join(
+                part
+                for part in (
+                    f"{missing_t} only in `source`" if missing_t else "",
+                    f"{missing_s} only in `target`" if missing_s else "",
+                )
+                if part
+            )
+        )
+    index = {lab: k for k, lab in enumerate(lt)}
+    return ls, ps, pt[[index[lab] for lab in ls]]
+
+
+def registration_landmarks(
+    source: Any, target: Any, *, with_scaling: bool = False
+) -> LandmarkRegistrationResult:
+    """The rigid or similarity transformation best mapping source landmarks onto target ones.
+
+    Parameters
+    ----------
+    source, target : path, (labels, points) or (l, 3) array_like
+        The template's and the patient's landmarks: a landmark file (CSV ``label,x,y,z`` or a
+        3D Slicer ``.mrk.json``, read by :func:`~o3dreg.read_landmarks`), a pair of a label
+        sequence and an ``(l, 3)`` array, or bare points. Labelled landmarks are paired by label
+        (the order may differ; every label must be on both sides); bare points by order. At
+        least 3 pairs, not all on one line. Files are read in LPS, as o3dreg's meshes are
+        (:func:`~o3dreg.read_landmarks` converts RAS files that say so). In the input's units;
+        not modified.
+    with_scaling : bool, optional
+        Also estimate a uniform scale (a similarity: e.g. a template of another size, or
+        landmarks in other units). Default ``False``.
+
+    Returns
+    -------
+    LandmarkRegistrationResult
+        ``transformation`` is the ``init`` for :func:`~o3dreg.registration_elastic`;
+        ``residuals`` the distance left at each pair.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 3 pairs, labels that do not match, repeated labels, or landmarks on one
+        line (or in one point): the rotation about that line is undetermined.
+
+    References
+    ----------
+    .. [1] S. Umeyama, "Least-squares estimation of transformation parameters between two
+       point patterns", IEEE TPAMI 13(4), 1991. :doi:`10.1109/34.88573`
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from o3dreg import registration_landmarks
+    >>> template = np.array([[0.0, 0, 0], [10, 0, 0], [0, 20, 0], [0, 0, 5]])
+    >>> patient = 2.0 * template + (1.0, 2.0, 3.0)
+    >>> result = registration_landmarks(template, patient, with_scaling=True)
+    >>> round(result.scale, 6), bool(result.rms < 1e-9)
+    (2.0, True)
+    """
+    if not isinstance(with_scaling, bool):
+        raise TypeError(f"`with_scaling` must be a bool, got {type(with_scaling).__name__}")
+    labels, ps, pt = _pair(source, target)
+    if ps.shape[0] < 3:
+        raise ValueError(
+            f"`source` and `target` must hold at least 3 landmark pairs, got {ps.shape[0]}"
+        )
+    for name, pts in (("source", ps), ("target", pt)):
+        singular = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)
+        if singular[0] <= 0.0 or singular[1] < COLLINEAR_TOLERANCE * singular[0]:
+            raise ValueError(
+                f"`{name}` landmarks are degenerate (all on one line or in one point): the "
+                "rotation about that line is undetermined; add a landmark off the line"
+            )
+    t = _umeyama(ps, pt, with_scaling)
+    moved = ps @ t[:3, :3].T + t[:3, 3]
+    residuals = np.linalg.norm(moved - pt, axis=1)
+    scale = float(np.cbrt(np.linalg.det(t[:3, :3])))
+    return LandmarkRegistrationResult(t, tuple(labels), residuals, scale)

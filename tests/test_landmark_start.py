@@ -1,0 +1,183 @@
+"""A start from landmarks: known transforms recovered, bad pairs refused, the CLI's --landmarks,
+and one registration option set shared by `register` and `build-model`."""
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from o3dreg import registration_landmarks, write_landmarks
+from o3dreg.cli import main
+
+LABELS = ["nasion", "left orbit", "right orbit", "chin", "vertex"]
+POINTS = np.array(
+    [[0.0, -90, 20], [35, -80, 30], [-35, -80, 30], [0, -85, -70], [0, 0, 95]], dtype=float
+)
+
+
+def similarity(scale=1.0, angle=130.0, axis=(0.2, 1.0, -0.4), shift=(12.0, -30.0, 7.0)):
+    t = np.eye(4)
+    t[:3, :3] = (
+        scale
+        * Rotation.from_rotvec(
+            np.radians(angle) * np.asarray(axis) / np.linalg.norm(axis)
+        ).as_matrix()
+    )
+    t[:3, 3] = shift
+    return t
+
+
+def test_a_known_similarity_is_recovered_from_labelled_pairs():
+    truth = similarity(scale=1.7)
+    target = POINTS @ truth[:3, :3].T + truth[:3, 3]
+    # Paired by label, whatever the order on each side.
+    order = [3, 0, 4, 2, 1]
+    result = registration_landmarks(
+        (LABELS, POINTS), ([LABELS[k] for k in order], target[order]), with_scaling=True
+    )
+    np.testing.assert_allclose(result.transformation, truth, atol=1e-9)
+    assert result.scale == pytest.approx(1.7)
+    assert result.labels == tuple(LABELS) and result.rms < 1e-9
+
+
+def test_rigid_fit_and_residuals_show_a_misplaced_landmark():
+    truth = similarity()
+    target = POINTS @ truth[:3, :3].T + truth[:3, 3]
+    target[3] += (0.0, 0.0, 8.0)  # the chin placed 8 mm off
+    result = registration_landmarks(POINTS, target)
+    assert result.scale == pytest.approx(1.0)
+    assert int(np.argmax(result.residuals)) == 3
+    r = result.transformation[:3, :3]
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+
+
+def test_files_are_read(tmp_path):
+    truth = similarity(angle=40.0)
+    write_landmarks(tmp_path / "t.mrk.json", LABELS, POINTS)
+    write_landmarks(tmp_path / "p.csv", LABELS, POINTS @ truth[:3, :3].T + truth[:3, 3])
+    result = registration_landmarks(tmp_path / "t.mrk.json", str(tmp_path / "p.csv"))
+    np.testing.assert_allclose(result.transformation, truth, atol=1e-9)
+
+
+def test_bad_pairs_are_refused():
+    with pytest.raises(ValueError, match="at least 3 landmark pairs, got 2"):
+        registration_landmarks(POINTS[:2], POINTS[:2])
+    with pytest.raises(ValueError, match=r"\['vertex'\] only in `source`.*\['tip'\] only in"):
+        registration_landmarks((LABELS, POINTS), (LABELS[:4] + ["tip"], POINTS))
+    with pytest.raises(ValueError, match="as many landmarks"):
+        registration_landmarks(POINTS, POINTS[:4])
+    with pytest.raises(ValueError, match="repeats landmark labels"):
+        registration_landmarks((["a", "a", "b"], POINTS[:3]), (["a", "b", "c"], POINTS[:3]))
+    line = np.outer([0.0, 1.0, 2.0, 5.0], [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="`source` landmarks are degenerate"):
+        registration_landmarks(line, POINTS[:4])
+    with pytest.raises(ValueError, match="`target` landmarks are degenerate"):
+        registration_landmarks(POINTS[:4], np.zeros((4, 3)))
+    with pytest.raises(TypeError, match="with_scaling"):
+        registration_landmarks(POINTS, POINTS, with_scaling=1)
+
+
+@pytest.fixture(scope="module")
+def turned(tmp_path_factory, bunny_template, bunny_target):
+    """The bunny turned by 150 degrees, with landmark files on both sides."""
+    folder = tmp_path_factory.mktemp("landmarks")
+    template = bunny_template.simplify_quadric_decimation(800)
+    template.remove_unreferenced_vertices()
+    target = bunny_target.simplify_quadric_decimation(6000)
+    target.remove_unreferenced_vertices()
+    truth = similarity(angle=150.0, shift=(20.0, 5.0, -10.0))
+    target.transform(truth)
+    tv = np.asarray(template.vertices)
+    picks = tv[[0, 100, 200, 300, 400]]
+    write_landmarks(folder / "template.csv", LABELS, picks)
+    write_landmarks(folder / "patient.mrk.json", LABELS, picks @ truth[:3, :3].T + truth[:3, 3])
+    from o3dreg import write_triangle_mesh
+
+    write_triangle_mesh(folder / "template.ply", template)
+    write_triangle_mesh(folder / "patient.ply", target)
+    return folder, truth
+
+
+def test_register_starts_from_landmarks(turned, tmp_path, capsys):
+    folder, truth = turned
+    code = main(
+        [
+            "register",
+            str(folder / "template.ply"),
+            str(folder / "patient.ply"),
+            "-o",
+            str(tmp_path / "out.ply"),
+            "--levels",
+            "2,4",
+            "--landmarks",
+            str(folder / "template.csv"),
+            str(folder / "patient.mrk.json"),
+            "--report",
+            str(tmp_path / "r.json"),
+        ]
+    )
+    printed = capsys.readouterr().out
+    assert "start from 5 landmark pairs" in printed
+    report = json.loads((tmp_path / "r.json").read_text())
+    # The landmarks are exact: the start is the truth, and no search replaced it.
+    np.testing.assert_allclose(report["transformation"], truth, atol=1e-6)
+    assert code == (0 if report["status"] == "ok" and report["success"] else 1)
+    assert report["status"] == "ok"
+
+
+SHARED = [
+    "--levels",
+    "2,4",
+    "--regularization",
+    "0.2",
+    "--no-symmetric",
+    "--max-iteration",
+    "7",
+    "--with-scaling",
+    "--parts",
+    "connected",
+    "--loss",
+    "cauchy",
+    "--max-normal-angle",
+    "60",
+    "--max-distance-factor",
+    "3",
+    "--min-target-component",
+    "0.01",
+    "--keep-boundary",
+    "--symmetric-weight",
+    "0.5",
+    "--barycentre-correction",
+]
+
+
+def test_register_and_build_model_share_one_option_set():
+    from o3dreg.cli import build_parser
+    from o3dreg.cli._registration_options import settings_from_args
+
+    parser = build_parser()
+    reg = parser.parse_args(["register", "t.ply", "p.ply", "-o", "o.ply", *SHARED])
+    build = parser.parse_args(["build-model", "t.ply", "p.ply", "-o", "model", *SHARED])
+    a, b = settings_from_args(reg), settings_from_args(build)
+    assert a == b
+    assert a.start == "similarity" and a.parts == "connected"
+    assert [lev.resolution for lev in a.levels] == [2, 4]
+    assert all(lev.regularization == 0.2 for lev in a.levels)
+    assert a.criteria.max_iteration == 7
+    m = a.estimation_method
+    assert (m.symmetric, m.loss, m.max_normal_angle, m.reject_boundary) == (
+        False,
+        "cauchy",
+        60.0,
+        False,
+    )
+    assert (m.max_distance_factor, m.min_target_component, m.symmetric_weight) == (3.0, 0.01, 0.5)
+    assert m.barycentre_correction
+    paper = settings_from_args(
+        parser.parse_args(["build-model", "t.ply", "p.ply", "-o", "m", "--paper"])
+    ).estimation_method
+    assert (paper.loss, paper.reject_boundary, paper.max_normal_angle) == ("linear", False, None)
+    # Nothing given: the library's defaults, not a copy of them.
+    plain = settings_from_args(parser.parse_args(["register", "t.ply", "p.ply", "-o", "o.ply"]))
+    assert plain.estimation_method is None and plain.levels is None and plain.start == "rigid"
