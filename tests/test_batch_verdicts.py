@@ -1,0 +1,89 @@
+"""Verdicts in batches: the population check, and flagged patients kept out of the model."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from _helpers import population
+
+from o3dreg import read_triangle_mesh, write_landmarks, write_triangle_mesh
+from o3dreg.app.model_folder import build_model_folder, patient_landmark_file
+from o3dreg.app.population import population_findings
+from o3dreg.cli import main
+from o3dreg.registration.options import ElasticLevel
+from o3dreg.registration.settings import RegistrationSettings
+
+
+def test_population_findings_mark_the_outlier():
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(200, 3)) * 30.0
+    shapes = np.stack([base + rng.normal(size=base.shape) * 0.5 for _ in range(7)])
+    shapes[4] = base + rng.normal(size=base.shape) * 6.0  # one shape far from the others
+    names = [f"p{k}" for k in range(7)]
+    distances = [{"source_to_target_mean": 0.3, "target_to_source_mean": 0.4}] * 7
+    distances[2] = {"source_to_target_mean": 2.5, "target_to_source_mean": 0.41}
+    found = population_findings(names, distances, shapes)
+    assert sorted(found) == ["p2", "p4"]
+    assert "mean template->patient distance" in found["p2"][0]
+    assert "Procrustes residual" in found["p4"][0] and "robust z-score" in found["p4"][0]
+
+
+def test_landmark_file_naming_rule(tmp_path):
+    mesh = tmp_path / "case01.ply"
+    mesh.write_text("")
+    try:
+        patient_landmark_file(mesh)
+    except OSError as exc:
+        assert "case01.mrk.json or" in str(exc) and "case01.csv" in str(exc)
+    (tmp_path / "case01.csv").write_text("label,x,y,z\n")
+    assert patient_landmark_file(mesh) == str(tmp_path / "case01.csv")
+    (tmp_path / "case01.mrk.json").write_text("{}")
+    assert patient_landmark_file(str(mesh)) == str(tmp_path / "case01.mrk.json")
+
+
+def test_a_patient_in_other_units_is_flagged_and_left_out(tmp_path, capsys):
+    # Six patients started from landmarks; patient p5's landmark file is in centimetres, so the
+    # similarity start shrinks the template tenfold: verdict 'failed', not in the model.
+    (tv, tf), targets, truths, _, poses = population(6, seed=3)
+    write_triangle_mesh(tmp_path / "template.ply", (tv, tf))
+    picks = [0, 40, 80, 120, 160]
+    labels = [f"L{k}" for k in picks]
+    write_landmarks(tmp_path / "template.csv", labels, tv[picks])
+    paths = []
+    for i, target in enumerate(targets):
+        write_triangle_mesh(tmp_path / f"p{i}.ply", target)
+        truth = truths[i][picks] @ poses[i][:3, :3].T + poses[i][:3, 3]
+        if i == 5:
+            truth = truth / 10.0
+        write_landmarks(tmp_path / f"p{i}.csv", labels, truth)
+        paths.append(str(tmp_path / f"p{i}.ply"))
+    settings = RegistrationSettings(levels=(ElasticLevel(2), ElasticLevel(4)), start="similarity")
+    folder = build_model_folder(
+        read_triangle_mesh(tmp_path / "template.ply"),
+        paths,
+        str(tmp_path / "model"),
+        settings=settings,
+        landmarks=tmp_path / "template.csv",
+    )
+    record = {r.name: r for r in folder.batch.records}["p5"]
+    assert record.verdict == "failed"
+    assert any("times the template's size" in w for w in record.warnings)
+    # The model holds exactly the patients whose verdict (with the population check) is 'ok'.
+    assert "p5" not in folder.model.names
+    assert set(folder.model.names) == {r.name for r in folder.batch.accepted}
+    assert len(folder.model.names) >= 4
+    report = json.loads((tmp_path / "model" / "report.json").read_text())
+    assert report["flagged"]["p5"]["verdict"] == "failed" and "p5" not in report["in_model"]
+    assert report["settings"]["start"] == "similarity"
+    assert "failed" in folder.batch.table() and "times the template's size" in folder.batch.table()
+    # The command line: the same, with --keep-flagged putting p5 back into the model.
+    code = main(
+        ["build-model", str(tmp_path / "template.ply"), *paths, "-o", str(tmp_path / "cli"),
+         "--levels", "2,4", "--with-scaling", "--landmarks", str(tmp_path / "template.csv"),
+         "--keep-flagged", "-q"]
+    )  # fmt: skip
+    assert code == 1
+    assert "p5 (failed" in capsys.readouterr().err
+    report = json.loads((tmp_path / "cli" / "report.json").read_text())
+    assert "p5" in report["in_model"] and report["keep_flagged"]
