@@ -93,3 +93,23 @@ def test_robust_options_reach_the_registration(pair, tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:  # argparse refuses an unknown choice
         main(["register", "a.ply", "b.ply", "-o", "c.ply", "--loss", "l1"])
     assert exc.value.code == 2
+
+
+def test_a_bad_registration_prints_its_verdict_and_exits_1(pair, tmp_path, capsys):
+    # The patient shrunk fivefold and no rigid step to find the scale: the registration cannot be
+    # right, and the verdict says why (sizes in other units).
+    small = o3d.io.read_triangle_mesh(str(pair / "patient.ply"))
+    small.scale(0.2, center=small.get_center())
+    o3d.io.write_triangle_mesh(str(tmp_path / "small.ply"), small)
+    args = ["register", str(pair / "template.ply"), str(tmp_path / "small.ply")]
+    code = main([*args, "-o", str(tmp_path / "o.ply"), "--levels", "2", "--no-rigid"])
+    out = capsys.readouterr().out
+    assert code == 1
+    assert "verdict: failed" in out and "times the template's size" in out
+    assert "converged: yes" not in out
+    # Without --no-rigid the rigid start refuses the size mismatch, naming the fix; nothing is
+    # written.
+    code = main([*args, "-o", str(tmp_path / "p.ply"), "--levels", "2"])
+    assert code == 2
+    assert "--with-scaling" in capsys.readouterr().err
+    assert not (tmp_path / "p.ply").exists()
