@@ -416,7 +416,7 @@ def test_a_target_oriented_inside_out_is_registered_the_same(bunny_warped):
 
 def test_the_cli_starts_from_the_library_defaults_or_the_paper():
     from o3dreg.cli import build_parser
-    from o3dreg.cli._register import estimation_method
+    from o3dreg.cli._registration_options import estimation_method
 
     def method(*extra):
         return estimation_method(

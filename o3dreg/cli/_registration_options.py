@@ -9,7 +9,7 @@ never carries a second copy of a default.
 from __future__ import annotations
 
 import argparse
-import dataclasses
+from typing import Any
 
 from ..registration.options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
 from ..registration.settings import RegistrationSettings
@@ -135,9 +135,14 @@ def build_levels(args: argparse.Namespace) -> list[ElasticLevel] | None:
     return [ElasticLevel(r, w, symmetric_scale=s) for r, w, s in zip(resolutions, weights, scales)]
 
 
-def settings_from_args(args: argparse.Namespace) -> RegistrationSettings:
-    """One :class:`RegistrationSettings` from the options of :func:`add_registration_options`."""
-    changes = {
+def estimation_method(args: argparse.Namespace) -> DistanceEstimation:
+    """The library's defaults (or ``--paper``'s plain least squares), with the given options."""
+    changes = _estimation_changes(args)
+    return DistanceEstimation.paper(**changes) if args.paper else DistanceEstimation(**changes)
+
+
+def _estimation_changes(args: argparse.Namespace) -> dict[str, Any]:
+    changes: dict[str, Any] = {
         field: getattr(args, dest)
         for dest, field in _ESTIMATION.items()
         if getattr(args, dest) is not None
@@ -150,11 +155,17 @@ def settings_from_args(args: argparse.Namespace) -> RegistrationSettings:
         changes["reject_boundary"] = False
     if "min_target_component" in changes:
         changes["min_target_component"] = changes["min_target_component"] or None  # 0: keep all
-    estimation = None
-    if args.paper:
-        estimation = DistanceEstimation.paper(**changes)
-    elif changes:
-        estimation = dataclasses.replace(DistanceEstimation(), **changes)
+    return changes
+
+
+def settings_from_args(args: argparse.Namespace) -> RegistrationSettings:
+    """One :class:`RegistrationSettings` from the options of :func:`add_registration_options`.
+
+    Options not given leave the library's defaults in place (``estimation_method=None`` when
+    no distance option and no ``--paper`` is given).
+    """
+    given = args.paper or bool(_estimation_changes(args))
+    estimation = estimation_method(args) if given else None
     criteria = None
     if args.max_iteration is not None:
         criteria = ElasticCriteria(max_iteration=args.max_iteration)
