@@ -137,10 +137,20 @@ def run(args: argparse.Namespace) -> int:
                 "report": str(result.report),
                 "patients": [r.name for r in result.batch.records],
                 "failed": [r.name for r in result.batch.failed],
+                "flagged": {
+                    r.name: {"verdict": r.verdict, "warnings": list(r.warnings)}
+                    for r in result.batch.flagged
+                },
                 "explained_variance_ratio": result.model.explained_variance_ratio.tolist(),
                 "landmark_error_mean_mm": result.landmark_error_mean,
                 "seconds": result.seconds,
             }
         )
     sys.stdout.flush()
-    return 0 if not result.batch.failed else 1
+    if result.batch.flagged:
+        print(
+            "o3dreg demo: flagged and left out of the model: "
+            + "; ".join(f"{r.name} ({r.verdict})" for r in result.batch.flagged),
+            file=sys.stderr,
+        )
+    return 0 if not result.batch.failed and not result.batch.flagged else 1
