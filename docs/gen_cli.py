@@ -36,6 +36,8 @@ never share a path; an output never names one of the command's inputs (even with
 `--overwrite`); every output's suffix, folder and write permission are checked before any work.
 Files are written atomically (a hidden temporary file beside the output, flushed to disk and,
 for meshes, read back before it is renamed), so an output name holds a complete file or nothing.
+When one output of `register` fails (a full disk), the outputs it already wrote are removed:
+exit status 2 means no new file.
 `build-model` refuses a folder that already holds a model unless `--overwrite` (finished
 registrations are reused either way; a patient is registered again when the template, its file
 or the options changed). Worker processes (`--jobs`) end with the command. Messages of the C++

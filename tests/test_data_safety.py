@@ -756,3 +756,18 @@ def test_a_concurrent_writer_is_never_overwritten(tmp_path):
     with pytest.raises(OSError, match="another writer"):
         atomic_write(target, writer)
     assert target.read_text() == "the other writer's result" and parts(tmp_path) == []
+
+
+def test_a_failing_later_output_removes_the_earlier_ones(meshes, capsys, monkeypatch):
+    from o3dreg.cli import _register
+
+    def disk_full(path, data, *, overwrite):
+        raise OSError(f"--report: writing {path!r} failed: No space left on device")
+
+    monkeypatch.setattr(_register, "write_json", disk_full)
+    out = meshes / "r.ply"
+    code, err = run_main(capsys, "register", str(meshes / "t.ply"), str(meshes / "p.ply"),
+                         "-o", str(out), "--deformation", str(meshes / "d.npz"),
+                         "--report", str(meshes / "r.json"), "--levels", "2")  # fmt: skip
+    assert code == 2 and "No space left" in err
+    assert sorted(p.name for p in meshes.iterdir()) == ["p.ply", "t.ply"]

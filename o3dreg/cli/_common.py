@@ -151,3 +151,20 @@ def process_pool(jobs: int) -> Iterator[cf.ProcessPoolExecutor | None]:
         raise
     else:
         pool.shutdown()
+
+
+@contextlib.contextmanager
+def all_or_nothing(paths: Sequence[str | None]) -> Iterator[None]:
+    """On an exception, remove the ``paths`` the block created (not those that existed before).
+
+    One command's outputs are then all written or none is (exit status 2 means nothing written);
+    a file replaced with ``--overwrite`` is gone either way.
+    """
+    new = [p for p in paths if p is not None and not os.path.exists(p)]
+    try:
+        yield
+    except BaseException:
+        for path in new:
+            with contextlib.suppress(OSError):
+                os.unlink(path)
+        raise

@@ -15,7 +15,7 @@ from ..io.mesh import MESH_SUFFIXES, read_triangle_mesh, write_triangle_mesh
 from ..registration.landmarks import registration_landmarks
 from ..registration.options import default_levels
 from ..registration.result import ElasticRegistrationResult, LevelReport
-from ._common import check_outputs, emit, emit_json, write_json
+from ._common import all_or_nothing, check_outputs, emit, emit_json, write_json
 from ._registration_options import add_registration_options, settings_from_args
 
 EPILOG = """examples:
@@ -163,24 +163,26 @@ def run(args: argparse.Namespace) -> int:
     if bar is not None:
         bar.close()
     mesh = result.semilandmark_mesh(target if args.project else None)
-    write_triangle_mesh(args.output, mesh, overwrite=args.overwrite, name="--output")
-    if args.deformation:
-        result.deformation.save(args.deformation, overwrite=args.overwrite)
-    report = report_dict(
-        result, source=args.source, target=args.target, output=args.output, seconds=seconds
-    )
-    if args.report:
-        write_json(args.report, report, overwrite=args.overwrite)
-    if args.html:
-        write_registration_explorer(
-            args.html,
-            source,
-            target,
-            result,
-            verdict=report,
-            name=f"{os.path.basename(args.source)} -> {os.path.basename(args.target)}",
-            overwrite=args.overwrite,
+    # Exit 2 means nothing written: a failing output removes the ones written before it.
+    with all_or_nothing([args.output, args.deformation, args.report, args.html]):
+        write_triangle_mesh(args.output, mesh, overwrite=args.overwrite, name="--output")
+        if args.deformation:
+            result.deformation.save(args.deformation, overwrite=args.overwrite)
+        report = report_dict(
+            result, source=args.source, target=args.target, output=args.output, seconds=seconds
         )
+        if args.report:
+            write_json(args.report, report, overwrite=args.overwrite)
+        if args.html:
+            write_registration_explorer(
+                args.html,
+                source,
+                target,
+                result,
+                verdict=report,
+                name=f"{os.path.basename(args.source)} -> {os.path.basename(args.target)}",
+                overwrite=args.overwrite,
+            )
     if args.json:
         emit_json(report)
     emit(result.distances.table(), args)
