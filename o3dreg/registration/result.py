@@ -8,7 +8,11 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
+from .._geometry import apply_transformation
+from .._validation import as_mesh_arrays, as_points
+from ..io.mesh import to_open3d
 from .deformation import LatticeDeformation, PartitionedDeformation
+from .distance import SurfaceDistanceQuery
 
 __all__ = ["ElasticRegistrationResult", "LevelReport", "SurfaceDistances"]
 
@@ -203,9 +207,6 @@ class ElasticRegistrationResult:
 
     def transform(self, points: Any) -> np.ndarray:
         """Map any source-space points (landmarks, other meshes' vertices) with ``T``."""
-        from .._geometry import apply_transformation
-        from .._validation import as_points
-
         pts = as_points(points, "points", allow_empty=True)
         moved = apply_transformation(self.transformation, pts)
         return self.deformation.transform(moved)
@@ -227,10 +228,6 @@ class ElasticRegistrationResult:
             unsupported ones (a PLY file written with Open3D keeps them as ``red``, ``green``,
             ``blue`` vertex properties; ``supported == (red == green)``).
         """
-        from .._validation import as_mesh_arrays
-        from ..io.mesh import to_open3d
-        from .distance import SurfaceDistanceQuery
-
         vertices = self.vertices
         if target is not None:
             tv, tf = as_mesh_arrays(target, "target", drop_degenerate=True)
