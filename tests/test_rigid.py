@@ -123,25 +123,29 @@ def test_recovers_large_rotations(bunny_template, bunny_target, angle, axis):
     assert result.runner_up_score is None or result.runner_up_score > 1.2 * result.score
 
 
-def test_the_demos_patient08_does_not_flip():
-    # On main (e26566b) the moment frames alone put patient08 122 degrees off (82 mm mean
-    # correspondence error after the elastic step): its two largest principal values are 6%
-    # apart, so the frames' axes in their plane are arbitrary. The input pose is within 10
-    # degrees (the population's rotations) and must win.
-    from scipy.spatial.transform import Rotation as R
-
+@pytest.fixture(scope="module")
+def demo_population():
+    """The demo's template and its first nine patients (seed 0), as `o3dreg demo` makes them."""
     from o3dreg.app.datasets import headsq_path
     from o3dreg.app.demo import bone_mesh, make_population
     from o3dreg.volume import read_volume
     from o3dreg.volume.cleaning import decimate
 
     reference = bone_mesh(read_volume(headsq_path()))
-    template = decimate(reference, 2500)
-    patient = make_population(reference, 9, seed=0)[7]
+    return decimate(reference, 2500), make_population(reference, 9, seed=0)
+
+
+def test_the_demos_patient08_does_not_flip(demo_population):
+    # On main (e26566b) the moment frames alone put patient08 122 degrees off (82 mm mean
+    # correspondence error after the elastic step): its two largest principal values are 6%
+    # apart, so the frames' axes in their plane are arbitrary. The input pose is within 10
+    # degrees (the population's rotations) and must win.
+    template, patients = demo_population
+    patient = patients[7]
     assert patient.name == "patient08"
     result = registration_rigid(template, patient.mesh)
     t = np.asarray(result.transformation)
-    off = np.degrees(R.from_matrix(t[:3, :3] @ patient.motion[:3, :3].T).magnitude())
+    off = np.degrees(Rotation.from_matrix(t[:3, :3] @ patient.motion[:3, :3].T).magnitude())
     # The patient is also warped (3% of the diagonal per mode): the best rigid fit is a few
     # degrees from the motion, the flip was 122.
     assert off < 15.0
@@ -194,3 +198,18 @@ def test_sizes_in_other_units_stop_with_the_fix(bunny_template, bunny_target):
     truth = known_transform(angle_deg=10.0, scale=0.1)
     result = registration_rigid(bunny_template, moved(bunny_target, truth), with_scaling=True)
     assert np.cbrt(np.linalg.det(result.transformation[:3, :3])) == pytest.approx(0.1, rel=0.01)
+
+
+def test_far_from_the_origin(demo_population):
+    # The demo's patient01 moved 1e4 mm away: Open3D's point-to-plane ICP linearises the
+    # rotation about the origin, and from the centroid-matched start it diverged (fitness 0;
+    # the pose ended 105 degrees off, the registration 74 mm from the truth). ICP now runs on
+    # centred copies.
+    template, patients = demo_population
+    patient = patients[0]
+    far = o3d.geometry.TriangleMesh(patient.mesh).translate((1e4, 1e4, 1e4))
+    result = registration_rigid(template, far)
+    t = np.asarray(result.transformation)
+    off = np.degrees(Rotation.from_matrix(t[:3, :3] @ patient.motion[:3, :3].T).magnitude())
+    assert off < 15.0  # as for patient08: the warp leaves the best rigid fit a few degrees off
+    assert result.fitness > 0.95

@@ -413,7 +413,10 @@ class _CandidateSearch:
         diagonal: float,
     ) -> None:
         self.vs, self.fs = vs, fs
-        self.src, self.tgt = _cloud(vs, fs), _cloud(vt, ft)
+        # ICP runs on centred copies: Open3D's point-to-plane step linearises the rotation about
+        # the origin, which fails far from it (a patient 1e4 mm away diverged to fitness 0).
+        self.cs, self.ct = vs.mean(axis=0), vt.mean(axis=0)
+        self.src, self.tgt = _cloud(vs - self.cs, fs), _cloud(vt - self.ct, ft)
         self.distance = max_correspondence_distance
         self.diagonal = diagonal
         # ICP from many starts runs with a spatial subsample of the source against a coarse copy
@@ -421,9 +424,9 @@ class _CandidateSearch:
         # detail. Only the two best poses are refined on all points.
         keep = spatial_subsample(vs, SEARCH_POINTS) if vs.shape[0] > SEARCH_POINTS else None
         self.search_src = self.src if keep is None else self.src.select_by_index(keep.tolist())
-        self.search_points = np.asarray(self.search_src.points)
+        self.search_points = np.asarray(self.search_src.points) + self.cs
         self.coarse = self.tgt.voxel_down_sample(_voxel_for(vt, SEARCH_POINTS))
-        self.coarse_points = np.asarray(self.coarse.points)
+        self.coarse_points = np.asarray(self.coarse.points) + self.ct
         self.query = SurfaceDistanceQuery(vt, ft)
         self.source_query = SurfaceDistanceQuery(vs, fs)
 
@@ -437,8 +440,27 @@ class _CandidateSearch:
         backward = scale * self.source_query.distance(back)
         return float(0.5 * (forward.mean() + backward.mean()))
 
+    def icp(
+        self,
+        source: Any,
+        target: Any,
+        distance: float,
+        start: np.ndarray,
+        method: Any,
+        criteria: Any,
+    ) -> Any:
+        """Open3D's ICP on the centred clouds; the transformation returned in input coordinates."""
+        to_centred, from_centred = np.eye(4), np.eye(4)
+        to_centred[:3, 3], from_centred[:3, 3] = -self.ct, self.ct
+        into_source, out_of_source = np.eye(4), np.eye(4)
+        into_source[:3, 3], out_of_source[:3, 3] = self.cs, -self.cs
+        centred = to_centred @ start @ into_source
+        result = reg.registration_icp(source, target, distance, centred, method, criteria)
+        result.transformation = from_centred @ np.asarray(result.transformation) @ out_of_source
+        return result
+
     def refine(self, start: np.ndarray, method: Any, criteria: Any) -> Any:
-        return reg.registration_icp(self.src, self.tgt, self.distance, start, method, criteria)
+        return self.icp(self.src, self.tgt, self.distance, start, method, criteria)
 
     def _preselect(self, candidates: list[tuple[str, np.ndarray]]) -> list[tuple[str, np.ndarray]]:
         """All named poses, and the sampled rotations nearest the target before ICP."""
@@ -469,7 +491,7 @@ class _CandidateSearch:
         tried = self._preselect(candidates)
         scored: list[tuple[float, str, np.ndarray]] = []
         for name, guess in tried:
-            icp = reg.registration_icp(
+            icp = self.icp(
                 self.search_src, self.coarse, 4.0 * self.distance, guess, method, criteria
             )
             t = np.asarray(icp.transformation)
