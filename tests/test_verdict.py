@@ -139,3 +139,12 @@ def test_population_outliers():
     # Constant values but one (MAD zero): the mean deviation takes over.
     assert list(population_outliers({**{f"q{k}": 1.0 for k in range(6)}, "x": 5.0})) == ["x"]
     assert population_outliers({"a": np.nan, **values}) == {}
+
+
+def test_a_one_triangle_target_is_refused_by_the_rigid_start():
+    # With the default (rigid) start a one-triangle target used to be reported as a size
+    # mismatch ("are they in the same units?"); the error now says what is wrong with it.
+    template = synthetic_form("sphere", 400)
+    triangle = (np.array([[0.0, 0, 0], [40, 0, 0], [0, 40, 0]]), np.array([[0, 1, 2]]))
+    with pytest.raises(ValueError, match=r"`target` must be a surface of at least 4 .* got 1"):
+        registration_elastic(template, triangle, levels=LEVELS, criteria=ElasticCriteria(3))

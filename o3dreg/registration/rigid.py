@@ -47,6 +47,9 @@ SAMPLED_KEPT = 8
 #: different units (10 for cm vs mm, 25.4 for inches, 1000 for m), not anatomy: adult bones of
 #: one kind vary far less than 3 times in linear size.
 MAX_SIZE_RATIO = 3.0
+#: A target with fewer triangles cannot determine a pose, let alone a deformation (one
+#: triangle's moments say nothing of a bone's): refused before any work.
+MIN_TARGET_TRIANGLES = 4
 #: A distinct pose whose score is within this factor of the winner's is an ambiguity: the
 #: demo's flipped poses score 1.7-2.5 times the right one.
 AMBIGUITY_RATIO = 1.2
@@ -373,6 +376,11 @@ def registration_rigid(
 def _check_sizes(
     vs: np.ndarray, fs: np.ndarray, vt: np.ndarray, ft: np.ndarray, with_scaling: bool
 ) -> None:
+    if ft.shape[0] < MIN_TARGET_TRIANGLES:
+        raise ValueError(
+            f"`target` must be a surface of at least {MIN_TARGET_TRIANGLES} non-degenerate "
+            f"triangles to register onto, got {ft.shape[0]}: is it the right file?"
+        )
     if with_scaling:
         return
     _, _, covs = surface_moments(vs, fs)

@@ -29,7 +29,7 @@ import numpy as np
 from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays
 from .distance import SurfaceDistanceQuery
-from .rigid import surface_moments
+from .rigid import MIN_TARGET_TRIANGLES, surface_moments
 
 __all__ = ["STATUSES", "assess_registration", "population_outliers", "worst_status"]
 
@@ -58,9 +58,9 @@ SUPPORTED_FAILED = 0.1
 #: Sizes (RMS radius about the centroid) of the rigidly aligned template and the target
 #: differing by more than this factor: different units (see registration.rigid.MAX_SIZE_RATIO).
 SIZE_RATIO_FAILED = 3.0
-#: A target with fewer triangles, or with less than this fraction of the aligned template's
-#: area, cannot determine a registration.
-MIN_TARGET_TRIANGLES = 4
+#: A target with fewer triangles (:data:`~o3dreg.registration.rigid.MIN_TARGET_TRIANGLES`, which
+#: the rigid step refuses), or with less than this fraction of the aligned template's area,
+#: cannot determine a registration.
 MIN_TARGET_AREA_FRACTION = 0.01
 #: Population check: modified z-score (Iglewicz and Hoaglin 1993) above which a value is an
 #: outlier, and how many times the median it must also exceed (a wrong registration stands out
