@@ -1,4 +1,5 @@
-"""The cost of one level, eq. (3) of Berar et al. (2005), with its analytic Jacobian.
+"""The cost of one level, eq. (3) of Berar et al. (2005), with its analytic Jacobian: the sum of
+the residual terms of ``_terms`` weighted by the kernels and checkers of ``_robust``.
 
 Unknowns ``u`` are the displacements of the level's free lattice nodes, node-major
 (``[u_0x, u_0y, u_0z, u_1x, ...]``). The template points ``x`` (rigidly aligned) are fixed, so the
@@ -35,13 +36,38 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from ._robust import (
+    LOSS_CONSTANTS,
+    BoundaryChecker,
+    CorrespondenceChecker,
+    DistanceChecker,
+    NormalChecker,
+    RobustKernel,
+    robust_scale,
+    robust_weights,
+    support,
+)
+from ._terms import (
+    BarycentreTerm,
+    Geometry,
+    PointToSurfaceTerm,
+    RegulariserTerm,
+    ResidualTerm,
+    TermBlock,
+    Weights,
+)
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
 
-#: Tuning constants of the robust losses (95% efficiency under Gaussian noise), in units of the
-#: robust scale ``sigma``.
-LOSS_CONSTANTS = {"linear": np.inf, "huber": 1.345, "cauchy": 2.3849, "tukey": 4.6851}
-
+__all__ = [
+    "LOSS_CONSTANTS",
+    "SCALE_FLOOR",
+    "Evaluation",
+    "LevelProblem",
+    "Robustness",
+    "robust_scale",
+    "robust_weights",
+]
 
 #: Smallest robust scale ``sigma``, as a fraction of the level's cell size. A level that starts
 #: nearly converged (the finest ones on a clean target) has a tiny median residual; a scale
@@ -54,29 +80,6 @@ LOSS_CONSTANTS = {"linear": np.inf, "huber": 1.345, "cauchy": 2.3849, "tukey": 4
 SCALE_FLOOR = 0.05
 
 
-def robust_weights(r: np.ndarray, loss: str, c: float) -> np.ndarray:
-    """IRLS weights ``w(r) = rho'(r) / r`` of the residuals ``r`` for the threshold ``c``.
-
-    ``huber``: ``1`` if ``|r| <= c`` else ``c / |r|``; ``cauchy``: ``1 / (1 + (r / c)^2)``;
-    ``tukey``: ``(1 - (r / c)^2)^2`` if ``|r| < c`` else ``0``; ``linear``: ``1``.
-    """
-    if loss == "linear" or r.size == 0:
-        return np.ones(r.shape)
-    z = np.abs(r) / c
-    if loss == "huber":
-        return 1.0 / np.maximum(z, 1.0)
-    if loss == "cauchy":
-        return 1.0 / (1.0 + z * z)
-    return np.where(z < 1.0, (1.0 - z * z) ** 2, 0.0)
-
-
-def robust_scale(r: np.ndarray, floor: float) -> float:
-    """``max(1.4826 * median(|r|), floor)``: the MAD scale of residuals whose centre is zero."""
-    if r.size == 0:
-        return floor
-    return max(1.4826 * float(np.median(np.abs(r))), floor)
-
-
 @dataclass(frozen=True)
 class Robustness:
     """Per-level robustness settings of :class:`LevelProblem` (see DistanceEstimation)."""
@@ -87,35 +90,6 @@ class Robustness:
     reject_boundary: bool = True
     max_normal_angle: float | None = None
     min_jacobian_determinant: float | None = None
-
-
-def _stencils() -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
-    eye = np.eye(3, dtype=np.int64)
-    membrane = [(np.array([np.zeros(3, np.int64), e]), np.array([-1.0, 1.0])) for e in eye]
-    bending = [
-        (np.array([np.zeros(3, np.int64), e, 2 * e]), np.array([1.0, -2.0, 1.0])) for e in eye
-    ]
-    for a, b in ((0, 1), (1, 2), (0, 2)):
-        offsets = np.array([np.zeros(3, np.int64), eye[a], eye[b], eye[a] + eye[b]])
-        bending.append((offsets, np.sqrt(2.0) * np.array([1.0, -1.0, -1.0, 1.0])))
-    return {"membrane": membrane, "bending": bending}
-
-
-_STENCILS = _stencils()
-
-
-@dataclass
-class _Geometry:
-    """What one evaluation measured at ``u``, before any weighting."""
-
-    u: np.ndarray
-    moved: np.ndarray
-    distances: np.ndarray
-    closest: np.ndarray
-    gradients: np.ndarray
-    faces: np.ndarray
-    target_distances: np.ndarray | None
-    nearest: np.ndarray | None
 
 
 @dataclass
@@ -135,7 +109,8 @@ class Evaluation:
     weights: np.ndarray | None = None
     support: np.ndarray | None = None
     target_weights: np.ndarray | None = None
-    geometry: _Geometry | None = None
+    geometry: Geometry | None = None
+    terms: tuple[TermBlock, ...] = ()
 
     @property
     def jacobian(self) -> sp.csr_matrix:
@@ -145,6 +120,9 @@ class Evaluation:
 
 class LevelProblem:
     """Residuals and Jacobian of one lattice level for a fixed set of template points.
+
+    The cost is the sum of :attr:`terms` (point-to-surface, barycentre when the symmetric
+    weight is positive, regulariser), in that order in the residual vector.
 
     Parameters
     ----------
@@ -181,13 +159,11 @@ class LevelProblem:
         barycentre_offsets: np.ndarray | None = None,
     ) -> None:
         self.lattice = lattice
-        self.barycentre_offsets = barycentre_offsets
         self.robust = robustness or Robustness()
         self.base = points + previous
         self._points = points
         self.target = target
         self.target_points = target_points if symmetric_weight > 0 else None
-        self.sqrt_ws = float(np.sqrt(symmetric_weight))
         n = points.shape[0]
         nodes, weights = lattice.weights(points)
         free_nodes = np.unique(nodes[active].ravel())
@@ -200,58 +176,47 @@ class LevelProblem:
         # W restricted to free nodes, (n, m).
         self.W = sp.csr_matrix((weights[keep], (rows, local[keep])), shape=(n, free_nodes.size))
         self.number_of_unknowns = 3 * free_nodes.size
-        self._G = self._stencil_matrix(lookup, energy)
-        edges = max(self._G.shape[0], 1)
-        self.sqrt_reg = float(np.sqrt(regularization * n / edges))
-        self._Jreg = sp.kron(self._G, sp.identity(3), format="csr") * self.sqrt_reg
-        self._Wx = sp.kron(self.W, sp.identity(3), format="csr")  # (3n, 3m) for vector residuals
-        self._reg_gram = (self._Jreg.T @ self._Jreg).tocsr()
-        self.normals = normals
-        rb = self.robust
-        self._reject_boundary = rb.reject_boundary and target.has_boundary
-        self._cos_max = (
+        self.surface = PointToSurfaceTerm(self.W, target)
+        self.barycentre = (
             None
-            if rb.max_normal_angle is None or normals is None
-            else float(np.cos(np.radians(rb.max_normal_angle)))
+            if self.target_points is None
+            else BarycentreTerm(self.W, self.target_points, symmetric_weight, barycentre_offsets)
         )
-        self._c = LOSS_CONSTANTS[rb.loss]
+        self.regulariser = RegulariserTerm(
+            lattice, lookup, free_nodes.size, regularization, n, energy
+        )
+        self.terms: list[ResidualTerm] = [self.surface]
+        if self.barycentre is not None:
+            self.terms.append(self.barycentre)
+        self.terms.append(self.regulariser)
+        rb = self.robust
+        # Correspondence checkers, in the order their masks are combined.
+        self.checkers: list[CorrespondenceChecker] = []
+        if rb.reject_boundary and target.has_boundary:
+            self.checkers.append(BoundaryChecker(target))
+        if rb.max_normal_angle is not None and normals is not None:
+            self.checkers.append(NormalChecker(normals, target.face_normals, rb.max_normal_angle))
         self._robust = rb.loss != "linear" or rb.max_distance_factor is not None
         self.sigma = self.sigma_symmetric = 1.0
         if self._robust:
             # Scales from the data at the level start (u = 0), over the correspondences the
-            # other masks accept (the distance mask itself is measured in these scales).
+            # other checkers accept (the distance checker itself is measured in these scales).
             floor = SCALE_FLOOR * float(lattice.cell_size.min())
             dist, face, closest = target.closest(self.base)
-            keep = self._masks(self.base, dist, face, closest, distance=False)
+            keep = support(self.checkers, self.base, dist, face, closest)
             self.sigma = rb.loss_scale or robust_scale(dist[keep], floor)
             if self.target_points is not None:
                 e, _ = cKDTree(self.base[keep] if keep.any() else self.base).query(
                     self.target_points, workers=-1
                 )
                 self.sigma_symmetric = rb.loss_scale or robust_scale(e, floor)
+        if rb.max_distance_factor is not None:
+            self.checkers.append(DistanceChecker(rb.max_distance_factor, self.sigma))
+        self.kernel = RobustKernel.scaled(rb.loss, self.sigma)
+        self.target_kernel = RobustKernel.scaled(rb.loss, self.sigma_symmetric)
         self._fold = None
         if rb.min_jacobian_determinant is not None and self.number_of_unknowns:
             self._fold = self._fold_samples(prior, active)
-
-    def _masks(
-        self,
-        y: np.ndarray,
-        dist: np.ndarray,
-        face: np.ndarray,
-        closest: np.ndarray,
-        distance: bool = True,
-    ) -> np.ndarray:
-        """0/1 support of each point: not beyond the open boundary, compatible normal, and
-        (with ``distance``) within ``max_distance_factor`` robust scales."""
-        keep = np.ones(y.shape[0], dtype=bool)
-        if self._reject_boundary:
-            keep &= ~self.target.beyond_boundary(y, face, closest)
-        if self._cos_max is not None and self.normals is not None:
-            cos = (self.normals * self.target.face_normals[face]).sum(axis=1)
-            keep &= cos >= self._cos_max
-        if distance and self.robust.max_distance_factor is not None:
-            keep &= dist <= self.robust.max_distance_factor * self.sigma
-        return keep
 
     # -- folding ----------------------------------------------------------------------------------
     def _fold_samples(
@@ -300,40 +265,6 @@ class LevelProblem:
             jac[:, :, a] += D @ U
         return float(np.linalg.det(jac).min()) if jac.shape[0] else 1.0
 
-    def _stencil_matrix(self, lookup: np.ndarray, energy: str) -> sp.csr_matrix:
-        """Finite-difference operator over the lattice, one row per stencil touching a free node.
-
-        ``'membrane'``: first differences along x, y, z (``int |grad u|^2``).
-        ``'bending'``: second differences along each axis and mixed differences weighted
-        ``sqrt(2)`` (the thin-plate energy ``int |Hess u|^2``), whose null space is the affine
-        maps: a level may add any affine motion without cost.
-        """
-        lat = self.lattice
-        node_shape = np.asarray(lat.node_shape)
-        stencils = _STENCILS[energy]
-        all_ijk = np.stack(
-            np.meshgrid(*[np.arange(s) for s in lat.node_shape], indexing="ij"), axis=-1
-        ).reshape(-1, 3)
-        rows, cols, vals = [], [], []
-        count = 0
-        for offsets, coefs in stencils:
-            span = offsets.max(axis=0)
-            anchors = all_ijk[np.all(all_ijk + span < node_shape, axis=1)]
-            local = lookup[lat.node_index(anchors[:, None, :] + offsets[None, :, :])]
-            keep = np.any(local >= 0, axis=1)
-            local = local[keep]
-            e = count + np.arange(local.shape[0])
-            for j, c in enumerate(coefs):
-                free = local[:, j] >= 0
-                rows.append(e[free])
-                cols.append(local[free, j])
-                vals.append(np.full(int(free.sum()), c))
-            count += local.shape[0]
-        return sp.csr_matrix(
-            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-            shape=(count, self.free_nodes.size),
-        )
-
     def moved(self, u: np.ndarray) -> np.ndarray:
         """Template points moved by the coarser levels and the increment ``u``."""
         return self.base + self.W @ u.reshape(-1, 3)
@@ -355,163 +286,75 @@ class LevelProblem:
         distances as a cost increase and be rejected, although it moved towards the data.
         """
         y = self.moved(u)
-        dist, closest, grad, face = self.target.gradient(y, return_faces=True)
+        dist, closest, grad, face = self.surface.measure(y)
         e = nearest = None
-        if self.target_points is not None:
-            e, nearest = self._assign(y)
-        geometry = _Geometry(u, y, dist, closest, grad, face, e, nearest)
+        if self.barycentre is not None:
+            e, nearest = self.barycentre.measure(y)
+        geometry = Geometry(u, y, dist, closest, grad, face, e, nearest)
         if weights_of is None:
             weights = self._weights(geometry)
         else:
-            weights = (weights_of.weights, weights_of.support, weights_of.target_weights)
-        return self._assemble(geometry, *weights)
+            weights = Weights(weights_of.weights, weights_of.support, weights_of.target_weights)
+        return self._assemble(geometry, weights)
 
     def reweighted(self, ev: Evaluation) -> Evaluation:
         """``ev`` with the weights and masks of its own point (no new distance query)."""
         assert ev.geometry is not None
-        return self._assemble(ev.geometry, *self._weights(ev.geometry))
+        return self._assemble(ev.geometry, self._weights(ev.geometry))
 
-    def _weights(
-        self, g: _Geometry
-    ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
-        """Per-point weights (robust weight times support), support masks and per-target-point
-        weights of the barycentre term at the geometry ``g``; ``None`` where unweighted."""
-        if not (self._reject_boundary or self._cos_max is not None or self._robust):
-            return None, None, None
-        support = self._masks(g.moved, g.distances, g.faces, g.closest)
-        w = robust_weights(g.distances, self.robust.loss, self._c * self.sigma) * support
+    def _weights(self, g: Geometry) -> Weights:
+        """Per-point weights (robust kernel times the checkers' support), support masks and
+        per-target-point weights of the barycentre term at the geometry ``g``."""
+        if not (self.checkers or self._robust):
+            return Weights()
+        mask = support(self.checkers, g.moved, g.distances, g.faces, g.closest)
+        w = self.kernel.weight(g.distances) * mask
         v = None
         if self._robust and g.target_distances is not None:
             e = g.target_distances
-            v = robust_weights(e, self.robust.loss, self._c * self.sigma_symmetric)
+            v = self.target_kernel.weight(e)
             if self.robust.max_distance_factor is not None:
-                v = v * (e <= self.robust.max_distance_factor * self.sigma_symmetric)
-        return w, support, v
+                v = v * DistanceChecker(
+                    self.robust.max_distance_factor, self.sigma_symmetric
+                ).check(g.moved, e, g.faces, g.closest)
+        return Weights(w, mask, v)
 
-    def _assemble(
-        self,
-        g: _Geometry,
-        weights: np.ndarray | None,
-        support: np.ndarray | None,
-        target_weights: np.ndarray | None,
-    ) -> Evaluation:
-        y, dist, grad = g.moved, g.distances, g.gradients
-        n = y.shape[0]
-        ra = dist
-        if weights is not None:
-            sw = np.sqrt(weights)
-            ra = sw * dist
-            grad = grad * sw[:, None]
-        # (a) point-to-surface distances: row i has grad_i (x) W_i.
-        Ja = sp.csr_matrix(
-            (
-                (
-                    self.W.data[:, None] * grad[np.repeat(np.arange(n), np.diff(self.W.indptr))]
-                ).ravel(),
-                (3 * self.W.indices[:, None] + np.arange(3)).ravel(),
-                self.W.indptr * 3,
-            ),
-            shape=(n, self.number_of_unknowns),
-        )
-        blocks = [Ja]
-        residuals = [ra]
-        cost_sym = 0.0
-        scale = None
-        if self.target_points is not None:
-            # (b) barycentre of the target vertices whose nearest template vertex is i.
-            assert g.nearest is not None
-            nearest = g.nearest
-            counts = np.bincount(nearest, minlength=n)
-            if target_weights is not None:
-                v = target_weights
-                vsum = np.bincount(nearest, v, minlength=n)
-                sums = np.stack(
-                    [
-                        np.bincount(nearest, v * self.target_points[:, c], minlength=n)
-                        for c in range(3)
-                    ],
-                    axis=1,
-                )
-                bary = sums / np.where(vsum > 0, vsum, 1.0)[:, None]
-                assigned = vsum / np.maximum(counts, 1)
-            else:
-                sums = np.stack(
-                    [np.bincount(nearest, self.target_points[:, c], minlength=n) for c in range(3)],
-                    axis=1,
-                )
-                bary = sums / np.maximum(counts, 1)[:, None]
-                assigned = (counts > 0).astype(np.float64)
-            if support is not None:
-                # A template vertex without data of its own is not pulled by the barycentres.
-                assigned = assigned * support
-            # Every template vertex has a row (zero when nothing is assigned to it), so the
-            # residual vector keeps its length from one evaluation to the next.
-            scale = self.sqrt_ws * np.sqrt(assigned)
-            if self.barycentre_offsets is not None:
-                # Compare like with like: the template's own sampling puts the centroid of its
-                # Voronoi cell at y_i + offset_i, not at y_i (see elastic._barycentre_offsets).
-                bary = bary - self.barycentre_offsets
-            rb = (scale[:, None] * (y - bary)).ravel()
-            blocks.append(sp.diags(np.repeat(scale, 3), format="csr") @ self._Wx)
-            residuals.append(rb)
-            cost_sym = float(rb @ rb)
-        rc = self._Jreg @ g.u
-        blocks.append(self._Jreg)
-        residuals.append(rc)
-        r = np.concatenate(residuals)
-        cost_d = float(ra @ ra)
-        cost_r = float(rc @ rc)
+    def _assemble(self, g: Geometry, w: Weights) -> Evaluation:
+        blocks = tuple(term.linearise(g, w) for term in self.terms)
+        surface, regulariser = blocks[0], blocks[-1]
+        barycentre = blocks[1] if self.barycentre is not None else None
+        cost_d = surface.cost
+        cost_sym = barycentre.cost if barycentre is not None else 0.0
+        cost_r = regulariser.cost
         return Evaluation(
             u=g.u,
-            residuals=r,
-            blocks=blocks,
+            residuals=np.concatenate([b.residuals for b in blocks]),
+            blocks=[b.jacobian for b in blocks],
             cost=cost_d + cost_sym + cost_r,
             cost_distance=cost_d,
             cost_symmetric=cost_sym,
             cost_regularization=cost_r,
-            distances=dist,
-            moved=y,
-            symmetric_scale=scale,
-            weights=weights,
-            support=support,
-            target_weights=target_weights,
+            distances=g.distances,
+            moved=g.moved,
+            symmetric_scale=None if barycentre is None else barycentre.row_scale,
+            weights=w.point,
+            support=w.support,
+            target_weights=w.target,
             geometry=g,
+            terms=blocks,
         )
 
-    def _assign(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest moved template vertex of every target point (exact), and its distance.
-
-        The points move little between evaluations, so the query is bounded by a radius that
-        held for nearly all of them last time (a bounded k-d tree search prunes more: measured
-        40% faster); the few points without a neighbour inside it are searched again unbounded.
-        """
-        assert self.target_points is not None
-        tree = cKDTree(y, leafsize=32)
-        bound = getattr(self, "_nn_bound", np.inf)
-        e, nearest = tree.query(self.target_points, workers=-1, distance_upper_bound=bound)
-        missed = ~np.isfinite(e)
-        if missed.any():
-            e[missed], nearest[missed] = tree.query(self.target_points[missed], workers=-1)
-        self._nn_bound = 2.0 * float(np.percentile(e, 99)) if e.size else np.inf
-        return e, nearest
-
     def normal_equations(self, ev: Evaluation) -> tuple[sp.csr_matrix, np.ndarray]:
-        """``J^T J`` and ``J^T r`` assembled block by block.
-
-        The regularisation block is constant within a level (cached); the barycentre block is
-        ``(W^T S^2 W) (x) I_3`` with ``S`` the per-vertex weights, computed on the small
-        ``(m, m)`` node matrix rather than on the ``3n x 3m`` Jacobian.
-        """
-        n = ev.distances.size
-        Ja = ev.blocks[0]
-        ra = ev.residuals[:n]
-        A = Ja.T @ Ja + self._reg_gram
-        g = Ja.T @ ra
-        if ev.symmetric_scale is not None:
-            s2 = ev.symmetric_scale**2
-            A = A + sp.kron(self.W.T @ sp.diags(s2) @ self.W, sp.identity(3), format="csr")
-            rb = ev.residuals[n : 4 * n]
-            g = g + self._Wx.T @ (np.repeat(ev.symmetric_scale, 3) * rb)
-        rc = ev.residuals[ev.residuals.size - self._Jreg.shape[0] :]
-        g = g + self._Jreg.T @ rc
-        return A.tocsr(), g
+        """``J^T J`` and ``J^T r``: the sum of the terms' shares (each assembled without ``J``
+        where a cheaper equal form exists, see the terms)."""
+        shares = [term.normal_share(block) for term, block in zip(self.terms, ev.terms)]
+        # Summation order: the matrices surface, regulariser, barycentre; the vectors in term
+        # order. Floating-point sums depend on their order, and LM amplifies a last-bit change
+        # to ~1e-9 of the result over a hierarchy: this is the order of the assembly before the
+        # terms were objects, kept so that results stay bit-identical.
+        A = shares[0][0] + shares[-1][0]
+        g = shares[0][1]
+        for a, b in shares[1:-1]:
+            A = A + a
+            g = g + b
+        return A.tocsr(), g + shares[-1][1]

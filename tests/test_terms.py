@@ -1,0 +1,152 @@
+"""The residual terms of a level (point-to-surface, barycentre, regulariser) against one contract,
+and the robust kernels and correspondence checkers alone.
+
+Contract of every term: its analytic Jacobian rows equal central finite differences of its
+residuals, and its share of the normal equations equals ``J^T J`` and ``J^T r`` of that Jacobian,
+with plain and with robust weights.
+"""
+
+import numpy as np
+import pytest
+from _helpers import level_problem
+
+from o3dreg.app.synthetic import synthetic_form
+from o3dreg.registration._cost import Robustness
+from o3dreg.registration._robust import (
+    BoundaryChecker,
+    DistanceChecker,
+    NormalChecker,
+    RobustKernel,
+    support,
+)
+from o3dreg.registration.distance import SurfaceDistanceQuery
+from o3dreg.registration.elastic import lattice_box, vertex_normals
+from o3dreg.registration.lattice import TrilinearLattice
+
+TERMS = ["point-to-surface", "barycentre", "regulariser"]
+ROBUSTNESS = {
+    "plain": None,
+    "robust": Robustness(loss="cauchy", max_distance_factor=3.0, max_normal_angle=60.0),
+}
+
+
+@pytest.fixture(scope="module")
+def problems():
+    source = synthetic_form("cube", 300)
+    target = synthetic_form("sphere", 1500)
+    vs, fs = np.asarray(source.vertices), np.asarray(source.triangles)
+    target = (np.asarray(target.vertices), np.asarray(target.triangles))
+    points = vs * 0.9
+    origin, size = lattice_box([points, target[0]])
+    lattice = TrilinearLattice.zeros(origin, size, (4, 4, 4))
+    normals = vertex_normals(points, fs)
+    return {
+        key: level_problem(points, target, lattice, robustness=rb, normals=normals)
+        for key, rb in ROBUSTNESS.items()
+    }
+
+
+@pytest.mark.parametrize("weights", list(ROBUSTNESS))
+@pytest.mark.parametrize("name", TERMS)
+class TestTermContract:
+    def setup_term(self, problems, name, weights):
+        problem = problems[weights]
+        index = [term.name for term in problem.terms].index(name)
+        rng = np.random.default_rng(TERMS.index(name))
+        u = rng.normal(scale=0.5, size=problem.number_of_unknowns)
+        ev = problem.evaluate(u)
+        if weights == "robust":
+            # The robust case must actually weight: some rows down-weighted or rejected.
+            assert ev.weights is not None and ev.weights.min() < 0.99
+        return problem, index, u, ev, rng
+
+    def test_jacobian_matches_central_differences(self, problems, name, weights):
+        problem, index, u, ev, rng = self.setup_term(problems, name, weights)
+        J = ev.terms[index].jacobian.toarray()
+        h = 1e-6
+        for j in rng.choice(problem.number_of_unknowns, 20, replace=False):
+            e = np.zeros_like(u)
+            e[j] = h
+            # Weights and masks held at those of ``u`` (one IRLS linearisation); the barycentre
+            # assignments are piecewise constant and a 1e-6 step does not change them.
+            plus = problem.evaluate(u + e, weights_of=ev).terms[index].residuals
+            minus = problem.evaluate(u - e, weights_of=ev).terms[index].residuals
+            # Distances are smooth off the surface and the medial axis: central differences
+            # are accurate to O(h^2 * curvature) plus rounding ~1e-10 / h.
+            np.testing.assert_allclose(J[:, j], (plus - minus) / (2 * h), atol=2e-5)
+
+    def test_normal_share_is_that_of_the_jacobian(self, problems, name, weights):
+        problem, index, _, ev, _ = self.setup_term(problems, name, weights)
+        block = ev.terms[index]
+        A, g = problem.terms[index].normal_share(block)
+        J, r = block.jacobian, block.residuals
+        JtJ = (J.T @ J).toarray()
+        # The same products summed in another order: equal to rounding.
+        scale = max(abs(JtJ).max(), 1e-300)
+        np.testing.assert_allclose(A.toarray(), JtJ, rtol=0, atol=1e-12 * scale)
+        Jtr = J.T @ r
+        np.testing.assert_allclose(g, Jtr, rtol=0, atol=1e-12 * max(abs(Jtr).max(), 1e-300))
+
+
+@pytest.mark.parametrize("weights", list(ROBUSTNESS))
+def test_the_level_is_the_sum_of_its_terms(problems, weights):
+    problem = problems[weights]
+    ev = problem.evaluate(np.random.default_rng(3).normal(size=problem.number_of_unknowns))
+    assert [t.name for t in problem.terms] == TERMS
+    np.testing.assert_array_equal(ev.residuals, np.concatenate([b.residuals for b in ev.terms]))
+    assert ev.cost == sum(b.cost for b in ev.terms)
+    A, g = problem.normal_equations(ev)
+    shares = [t.normal_share(b) for t, b in zip(problem.terms, ev.terms)]
+    scale = abs(A).max()
+    np.testing.assert_allclose(
+        A.toarray(), sum(a.toarray() for a, _ in shares), rtol=0, atol=1e-13 * scale
+    )
+    np.testing.assert_allclose(g, sum(b for _, b in shares), rtol=0, atol=1e-13 * abs(g).max())
+
+
+@pytest.mark.parametrize("loss", ["linear", "huber", "cauchy", "tukey"])
+def test_kernel_weight_is_the_derivative_of_its_loss_over_r(loss):
+    # w(r) = rho'(r) / r: integrate w(r) r numerically and compare with the closed-form rho.
+    c = 1.5
+    rho = {
+        "linear": lambda r: r**2 / 2,
+        "huber": lambda r: np.where(abs(r) <= c, r**2 / 2, c * abs(r) - c**2 / 2),
+        "cauchy": lambda r: c**2 / 2 * np.log1p((r / c) ** 2),
+        "tukey": lambda r: np.where(abs(r) < c, c**2 / 6 * (1 - (1 - (r / c) ** 2) ** 3), c**2 / 6),
+    }[loss]
+    r = np.linspace(0.0, 4.0, 40001)
+    integrand = RobustKernel(loss, c).weight(r) * r
+    integral = np.concatenate([[0.0], np.cumsum((integrand[1:] + integrand[:-1]) / 2 * np.diff(r))])
+    # Trapezoid rule with step 1e-4 on a piecewise-smooth integrand: error ~1e-8.
+    np.testing.assert_allclose(integral, rho(r), atol=1e-7)
+
+
+def test_no_kernel_and_scaled_kernel():
+    r = np.array([0.0, 1.0, 100.0])
+    np.testing.assert_array_equal(RobustKernel().weight(r), 1.0)
+    # The Cauchy kernel at the scale sigma: its constant 2.3849 (95% efficiency) times sigma.
+    k = RobustKernel.scaled("cauchy", 2.0)
+    assert k.threshold == pytest.approx(2.3849 * 2.0)
+    assert k.weight(np.array([k.threshold]))[0] == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="`loss`"):
+        RobustKernel("l1", 1.0)
+
+
+def test_checkers_alone():
+    # A unit square of two triangles (open boundary), normals +z.
+    square = SurfaceDistanceQuery(
+        np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]), np.array([[0, 1, 2], [0, 2, 3]])
+    )
+    pts = np.array([[0.5, 0.5, 0.2], [2.0, 0.5, 0.0], [0.5, 0.5, -3.0]])
+    dist, face, closest = square.closest(pts)
+    boundary = BoundaryChecker(square).check(pts, dist, face, closest)
+    np.testing.assert_array_equal(boundary, [True, False, True])
+    normals = np.array([[0.0, 0, 1], [0, 0, 1], [0, np.sin(1.0), np.cos(1.0)]])  # 1 rad = 57.3 deg
+    for angle, expected in ((60.0, [True, True, True]), (50.0, [True, True, False])):
+        checker = NormalChecker(normals, square.face_normals, angle)
+        np.testing.assert_array_equal(checker.check(pts, dist, face, closest), expected)
+    distance = DistanceChecker(factor=2.0, sigma=1.0).check(pts, dist, face, closest)
+    np.testing.assert_array_equal(distance, [True, True, False])
+    both = support([BoundaryChecker(square), DistanceChecker(2.0, 1.0)], pts, dist, face, closest)
+    np.testing.assert_array_equal(both, [True, False, False])
+    assert support([], pts, dist, face, closest).all()
