@@ -15,6 +15,7 @@ The decrease of the mean target->source distance is printed as the alternative r
     python examples/paper_tables.py            # 1000 / 30000 vertices (about 5 minutes, 2 cores)
     python examples/paper_tables.py --quick    # 1000 / 5000 vertices
     python examples/paper_tables.py --json out.json --images docs/images
+    python examples/paper_tables.py --quick --images docs/images --images-only   # figures only
 """
 
 from __future__ import annotations
@@ -84,7 +85,14 @@ def main() -> None:
     parser.add_argument("--high", type=int, default=None, help="high density (vertices)")
     parser.add_argument("--json", help="also write every measurement to this JSON file")
     parser.add_argument("--images", help="write the figures (PNG) into this folder")
+    parser.add_argument(
+        "--images-only",
+        action="store_true",
+        help="with --images: only the figures' 4 registrations, no tables",
+    )
     args = parser.parse_args()
+    if args.images_only and not args.images:
+        parser.error("--images-only needs --images FOLDER")
     high = args.high or (5000 if args.quick else 30000)
     start = time.perf_counter()
 
@@ -93,6 +101,9 @@ def main() -> None:
         (form, density): synthetic_form(form, args.low if density == "low" else high)
         for form, density in objects
     }
+    if args.images_only:
+        draw(args.images, meshes)
+        return
     print(f"objects: {len(objects)} = 4 forms x low ({args.low}) / high ({high}) vertices, mm")
 
     # -- every ordered pair, both methods ----------------------------------------------------------
