@@ -126,7 +126,9 @@ def test_one_triangle_meshes():
     result = registration_elastic(tri, moved, init=np.eye(4), levels=LEVELS, criteria=CRITERIA)
     assert np.all(np.isfinite(result.vertices))
     assert result.distances.source_to_target_max < 0.1
-    registration_rigid(tri, moved)
+    # The rigid start refuses a target too small to determine a pose, with a clear error.
+    with pytest.raises(ValueError, match="`target` must be a surface of at least 4"):
+        registration_rigid(tri, moved)
     evaluate_elastic(tri, moved)
 
 
