@@ -6,6 +6,7 @@ inputs, tracebacks, signals) and checks the documented outcome.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -19,7 +20,10 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
+from _helpers import population
 
+from o3dreg import ElasticCriteria, ElasticLevel, RegistrationSettings
+from o3dreg.app.model_folder import build_model_folder
 from o3dreg.io.mesh import read_triangle_mesh, write_triangle_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -316,6 +320,54 @@ def test_build_model_refuses_to_replace_a_model_before_any_work(model_dir, capsy
                          str(model_dir / "p.ply"), "-o", str(model_dir))  # fmt: skip
     assert code == 2 and "already holds a model" in err and "--overwrite" in err
     assert (model_dir / "model.npz").read_bytes() == before
+
+
+def test_build_model_folder_refuses_to_replace_a_model_and_still_resumes(tmp_path):
+    # The Python API follows the command line's rule: an earlier model in the folder is not
+    # replaced without overwrite=True; a folder with finished registrations but no model (an
+    # interrupted run) is resumed, reusing them.
+    (tv, tf), targets, *_ = population(3, seed=5)
+    paths = []
+    for i, t in enumerate(targets):
+        write_triangle_mesh(tmp_path / f"p{i}.ply", t)
+        paths.append(str(tmp_path / f"p{i}.ply"))
+    template = read_triangle_mesh(write_triangle_mesh(tmp_path / "t.ply", (tv, tf)))
+    settings = RegistrationSettings(
+        levels=(ElasticLevel(2),), criteria=ElasticCriteria(max_iteration=3)
+    )
+    out = tmp_path / "model"
+    build = functools.partial(build_model_folder, template, paths, str(out), settings=settings)
+    first = build()
+    assert first.model is not None and not any(r.skipped for r in first.batch.records)
+    before = (out / "model.npz").stat().st_mtime_ns, _arrays(out / "model.npz")
+    with pytest.raises(FileExistsError, match="already holds a model") as caught:
+        build()
+    assert repr(str(out)) in str(caught.value) and "overwrite=True" in str(caught.value)
+    assert (out / "model.npz").stat().st_mtime_ns == before[0]
+    # Any model file counts, not only model.npz (here a run stopped after the statismo file).
+    (out / "model.npz").unlink()
+    with pytest.raises(FileExistsError, match=r"model\.h5"):
+        build()
+    again = build(overwrite=True)
+    assert all(r.skipped for r in again.batch.records)  # finished registrations reused
+    assert _same_arrays(_arrays(out / "model.npz"), before[1])
+    # Only finished registrations left: resumed without overwrite.
+    for name in ("model.npz", "model.h5", "mean.ply", "variance.txt", "report.json",
+                 "explorer.html", "modes", "quality"):  # fmt: skip
+        path = out / name
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    resumed = build()
+    assert all(r.skipped for r in resumed.batch.records)
+    assert _same_arrays(_arrays(out / "model.npz"), before[1])
+
+
+def _arrays(path) -> dict:
+    with np.load(path, allow_pickle=False) as archive:
+        return {key: archive[key] for key in archive.files}
+
+
+def _same_arrays(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
 
 
 # -- 3. resume keys and names ------------------------------------------------------------------

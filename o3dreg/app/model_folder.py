@@ -71,6 +71,33 @@ class ModelFolder:
         )
 
 
+#: What a built model consists of in its folder: none is replaced without ``overwrite``.
+MODEL_FILES = (
+    "model.npz",
+    "model.h5",
+    "mean.ply",
+    "variance.txt",
+    "report.json",
+    "explorer.html",
+    "modes",
+    "quality",
+)
+
+
+def existing_model_files(folder: str | os.PathLike[str]) -> list[str]:
+    """The names of :data:`MODEL_FILES` present in ``folder`` (a folder counts when not empty).
+
+    Finished registrations (``registrations/``) and ``template.ply`` are not model files: a
+    folder holding only those is resumed without ``overwrite``.
+    """
+    found = []
+    for name in MODEL_FILES:
+        path = os.path.join(folder, name)
+        if os.path.isfile(path) or (os.path.isdir(path) and os.listdir(path)):
+            found.append(name)
+    return found
+
+
 #: Suffixes tried, in order, for a patient's landmark file beside its mesh.
 LANDMARK_SUFFIXES = (".mrk.json", ".csv")
 
@@ -104,6 +131,7 @@ def build_model_folder(
     *,
     executor: Executor | None = None,
     force: bool = False,
+    overwrite: bool = False,
     progress: bool = False,
     settings: RegistrationSettings | None = None,
     landmarks: str | os.PathLike[str] | None = None,
@@ -127,6 +155,10 @@ def build_model_folder(
         Runs the registrations (a process pool, a Dask client's executor); serial by default.
     force : bool, optional
         Register finished patients again.
+    overwrite : bool, optional
+        Replace the model of an earlier run in ``output`` (any of :data:`MODEL_FILES`).
+        Without it such a folder is refused before any work; a folder holding only finished
+        registrations (an interrupted run) is resumed either way.
     progress : bool, optional
         Show a progress bar.
     settings : RegistrationSettings, optional
@@ -153,6 +185,11 @@ def build_model_folder(
     -------
     ModelFolder
         What was written; ``model`` is ``None`` when fewer than two patients were registered.
+
+    Raises
+    ------
+    FileExistsError
+        When ``output`` already holds a model and ``overwrite`` is false (naming the folder).
     """
     if levels is not None:
         if settings is not None:
@@ -161,6 +198,13 @@ def build_model_folder(
     settings = settings if settings is not None else RegistrationSettings()
     if not isinstance(settings, RegistrationSettings):
         raise TypeError(f"`settings` must be a RegistrationSettings, got {type(settings).__name__}")
+    present = existing_model_files(output)
+    if present and not overwrite:
+        raise FileExistsError(
+            f"`output`: {os.fspath(output)!r} already holds a model ({', '.join(present)}); pass "
+            "overwrite=True to rebuild it (finished registrations are reused) or choose another "
+            "folder"
+        )
     inits = None
     if landmarks is not None:
         inits = np.stack(

@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from ..app.explorer import write_model_explorer
-from ..app.model_folder import build_model_folder
+from ..app.model_folder import build_model_folder, existing_model_files
 from ..io.mesh import read_triangle_mesh
 from ..shape.landmarks import (
     landmark_errors,
@@ -157,6 +157,7 @@ def run_build(args: argparse.Namespace) -> int:
             args.output,
             executor=executor,
             force=args.force,
+            overwrite=args.overwrite,
             progress=not args.json and sys.stderr.isatty(),
             settings=settings_from_args(args),
             landmarks=args.landmarks,
@@ -212,9 +213,11 @@ def _check_model_folder(output: str, overwrite: bool) -> None:
         raise OSError(f"--output: folder {folder!r} does not exist")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise OSError(f"--output: folder {folder!r} is not writable")
-    if os.path.exists(os.path.join(output, "model.npz")) and not overwrite:
+    present = existing_model_files(output) if os.path.isdir(output) else []
+    if present and not overwrite:
         raise OSError(
-            f"--output: {output!r} already holds a model; pass --overwrite to rebuild it "
+            f"--output: {output!r} already holds a model ({', '.join(present)}); pass "
+            "--overwrite to rebuild it "
             "(finished registrations are reused) or choose another folder"
         )
 
