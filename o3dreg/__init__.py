@@ -31,7 +31,12 @@ from .registration.options import (  # noqa: E402
     ElasticLevel,
     default_levels,
 )
-from .registration.result import ElasticRegistrationResult, LevelReport, SurfaceDistances  # noqa: E402
+from .registration.result import (  # noqa: E402
+    ElasticRegistrationResult,
+    LevelReport,
+    RigidStart,
+    SurfaceDistances,
+)
 from .registration.rigid import RigidRegistrationResult, registration_rigid  # noqa: E402
 from .registration.settings import RegistrationSettings  # noqa: E402
 from .registration.verdict import assess_registration, population_outliers  # noqa: E402
@@ -47,6 +52,7 @@ __all__ += [
     "PartitionedDeformation",
     "RegistrationSettings",
     "RigidRegistrationResult",
+    "RigidStart",
     "SurfaceDistances",
     "TrilinearLattice",
     "assess_registration",

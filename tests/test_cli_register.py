@@ -5,8 +5,10 @@ import json
 import numpy as np
 import open3d as o3d
 import pytest
+from scipy.spatial.transform import Rotation
 
-from o3dreg.app.synthetic import SmoothWarp
+from o3dreg import registration_rigid
+from o3dreg.app.synthetic import SmoothWarp, synthetic_form
 from o3dreg.cli import main
 
 
@@ -113,3 +115,45 @@ def test_a_bad_registration_prints_its_verdict_and_exits_1(pair, tmp_path, capsy
     assert code == 2
     assert "--with-scaling" in capsys.readouterr().err
     assert not (tmp_path / "p.ply").exists()
+
+
+def test_the_report_carries_the_rigid_start(pair, tmp_path, capsys):
+    # The bunny: the rigid start's scores are in the report, as registration_rigid finds them
+    # (deterministic: same inputs, same candidates), and no ambiguity.
+    code = register(pair, tmp_path / "o.ply", "--levels", "2", "--report", str(tmp_path / "r.json"))
+    report = json.loads((tmp_path / "r.json").read_text())
+    rigid = registration_rigid(
+        o3d.io.read_triangle_mesh(str(pair / "template.ply")),
+        o3d.io.read_triangle_mesh(str(pair / "patient.ply")),
+    )
+    start = report["rigid_start"]
+    assert start["score"] == pytest.approx(rigid.score, rel=1e-9)
+    assert start["candidates"] == rigid.candidates > 1
+    assert start["runner_up_score"] == (
+        None if rigid.runner_up_score is None else pytest.approx(rigid.runner_up_score, rel=1e-9)
+    )
+    assert start["warnings"] == [] and code == 0
+    # A start given by the user (no search): nothing to report.
+    register(pair, tmp_path / "i.ply", "--levels", "2", "--no-rigid", "--report",
+             str(tmp_path / "i.json"))  # fmt: skip
+    assert json.loads((tmp_path / "i.json").read_text())["rigid_start"] is None
+
+
+def test_an_ambiguous_rigid_start_is_in_the_report_and_the_verdict(tmp_path, capsys):
+    # A cube turned 45 degrees about z and 30 about x: 24 rotations fit it and none is near the
+    # input pose, so the rigid start is ambiguous (see test_rigid); the report says so with
+    # both scores, and the verdict carries the same warning.
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("zx", [45.0, 30.0], degrees=True).as_matrix()
+    target = synthetic_form("cube", 3000)
+    target.transform(turn)
+    o3d.io.write_triangle_mesh(str(tmp_path / "t.ply"), synthetic_form("cube", 600))
+    o3d.io.write_triangle_mesh(str(tmp_path / "p.ply"), target)
+    code = main(["register", str(tmp_path / "t.ply"), str(tmp_path / "p.ply"), "-o",
+                 str(tmp_path / "o.ply"), "--levels", "2", "--json"])  # fmt: skip
+    report = json.loads(capsys.readouterr().out)
+    start = report["rigid_start"]
+    assert code == 1 and report["status"] != "ok"
+    assert start["runner_up_score"] < 1.2 * start["score"]  # the near tie behind the warning
+    assert len(start["warnings"]) == 1 and "ambiguous" in start["warnings"][0]
+    assert start["warnings"][0] in report["warnings"]

@@ -8,6 +8,7 @@ import pytest
 from o3dreg import (
     ElasticCriteria,
     ElasticLevel,
+    RigidRegistrationResult,
     assess_registration,
     population_outliers,
     registration_elastic,
@@ -86,11 +87,16 @@ def test_supported_fraction(spheres):
 def test_rigid_ambiguity_is_carried(spheres):
     source, patient, result = spheres
 
-    class Rigid:
-        warnings = ("the rigid start is ambiguous: ...",)
-
-    judged = assess_registration(result, source, patient, rigid=Rigid())
-    assert judged.status == "suspect" and judged.warnings == Rigid.warnings
+    warnings = ("the rigid start is ambiguous: ...",)
+    rigid = RigidRegistrationResult(
+        score=1.0, runner_up_score=1.05, candidates=8, warnings=warnings
+    )
+    judged = assess_registration(result, source, patient, rigid=rigid)
+    assert judged.status == "suspect" and judged.warnings == warnings
+    assert judged.rigid_start.score == 1.0 and judged.rigid_start.runner_up_score == 1.05
+    # Judged again (no rigid given): the start it carries still counts.
+    again = assess_registration(judged, source, patient)
+    assert again.warnings == warnings and again.rigid_start == judged.rigid_start
 
 
 def test_a_scale_mismatch_fails():

@@ -77,6 +77,7 @@ def report_dict(result: ElasticRegistrationResult, **extra) -> dict:
         **extra,
         "status": result.status,
         "warnings": list(result.warnings),
+        "rigid_start": None if result.rigid_start is None else result.rigid_start.as_dict(),
         "success": result.success,
         "message": result.message,
         "distances": result.distances.as_dict(),

@@ -120,6 +120,56 @@ class LevelReport:
         )
 
 
+@dataclass(frozen=True)
+class RigidStart:
+    """How the rigid start of a registration was chosen (from its
+    :class:`~o3dreg.RigidRegistrationResult`), kept on the elastic result and in its report.
+
+    Attributes
+    ----------
+    score : float
+        The winner's symmetric surface distance after ICP (input units).
+    runner_up_score : float or None
+        The same for the best distinct pose; ``None`` when there was none.
+    candidates : int
+        Starting poses tried.
+    fitness, inlier_rmse : float
+        Open3D's ICP figures for the winner.
+    warnings : tuple of str
+        The ambiguity, when the runner-up came too close (also among the verdict's warnings).
+    """
+
+    score: float
+    runner_up_score: float | None
+    candidates: int
+    fitness: float
+    inlier_rmse: float
+    warnings: tuple[str, ...] = ()
+
+    @classmethod
+    def from_rigid(cls, rigid: Any) -> RigidStart:
+        """From a :class:`~o3dreg.RigidRegistrationResult`."""
+        runner = rigid.runner_up_score
+        return cls(
+            score=float(rigid.score),
+            runner_up_score=None if runner is None else float(runner),
+            candidates=int(rigid.candidates),
+            fitness=float(rigid.fitness),
+            inlier_rmse=float(rigid.inlier_rmse),
+            warnings=tuple(rigid.warnings),
+        )
+
+    def __repr__(self) -> str:
+        runner = "none" if self.runner_up_score is None else f"{self.runner_up_score:.4g}"
+        return (
+            f"RigidStart(score={self.score:.4g}, runner_up_score={runner}, "
+            f"candidates={self.candidates}, ambiguous={bool(self.warnings)})"
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        return {**self.__dict__, "warnings": list(self.warnings)}
+
+
 @dataclass(frozen=True, eq=False)
 class ElasticRegistrationResult:
     """The outcome of :func:`~o3dreg.registration_elastic`.
@@ -175,6 +225,9 @@ class ElasticRegistrationResult:
         without a look.
     warnings : tuple of str
         One plain sentence per finding behind ``status`` (empty when ``'ok'``).
+    rigid_start : RigidStart or None
+        The rigid start's winner and runner-up scores and warnings, when the start was searched
+        for (``None`` with a given ``init``).
     """
 
     transformation: np.ndarray
@@ -194,6 +247,7 @@ class ElasticRegistrationResult:
     part_sites: np.ndarray | None = field(default=None, repr=False)
     status: str = "ok"
     warnings: tuple[str, ...] = ()
+    rigid_start: RigidStart | None = None
 
     def __repr__(self) -> str:
         d = self.distances

@@ -145,8 +145,8 @@ class RegistrationSettings:
         Returns
         -------
         ElasticRegistrationResult
-            With its verdict (``status``, ``warnings``); a similarity start's ambiguity warning
-            is carried into it.
+            With its verdict (``status``, ``warnings``); a similarity start's scores
+            (``rigid_start``) and ambiguity warning are carried into it.
         """
         from .elastic import registration_elastic
         from .rigid import registration_rigid
@@ -161,7 +161,7 @@ class RegistrationSettings:
         result = registration_elastic(
             source, target, init=init, callback=callback, **self.elastic_options()
         )
-        if rigid is not None and rigid.warnings:
+        if rigid is not None:
             result = assess_registration(result, source, target, rigid=rigid)
         return result
 

@@ -29,6 +29,7 @@ import numpy as np
 from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays
 from .distance import SurfaceDistanceQuery
+from .result import RigidStart
 from .rigid import MIN_TARGET_TRIANGLES, surface_moments
 
 __all__ = ["STATUSES", "assess_registration", "population_outliers", "worst_status"]
@@ -86,12 +87,14 @@ def assess_registration(result: Any, source: Any, target: Any, *, rigid: Any = N
     source, target : open3d.geometry.TriangleMesh or (vertices, faces)
         The template and the surface it was registered onto. Not modified.
     rigid : RigidRegistrationResult, optional
-        The rigid start, when it was searched for: its ambiguity warning is carried over.
+        The rigid start, when it was searched for: its ambiguity warning is carried over, and
+        its scores become ``rigid_start``.
 
     Returns
     -------
     ElasticRegistrationResult
-        A copy with ``status`` in ``{'ok', 'suspect', 'failed'}`` and ``warnings``, one plain
+        A copy with ``status`` in ``{'ok', 'suspect', 'failed'}``, ``rigid_start`` (when
+        ``rigid`` is given; otherwise the result's own) and ``warnings``, one plain
         sentence per finding (empty for ``'ok'``). ``success`` (the stopping criteria were
         met) is unchanged: it says nothing about whether the result is right.
     """
@@ -104,10 +107,15 @@ def assess_registration(result: Any, source: Any, target: Any, *, rigid: Any = N
     findings += _distances(result, vt, ft)
     findings += _support(result)
     findings += _sizes(aligned, fs, vt, ft)
+    start = getattr(result, "rigid_start", None)
     if rigid is not None:
-        findings += [("suspect", w) for w in getattr(rigid, "warnings", ())]
+        start = RigidStart.from_rigid(rigid)
+    if start is not None:
+        findings += [("suspect", w) for w in start.warnings]
     status = worst_status(*(s for s, _ in findings))
-    return dataclasses.replace(result, status=status, warnings=tuple(w for _, w in findings))
+    return dataclasses.replace(
+        result, status=status, warnings=tuple(w for _, w in findings), rigid_start=start
+    )
 
 
 def _area(vertices: np.ndarray, faces: np.ndarray) -> float:
