@@ -13,7 +13,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from o3dreg import evaluate_elastic, read_triangle_mesh, write_triangle_mesh
+from o3dreg import build_shape_model, evaluate_elastic, read_triangle_mesh, write_triangle_mesh
 from o3dreg._validation import as_mesh_arrays
 
 BOX = o3d.geometry.TriangleMesh.create_box(1.0, 2.0, 3.0)
@@ -118,3 +118,31 @@ def test_what_is_not_a_mesh_is_refused_naming_the_kinds():
         as_mesh_arrays((V, F, F), "target")
     with pytest.raises(ValueError, match="`target.vertices` must hold at least one point"):
         as_mesh_arrays(o3d.t.geometry.TriangleMesh(), "target")
+
+
+@pytest.mark.parametrize("kind", list(_meshes()))
+def test_build_shape_model_takes_the_template_as_any_mesh_kind(kind):
+    # The template given as faces, in any kind the registration takes: the same model as with
+    # its triangle array, and the template untouched.
+    rng = np.random.default_rng(0)
+    shapes = V[None] + 0.05 * rng.standard_normal((4, *V.shape))
+    mesh = _meshes()[kind]
+    before = _arrays_of(mesh)
+    model = build_shape_model(shapes, mesh)
+    reference = build_shape_model(shapes, F)
+    np.testing.assert_array_equal(np.asarray(model.mesh().triangles), F)
+    np.testing.assert_array_equal(model.mean, reference.mean)
+    np.testing.assert_array_equal(model.variances, reference.variances)
+    after = _arrays_of(mesh)
+    np.testing.assert_array_equal(after[0], before[0])
+    np.testing.assert_array_equal(after[1], before[1])
+
+
+def test_build_shape_model_refuses_a_template_of_another_size():
+    shapes = np.stack([V, V + 0.1, V - 0.1])
+    other = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0).subdivide_midpoint(1)
+    with pytest.raises(ValueError, match=r"`faces` as a mesh .* \(8\), got 26"):
+        build_shape_model(shapes, other)
+    # A list of triangles stays a list of triangles (two of them is not a (V, F) pair).
+    model = build_shape_model(shapes, F[:2].tolist())
+    np.testing.assert_array_equal(np.asarray(model.mesh().triangles), F[:2])

@@ -11,15 +11,31 @@ import logging
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 
-from .._validation import as_faces, check_positive
+from .._validation import as_faces, as_mesh_arrays, check_positive
 from .model import ShapeModel
 from .procrustes import as_shape_array, generalized_procrustes
 
 __all__ = ["build_shape_model"]
 
 logger = logging.getLogger("o3dreg")
+
+
+def _template_faces(faces: Any, points: int) -> np.ndarray:
+    """A new ``(m, 3) int64`` array: ``faces`` as given, or the triangles of a template mesh."""
+    if isinstance(faces, np.ndarray):
+        return as_faces(faces, points, "faces")
+    if isinstance(faces, (list, tuple)) and not (
+        len(faces) == 2 and np.ndim(np.asarray(faces[0], dtype=object)) == 2
+    ):
+        return as_faces(faces, points, "faces")  # a sequence of triangles, not (V, F)
+    vertices, triangles = as_mesh_arrays(faces, "faces")
+    if vertices.shape[0] != points:
+        raise ValueError(
+            f"`faces` as a mesh must have as many vertices as each shape has points ({points}), "
+            f"got {vertices.shape[0]}"
+        )
+    return triangles
 
 
 def build_shape_model(
@@ -41,8 +57,12 @@ def build_shape_model(
     ----------
     shapes : (s, n, 3) array_like or sequence of (n, 3) array_like / Open3D meshes
         ``s >= 2`` shapes with the same points in the same order. Not modified.
-    faces : (m, 3) array_like of int
-        The template's triangles (shared by every shape).
+    faces : (m, 3) array_like of int, or a mesh
+        The template's triangles (shared by every shape), or the template itself: any mesh
+        that the registration functions take (Open3D legacy or tensor ``TriangleMesh``,
+        ``trimesh.Trimesh``, triangulated ``pyvista.PolyData``, ``(vertices, faces)``); its
+        triangles are used, and it must have as many vertices as each shape has points. Not
+        modified.
     scaling : bool, optional
         Similarity Procrustes (size removed) instead of rigid (size kept, default, the paper).
     number_of_modes : int, optional
@@ -59,7 +79,10 @@ def build_shape_model(
     Raises
     ------
     ValueError
-        Fewer than 2 shapes, different vertex counts, or ``faces`` not indexing the points.
+        Fewer than 2 shapes, different vertex counts, or ``faces`` not indexing the points (a
+        mesh: other vertex count than the shapes).
+    TypeError
+        ``faces`` neither an array of triangles nor a mesh.
 
     References
     ----------
@@ -68,9 +91,7 @@ def build_shape_model(
     .. [2] M. Berar et al., ICIAR 2004, LNCS 3212, section 3.3, eq. (4) and Table 4.
     """
     x = as_shape_array(shapes)
-    if isinstance(faces, o3d.geometry.TriangleMesh):
-        faces = np.asarray(faces.triangles)
-    f = as_faces(faces, x.shape[1], "faces")
+    f = _template_faces(faces, x.shape[1])
     if not isinstance(scaling, bool):
         raise TypeError(f"`scaling` must be a bool, got {type(scaling).__name__}")
     s = x.shape[0]
