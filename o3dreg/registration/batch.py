@@ -33,9 +33,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from .._validation import as_mesh_arrays, as_transformation
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
+from .options import DistanceEstimation, ElasticCriteria, default_levels
 from .settings import RegistrationSettings, resolve_settings
 from .verdict import STATUSES
 
@@ -259,8 +261,6 @@ def _file_digest(path: str) -> str:
 
 def _options_key(settings: RegistrationSettings) -> dict[str, Any]:
     """The settings with the defaults of :func:`registration_elastic` filled in, canonical."""
-    from .options import DistanceEstimation, ElasticCriteria, default_levels
-
     filled = {k: v for k, v in settings.elastic_options().items() if v is not None}
     filled["start"] = settings.start
     filled.setdefault("levels", default_levels())
@@ -540,8 +540,6 @@ def _run_batch(
     callback: Callable[[PatientRecord], Any] | None,
     settings: RegistrationSettings,
 ) -> BatchResult:
-    from tqdm.auto import tqdm
-
     records: dict[str, PatientRecord] = {}
     todo: list[int] = []
     template_digest, options_key = _digest(*template), _options_key(settings)

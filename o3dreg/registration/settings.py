@@ -14,7 +14,11 @@ from typing import Any
 
 import numpy as np
 
+from .elastic import registration_elastic
+from .landmarks import registration_landmarks
 from .options import DistanceEstimation, ElasticCriteria, ElasticLevel
+from .rigid import registration_rigid
+from .verdict import assess_registration
 
 __all__ = ["STARTS", "RegistrationSettings"]
 
@@ -117,8 +121,6 @@ class RegistrationSettings:
     def landmark_start(self, template_landmarks: Any, patient_landmarks: Any) -> np.ndarray:
         """The ``init`` from corresponding landmarks (rigid, or a similarity when ``start`` is
         ``'similarity'``)."""
-        from .landmarks import registration_landmarks
-
         return registration_landmarks(
             template_landmarks, patient_landmarks, with_scaling=self.start == "similarity"
         ).transformation
@@ -148,10 +150,6 @@ class RegistrationSettings:
             With its verdict (``status``, ``warnings``); a similarity start's scores
             (``rigid_start``) and ambiguity warning are carried into it.
         """
-        from .elastic import registration_elastic
-        from .rigid import registration_rigid
-        from .verdict import assess_registration
-
         rigid = None
         if init is None and self.start == "identity":
             init = np.eye(4)
