@@ -40,7 +40,7 @@ STAGES = [
     ("lattice weights / Jacobian (lattice.py)", "lattice.py"),
     ("target levels of detail (vertex clustering)", "simplify_vertex_clustering"),
     ("AABB tree builds SurfaceDistanceQuery.__init__", "distance.py:__init__"),
-    ("final distances both ways (elastic._distances)", "elastic.py:_distances"),
+    ("final distances both ways (TargetSurface.distances)", "_target.py:distances"),
 ]
 
 

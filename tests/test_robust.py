@@ -17,8 +17,9 @@ from o3dreg import (
 )
 from o3dreg.app.synthetic import SmoothWarp, synthetic_form
 from o3dreg.registration._cost import robust_weights
+from o3dreg.registration._target import canonical_mesh
 from o3dreg.registration.distance import SurfaceDistanceQuery
-from o3dreg.registration.elastic import canonical_mesh, flipped_triangles
+from o3dreg.registration.elastic import flipped_triangles
 
 
 def arrays(mesh):

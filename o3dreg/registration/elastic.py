@@ -14,17 +14,15 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays, as_transformation, check_positive
-from ..io.mesh import to_open3d
-from ..volume.cleaning import mesh_components
 from ._cost import LevelProblem, Robustness
 from ._solvers import solve
+from ._target import TARGET_VOXELS_PER_CELL, TargetSurface
 from .deformation import LatticeDeformation, PartitionedDeformation
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
@@ -37,7 +35,7 @@ from .options import (
 )
 from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances
 from .rigid import registration_rigid
-from .sampling import morton_order, spatial_subsample
+from .sampling import spatial_subsample
 from .verdict import assess_registration
 
 __all__ = ["evaluate_elastic", "registration_elastic"]
@@ -169,7 +167,7 @@ def registration_elastic(
     True
     """
     vs, fs = as_mesh_arrays(source, "source")
-    vt, ft = canonical_mesh(*as_mesh_arrays(target, "target", drop_degenerate=True))
+    target_arrays = as_mesh_arrays(target, "target", drop_degenerate=True)
     levels_ = _check_levels(levels)
     if estimation_method is None:
         estimation_method = DistanceEstimation()
@@ -178,8 +176,8 @@ def registration_elastic(
             "`estimation_method` must be a DistanceEstimation, "
             f"got {type(estimation_method).__name__}"
         )
-    if estimation_method.min_target_component is not None:
-        vt, ft = _drop_small_components(vt, ft, estimation_method.min_target_component)
+    surface = TargetSurface(*target_arrays, estimation_method.min_target_component)
+    vt, ft = surface.mesh
     if criteria is None:
         criteria = ElasticCriteria()
     elif not isinstance(criteria, ElasticCriteria):
@@ -204,8 +202,7 @@ def registration_elastic(
             parts_result = _register_parts(
                 vs,
                 fs,
-                vt,
-                ft,
+                surface,
                 rigid,
                 labels,
                 levels_,
@@ -215,27 +212,21 @@ def registration_elastic(
                 callback,
             )
             return assess_registration(parts_result, (vs, fs), (vt, ft), rigid=rigid_start)
-    query = SurfaceDistanceQuery(vt, ft)
+    query = surface.query
     origin, size = lattice_box([points, vt], padding)
     weight = estimation_method.symmetric_weight if estimation_method.symmetric else 0.0
     symmetric_levels = weight > 0 and any(lev.symmetric_scale > 0 for lev in levels_)
     target_points = vt if symmetric_levels else None
 
-    surfaces = _TargetLevelsOfDetail(
-        vt,
-        ft,
-        query,
-        [
-            float(size.min()) / lev.resolution / _TARGET_VOXELS_PER_CELL
-            for lev in levels_
-            if lev.simplify_target
-        ],
+    surface.build_levels_of_detail(
+        float(size.min()) / lev.resolution / TARGET_VOXELS_PER_CELL
+        for lev in levels_
+        if lev.simplify_target
     )
     orientation = 1.0
     if estimation_method.max_normal_angle is not None:
         orientation = _relative_orientation(points, fs, query)
     surface_samples, sample_weights = _surface_samples(points, fs)
-    target_samples: dict[int, np.ndarray] = {}
     deformation = LatticeDeformation(())
     previous = np.zeros_like(points)
     history: list[LevelReport] = []
@@ -243,11 +234,7 @@ def registration_elastic(
     last_problem: LevelProblem | None = None
     if target_points is not None:
         # The largest budget first, so that every level's subsample nests in it.
-        _target_subsample(
-            target_points,
-            int(estimation_method.target_points_per_source_point * points.shape[0]),
-            target_samples,
-        )
+        surface.subsample(int(estimation_method.target_points_per_source_point * points.shape[0]))
     for k, level in enumerate(levels_):
         start = time.perf_counter()
         lattice = TrilinearLattice.zeros(origin, size, (level.resolution,) * 3)
@@ -265,10 +252,10 @@ def registration_elastic(
         level_weight = weight * level.symmetric_scale
         if target_points is not None and level_weight > 0:
             budget = int(estimation_method.target_points_per_source_point * use.size)
-            use_target = _target_subsample(target_points, budget, target_samples)
+            use_target = surface.subsample(budget)
         level_query = query
         if level.simplify_target:
-            level_query = surfaces.at(float(lattice.cell_size.min()) / _TARGET_VOXELS_PER_CELL)
+            level_query = surface.at_detail(float(lattice.cell_size.min()) / TARGET_VOXELS_PER_CELL)
         robustness = Robustness(
             loss=estimation_method.loss,
             loss_scale=estimation_method.loss_scale,
@@ -342,7 +329,7 @@ def registration_elastic(
             callback(report)
 
     moved = points + previous
-    distances = _distances(moved, fs, query, vt)
+    distances = surface.distances(moved, fs)
     det = float(deformation.jacobian_determinant(points).min()) if deformation.levels else 1.0
     supported = _supported(moved, fs, query, estimation_method, last_problem, orientation)
     success = not failures
@@ -377,8 +364,7 @@ def connected_components(number_of_vertices: int, faces: np.ndarray) -> np.ndarr
 def _register_parts(
     vs: np.ndarray,
     fs: np.ndarray,
-    vt: np.ndarray,
-    ft: np.ndarray,
+    surface: TargetSurface,
     rigid: np.ndarray,
     labels: np.ndarray,
     levels: list[ElasticLevel],
@@ -388,6 +374,7 @@ def _register_parts(
     callback: Any,
 ) -> ElasticRegistrationResult:
     """``parts='connected'``: one elastic registration per source component."""
+    vt, ft = surface.mesh
     points = apply_transformation(rigid, vs)
     _, nearest = cKDTree(points).query(vt, workers=-1)
     target_labels = labels[nearest]
@@ -432,14 +419,13 @@ def _register_parts(
         cell_det = min(cell_det, result.min_cell_jacobian_determinant)
         if not result.success:
             failures.append(f"part {part}: {result.message}")
-    query = SurfaceDistanceQuery(vt, ft)
     success = not failures
     return ElasticRegistrationResult(
         transformation=rigid,
         deformation=PartitionedDeformation(tuple(deformations), points, labels),
         vertices=moved,
         faces=fs,
-        distances=_distances(moved, fs, query, vt),
+        distances=surface.distances(moved, fs),
         history=tuple(history),
         min_jacobian_determinant=det,
         success=success,
@@ -451,49 +437,6 @@ def _register_parts(
         part_deformations=tuple(deformations),
         part_sites=points,
     )
-
-
-def canonical_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The same surface with its vertices and triangles in a canonical order.
-
-    Exact duplicate vertices are merged, vertices are sorted lexicographically ``(x, y, z)``,
-    each triangle is rotated (orientation kept) to start at its smallest index, triangles are
-    sorted and repeated ones (and those that merging made degenerate) removed. Everything computed
-    from the result is then independent of the input's vertex and face numbering, and triangle
-    soups (STL) get their connectivity back, so open boundaries are found.
-    """
-    order = np.lexsort((vertices[:, 2], vertices[:, 1], vertices[:, 0]))
-    sorted_v = vertices[order]
-    new = np.ones(order.size, dtype=bool)
-    new[1:] = np.any(sorted_v[1:] != sorted_v[:-1], axis=1)
-    ids = np.cumsum(new) - 1
-    remap = np.empty(order.size, dtype=np.int64)
-    remap[order] = ids
-    v = sorted_v[new]
-    f = remap[faces]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
-    if f.shape[0] == 0:
-        return v, f
-    shift = np.argmin(f, axis=1)
-    rows = np.arange(f.shape[0])[:, None]
-    f = f[rows, (shift[:, None] + np.arange(3)) % 3]
-    n = np.int64(v.shape[0])
-    if v.shape[0] < 2**21:
-        # One int64 key per triangle (three indices of 21 bits): a plain sort, decoded, is the
-        # lexicographic order at a fraction of the cost of lexsort on a million triangles.
-        key = np.sort((f[:, 0] * n + f[:, 1]) * n + f[:, 2])
-        f = np.stack([key // (n * n), (key // n) % n, key % n], axis=1)
-    else:
-        f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
-    repeated = np.zeros(f.shape[0], dtype=bool)
-    repeated[1:] = np.all(f[1:] == f[:-1], axis=1)
-    f = f[~repeated]
-    used = np.zeros(v.shape[0], dtype=bool)
-    used[f.ravel()] = True
-    if not used.all():
-        keep = np.cumsum(used) - 1
-        v, f = v[used], keep[f]
-    return v, f
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -578,87 +521,6 @@ def _supported(
     return keep
 
 
-#: A coarse level measures distances to the target simplified with this many voxels per cell.
-_TARGET_VOXELS_PER_CELL = 16.0
-
-
-class _TargetLevelsOfDetail:
-    """The target surface at the detail a lattice level can resolve.
-
-    A lattice with cells of size ``h`` cannot follow surface detail much finer than ``h``; far
-    from convergence, the template points of a coarse level are also far from the surface, where
-    an AABB query against a dense mesh visits many boxes. Vertex clustering with voxels of
-    ``h / 16`` keeps the shape to within a voxel and makes those queries several times faster.
-    Only used when the voxel is at least twice the target's mean edge length.
-    """
-
-    def __init__(
-        self,
-        vertices: np.ndarray,
-        faces: np.ndarray,
-        full: SurfaceDistanceQuery,
-        voxels: Sequence[float] = (),
-    ) -> None:
-        self.full = full
-        self.edge = full.mean_edge
-        self.cache: dict[float, SurfaceDistanceQuery] = {}
-        # Finest first, each copy clustered from the previous one: a million-vertex target is
-        # clustered once, the coarser copies cost a fraction of that.
-        mesh = None
-        for voxel in sorted({v for v in voxels if v >= 2.0 * self.edge}):
-            source = mesh if mesh is not None else to_open3d(vertices, faces)
-            mesh = source.simplify_vertex_clustering(
-                voxel, o3d.geometry.SimplificationContraction.Average
-            )
-            mesh.remove_degenerate_triangles()
-            mesh.remove_unreferenced_vertices()
-            if len(mesh.triangles) == 0:
-                break
-            self.cache[voxel] = SurfaceDistanceQuery(
-                np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-            )
-
-    def at(self, voxel: float) -> SurfaceDistanceQuery:
-        """The simplified target for ``voxel`` (the full target when none was made for it)."""
-        return self.cache.get(voxel, self.full)
-
-
-def _drop_small_components(
-    vertices: np.ndarray, faces: np.ndarray, fraction: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """The target without its connected components smaller than ``fraction`` of the largest."""
-    components = mesh_components(vertices, faces)
-    big = components.vertex_counts >= fraction * components.vertex_counts[0]
-    keep = big[components.labels]
-    if keep.all():
-        return vertices, faces
-    kept = faces[keep]
-    used = np.zeros(vertices.shape[0], dtype=bool)
-    used[kept.ravel()] = True
-    remap = np.cumsum(used) - 1
-    logger.info(
-        "ignoring %d small target component(s) (%d vertices)",
-        int((~big).sum()),
-        int((~used).sum()),
-    )
-    return vertices[used], remap[kept]
-
-
-def _target_subsample(points: np.ndarray, budget: int, cache: dict[int, np.ndarray]) -> np.ndarray:
-    """An even subsample of about ``budget`` target points, nested across budgets.
-
-    The largest budget is drawn from the full target once; smaller ones are drawn from it, so a
-    million-vertex target is sorted into cells once per registration, not once per level.
-    """
-    if budget in cache:
-        return cache[budget]
-    larger = [b for b in cache if b > budget]
-    source = cache[min(larger)] if larger else points
-    chosen = source[spatial_subsample(source, budget)]
-    cache[budget] = chosen[morton_order(chosen)]
-    return cache[budget]
-
-
 def _surface_samples(
     vertices: np.ndarray, faces: np.ndarray, order: int = 3
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -716,14 +578,6 @@ def _level_sample(
     return spatial_subsample(points, budget)
 
 
-def _distances(
-    moved: np.ndarray, faces: np.ndarray, target: SurfaceDistanceQuery, target_vertices: np.ndarray
-) -> SurfaceDistances:
-    forward = target.distance(moved)
-    backward = SurfaceDistanceQuery(moved, faces).distance(target_vertices)
-    return SurfaceDistances.from_arrays(forward, backward)
-
-
 def evaluate_elastic(
     source: Any,
     target: Any,
@@ -749,7 +603,7 @@ def evaluate_elastic(
         the target vertices to the moved source surface.
     """
     vs, fs = as_mesh_arrays(source, "source")
-    vt, ft = canonical_mesh(*as_mesh_arrays(target, "target", drop_degenerate=True))
+    surface = TargetSurface(*as_mesh_arrays(target, "target", drop_degenerate=True))
     t = np.eye(4) if transformation is None else as_transformation(transformation, "transformation")
     if deformation is not None and not isinstance(
         deformation, (LatticeDeformation, PartitionedDeformation)
@@ -761,4 +615,4 @@ def evaluate_elastic(
     moved = apply_transformation(t, vs)
     if deformation is not None:
         moved = deformation.transform(moved)
-    return _distances(moved, fs, SurfaceDistanceQuery(vt, ft), vt)
+    return surface.distances(moved, fs)

@@ -1,0 +1,178 @@
+"""The target surface of an elastic registration, prepared once.
+
+:class:`TargetSurface` holds everything a registration derives from the target and nothing
+else: the mesh in canonical order with its debris removed, its exact distance query, its levels
+of detail (one simplified copy per coarse lattice) and its nested even subsamples (the points of
+the barycentre term). The coarse-to-fine driver asks it for what a level needs; nothing hands
+``(vertices, faces)`` tuples and cache dictionaries around.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+
+import numpy as np
+import open3d as o3d
+
+from ..io.mesh import to_open3d
+from ..volume.cleaning import mesh_components
+from .distance import SurfaceDistanceQuery
+from .result import SurfaceDistances
+from .sampling import morton_order, spatial_subsample
+
+logger = logging.getLogger("o3dreg")
+
+#: A coarse level measures distances to the target simplified with this many voxels per cell.
+TARGET_VOXELS_PER_CELL = 16.0
+
+
+class TargetSurface:
+    """The target in canonical order, without components smaller than ``min_component`` of the
+    largest (``None``: all kept), with its distance query, levels of detail and subsamples.
+
+    Parameters
+    ----------
+    vertices, faces : ndarray
+        A validated mesh (``as_mesh_arrays``); not modified.
+    min_component : float, optional
+        See :attr:`~o3dreg.DistanceEstimation.min_target_component`.
+    """
+
+    def __init__(
+        self, vertices: np.ndarray, faces: np.ndarray, min_component: float | None = None
+    ) -> None:
+        v, f = canonical_mesh(vertices, faces)
+        if min_component is not None:
+            v, f = drop_small_components(v, f, min_component)
+        self.vertices, self.faces = v, f
+        self.query = SurfaceDistanceQuery(v, f)
+        self._details: dict[float, SurfaceDistanceQuery] = {}
+        self._subsamples: dict[int, np.ndarray] = {}
+
+    @property
+    def mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.vertices, self.faces
+
+    def build_levels_of_detail(self, voxels: Iterable[float]) -> None:
+        """Simplified copies of the target for the voxel sizes ``voxels``.
+
+        A lattice with cells of size ``h`` cannot follow surface detail much finer than ``h``;
+        far from convergence, the template points of a coarse level are also far from the
+        surface, where an AABB query against a dense mesh visits many boxes. Vertex clustering
+        with voxels of ``h / 16`` keeps the shape to within a voxel and makes those queries
+        several times faster. Only made when the voxel is at least twice the target's mean edge
+        length. Finest first, each copy clustered from the previous one: a million-vertex target
+        is clustered once, the coarser copies cost a fraction of that.
+        """
+        edge = self.query.mean_edge
+        mesh = None
+        for voxel in sorted({v for v in voxels if v >= 2.0 * edge}):
+            source = mesh if mesh is not None else to_open3d(self.vertices, self.faces)
+            mesh = source.simplify_vertex_clustering(
+                voxel, o3d.geometry.SimplificationContraction.Average
+            )
+            mesh.remove_degenerate_triangles()
+            mesh.remove_unreferenced_vertices()
+            if len(mesh.triangles) == 0:
+                break
+            self._details[voxel] = SurfaceDistanceQuery(
+                np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+            )
+
+    def at_detail(self, voxel: float) -> SurfaceDistanceQuery:
+        """The simplified target for ``voxel`` (the full target when none was made for it)."""
+        return self._details.get(voxel, self.query)
+
+    def subsample(self, budget: int) -> np.ndarray:
+        """An even subsample of about ``budget`` target vertices, nested across budgets.
+
+        The largest budget asked first is drawn from the full target once; smaller ones are drawn
+        from the smallest larger one, so a million-vertex target is sorted into cells once per
+        registration, not once per level. Ask for the largest budget first.
+        """
+        if budget in self._subsamples:
+            return self._subsamples[budget]
+        larger = [b for b in self._subsamples if b > budget]
+        source = self._subsamples[min(larger)] if larger else self.vertices
+        chosen = source[spatial_subsample(source, budget)]
+        self._subsamples[budget] = chosen[morton_order(chosen)]
+        return self._subsamples[budget]
+
+    def distances(self, moved: np.ndarray, faces: np.ndarray) -> SurfaceDistances:
+        """Distances from the moved template vertices to the target surface and from the
+        target vertices to the moved template surface."""
+        return surface_distances(moved, faces, self.query, self.vertices)
+
+
+def surface_distances(
+    moved: np.ndarray, faces: np.ndarray, target: SurfaceDistanceQuery, target_vertices: np.ndarray
+) -> SurfaceDistances:
+    """Both ways: ``moved`` to the ``target`` surface, ``target_vertices`` to the moved mesh."""
+    forward = target.distance(moved)
+    backward = SurfaceDistanceQuery(moved, faces).distance(target_vertices)
+    return SurfaceDistances.from_arrays(forward, backward)
+
+
+def canonical_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The same surface with its vertices and triangles in a canonical order.
+
+    Exact duplicate vertices are merged, vertices are sorted lexicographically ``(x, y, z)``,
+    each triangle is rotated (orientation kept) to start at its smallest index, triangles are
+    sorted and repeated ones (and those that merging made degenerate) removed. Everything computed
+    from the result is then independent of the input's vertex and face numbering, and triangle
+    soups (STL) get their connectivity back, so open boundaries are found.
+    """
+    order = np.lexsort((vertices[:, 2], vertices[:, 1], vertices[:, 0]))
+    sorted_v = vertices[order]
+    new = np.ones(order.size, dtype=bool)
+    new[1:] = np.any(sorted_v[1:] != sorted_v[:-1], axis=1)
+    ids = np.cumsum(new) - 1
+    remap = np.empty(order.size, dtype=np.int64)
+    remap[order] = ids
+    v = sorted_v[new]
+    f = remap[faces]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+    if f.shape[0] == 0:
+        return v, f
+    shift = np.argmin(f, axis=1)
+    rows = np.arange(f.shape[0])[:, None]
+    f = f[rows, (shift[:, None] + np.arange(3)) % 3]
+    n = np.int64(v.shape[0])
+    if v.shape[0] < 2**21:
+        # One int64 key per triangle (three indices of 21 bits): a plain sort, decoded, is the
+        # lexicographic order at a fraction of the cost of lexsort on a million triangles.
+        key = np.sort((f[:, 0] * n + f[:, 1]) * n + f[:, 2])
+        f = np.stack([key // (n * n), (key // n) % n, key % n], axis=1)
+    else:
+        f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
+    repeated = np.zeros(f.shape[0], dtype=bool)
+    repeated[1:] = np.all(f[1:] == f[:-1], axis=1)
+    f = f[~repeated]
+    used = np.zeros(v.shape[0], dtype=bool)
+    used[f.ravel()] = True
+    if not used.all():
+        keep = np.cumsum(used) - 1
+        v, f = v[used], keep[f]
+    return v, f
+
+
+def drop_small_components(
+    vertices: np.ndarray, faces: np.ndarray, fraction: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh without its connected components smaller than ``fraction`` of the largest."""
+    components = mesh_components(vertices, faces)
+    big = components.vertex_counts >= fraction * components.vertex_counts[0]
+    keep = big[components.labels]
+    if keep.all():
+        return vertices, faces
+    kept = faces[keep]
+    used = np.zeros(vertices.shape[0], dtype=bool)
+    used[kept.ravel()] = True
+    remap = np.cumsum(used) - 1
+    logger.info(
+        "ignoring %d small target component(s) (%d vertices)",
+        int((~big).sum()),
+        int((~used).sum()),
+    )
+    return vertices[used], remap[kept]
