@@ -196,22 +196,32 @@ def registration_elastic(
         rigid = as_transformation(init, "init")
 
     points = apply_transformation(rigid, vs)
-    if parts == "connected":
-        labels = connected_components(vs.shape[0], fs)
-        if labels.max() > 0:
-            parts_result = _register_parts(
-                vs,
-                fs,
-                surface,
-                rigid,
-                labels,
-                levels_,
-                estimation_method,
-                criteria,
-                padding,
-                callback,
-            )
-            return assess_registration(parts_result, (vs, fs), (vt, ft), rigid=rigid_start)
+    labels = connected_components(vs.shape[0], fs) if parts == "connected" else None
+    if labels is not None and labels.max() > 0:
+        result = _register_parts(
+            vs, fs, surface, rigid, labels, levels_, estimation_method, criteria, padding, callback
+        )
+    else:
+        result = _coarse_to_fine(
+            points, fs, rigid, surface, levels_, estimation_method, criteria, padding, callback
+        )
+    return assess_registration(result, (vs, fs), (vt, ft), rigid=rigid_start)
+
+
+def _coarse_to_fine(
+    points: np.ndarray,
+    fs: np.ndarray,
+    rigid: np.ndarray,
+    surface: TargetSurface,
+    levels_: list[ElasticLevel],
+    estimation_method: DistanceEstimation,
+    criteria: ElasticCriteria,
+    padding: float,
+    callback: Callable[[LevelReport], Any] | None,
+) -> ElasticRegistrationResult:
+    """The levels, coarse to fine, of one deformation of space: the template ``(points, fs)``
+    (rigidly aligned by ``rigid``) onto ``surface``. Inputs validated; no verdict yet."""
+    vt = surface.vertices
     query = surface.query
     origin, size = lattice_box([points, vt], padding)
     weight = estimation_method.symmetric_weight if estimation_method.symmetric else 0.0
@@ -334,7 +344,7 @@ def registration_elastic(
     supported = _supported(moved, fs, query, estimation_method, last_problem, orientation)
     success = not failures
     message = "all levels converged" if success else "; ".join(failures)
-    result = ElasticRegistrationResult(
+    return ElasticRegistrationResult(
         transformation=rigid,
         deformation=deformation,
         vertices=moved,
@@ -348,7 +358,6 @@ def registration_elastic(
         flipped_triangles=flipped_triangles(points, moved, fs),
         supported=supported,
     )
-    return assess_registration(result, (vs, fs), (vt, ft), rigid=rigid_start)
 
 
 def connected_components(number_of_vertices: int, faces: np.ndarray) -> np.ndarray:
@@ -398,21 +407,24 @@ def _register_parts(
         used = np.unique(tf)
         tmap = np.full(vt.shape[0], -1, dtype=np.int64)
         tmap[used] = np.arange(used.size)
-        result = registration_elastic(
-            (vs[sel], pf),
-            (vt[used], tmap[tf]),
-            init=rigid,
-            levels=levels,
-            estimation_method=method,
-            criteria=criteria,
-            padding=padding,
-            callback=callback,
+        # The part's target in canonical order (a subset of a canonical mesh already is), without
+        # the pieces the split left below ``min_target_component`` of the part's largest.
+        part_surface = TargetSurface(vt[used], tmap[tf], method.min_target_component)
+        result = _coarse_to_fine(
+            apply_transformation(rigid, vs[sel]),
+            pf,
+            rigid,
+            part_surface,
+            levels,
+            method,
+            criteria,
+            padding,
+            callback,
         )
         moved[sel] = result.vertices
         if result.supported is not None:
             supported[sel] = result.supported
         history.extend(result.history)
-        # One component: the recursive call registers it jointly (a LatticeDeformation).
         assert isinstance(result.deformation, LatticeDeformation)
         deformations.append(result.deformation)
         det = min(det, result.min_jacobian_determinant)
