@@ -5,6 +5,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 from _helpers import FAST
+from scipy.spatial import cKDTree
 
 from o3dreg import (
     DistanceEstimation,
@@ -273,6 +274,36 @@ def test_connected_parts_are_registered_separately():
     np.testing.assert_allclose(parts.transform(tv), parts.vertices, atol=1e-9)
     with pytest.raises(ValueError, match="`parts` must be 'joint' or 'connected'"):
         registration_elastic((tv, tf), (dv, df), parts="each")
+
+
+def test_each_part_is_registered_as_it_would_be_alone():
+    # parts='connected' runs the same coarse-to-fine driver on each part as a joint registration
+    # of that part alone onto its share of the target (the target vertices whose nearest source
+    # vertex is in the part, the triangles whose three corners are): identical results.
+    tv, tf, _ = two_plates(4.0)
+    dv, df, dsplit = two_plates(2.0)
+    dv[:dsplit, 0] -= 3.0
+    dv[dsplit:, 0] += 3.0
+    parts = registration_elastic((tv, tf), (dv, df), init=np.eye(4), levels=FAST, parts="connected")
+    cv, cf = canonical_mesh(dv, df)
+    labels = parts.part_labels
+    target_labels = labels[cKDTree(tv).query(cv)[1]]
+    for part in (0, 1):
+        sel = np.flatnonzero(labels == part)
+        remap = np.full(tv.shape[0], -1)
+        remap[sel] = np.arange(sel.size)
+        pf = remap[tf[np.all(labels[tf] == part, axis=1)]]
+        part_faces = cf[np.all(target_labels[cf] == part, axis=1)]
+        used = np.unique(part_faces)
+        tmap = np.full(cv.shape[0], -1)
+        tmap[used] = np.arange(used.size)
+        alone = registration_elastic(
+            (tv[sel], pf), (cv[used], tmap[part_faces]), init=np.eye(4), levels=FAST
+        )
+        np.testing.assert_array_equal(parts.vertices[sel], alone.vertices)
+        assert len(parts.part_deformations[part].levels) == len(alone.deformation.levels) == 3
+        for a, b in zip(parts.part_deformations[part].levels, alone.deformation.levels):
+            np.testing.assert_array_equal(a.displacements, b.displacements)
 
 
 def test_small_target_components_can_be_ignored(bunny_template, bunny_target):
