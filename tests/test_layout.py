@@ -113,16 +113,10 @@ def test_no_module_uses_another_modules_private_names():
 DEFERRED = {"matplotlib", "mpl_toolkits", "SimpleITK", "nrrd", "h5py", "distributed"}
 
 
-# Being restructured by the registration core work: checked again once that lands.
-RESTRUCTURED = {"registration/_cost.py", "registration/_solvers.py", "registration/elastic.py"}
-
-
 def test_imports_are_at_module_level_unless_deferred_for_import_time():
     # Any other import inside a function says why in a comment on its line or the line above.
     found = []
     for path, tree in _modules().items():
-        if path in RESTRUCTURED:
-            continue
         lines = (PACKAGE / path).read_text(encoding="utf-8").splitlines()
         for fn in ast.walk(tree):
             if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
