@@ -196,7 +196,7 @@ def registration_elastic(
         rigid = as_transformation(init, "init")
 
     points = apply_transformation(rigid, vs)
-    labels = connected_components(vs.shape[0], fs) if parts == "connected" else None
+    labels = template_parts(vs.shape[0], fs) if parts == "connected" else None
     if labels is not None and labels.max() > 0:
         result = _register_parts(
             vs, fs, surface, rigid, labels, levels_, estimation_method, criteria, padding, callback
@@ -360,9 +360,10 @@ def _coarse_to_fine(
     )
 
 
-def connected_components(number_of_vertices: int, faces: np.ndarray) -> np.ndarray:
-    """Component label of every vertex (through shared triangle edges), numbered by first
-    vertex; isolated vertices get their own labels."""
+def template_parts(number_of_vertices: int, faces: np.ndarray) -> np.ndarray:
+    """The part of every template vertex for ``parts='connected'``: its component through shared
+    triangle edges, numbered by first vertex; isolated vertices get their own labels. (Vertex
+    labels; the public :func:`~o3dreg.connected_components` labels triangles for cleaning.)"""
     a = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
     b = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
     graph = sp.csr_matrix((np.ones(a.size), (a, b)), shape=(number_of_vertices, number_of_vertices))
