@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 
 from ..volume import Volume
-from .dicom_series import read_dicom_series
+from .dicom_series import is_dicom_file, read_dicom_series
 from .nrrd_file import read_nrrd
 from .raw_slices import read_raw_slices
 from .sitk_image import read_sitk_file
@@ -82,18 +82,9 @@ def _volume_suffix(path: str) -> str:
     for suffix in VOLUME_SUFFIXES:
         if lower.endswith(suffix):
             return suffix
-    if _is_dicom_file(path):
+    if is_dicom_file(path):
         return ".dcm"
     raise ValueError(
         f"`path` must be a folder of DICOM slices or a file ending with "
         f"{', '.join(VOLUME_SUFFIXES)} (or a DICOM file), got {path!r}"
     )
-
-
-def _is_dicom_file(path: str) -> bool:
-    try:
-        with open(path, "rb") as fh:
-            fh.seek(128)
-            return fh.read(4) == b"DICM"
-    except OSError:
-        return False

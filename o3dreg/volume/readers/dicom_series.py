@@ -13,7 +13,7 @@ from .sitk_image import from_sitk, sitk_error
 
 # SimpleITK is imported inside the readers (~0.5 s to import; `import o3dreg` loads this
 # module).
-__all__ = ["read_dicom_series"]
+__all__ = ["is_dicom_file", "read_dicom_series"]
 
 logger = logging.getLogger("o3dreg")
 
@@ -151,7 +151,7 @@ def _check_every_file_listed(folder: str, series: list[str]) -> None:
         path = os.path.abspath(os.path.join(folder, entry))
         if entry.upper() == "DICOMDIR":  # the index of a DICOM medium, no image
             continue
-        if path not in listed and os.path.isfile(path) and _has_dicom_magic(path):
+        if path not in listed and os.path.isfile(path) and is_dicom_file(path):
             left_out.append(entry)
     if left_out:
         raise OSError(
@@ -161,7 +161,8 @@ def _check_every_file_listed(folder: str, series: list[str]) -> None:
         )
 
 
-def _has_dicom_magic(path: str) -> bool:
+def is_dicom_file(path: str) -> bool:
+    """Whether ``path`` starts like a DICOM Part 10 file (``DICM`` after the 128-byte preamble)."""
     try:
         with open(path, "rb") as fh:
             fh.seek(128)
