@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from _helpers import population
 
 from o3dreg import read_triangle_mesh, write_landmarks, write_triangle_mesh
@@ -32,10 +33,8 @@ def test_population_findings_mark_the_outlier():
 def test_landmark_file_naming_rule(tmp_path):
     mesh = tmp_path / "case01.ply"
     mesh.write_text("")
-    try:
+    with pytest.raises(OSError, match=r"case01\.mrk\.json or .*case01\.csv"):
         patient_landmark_file(mesh)
-    except OSError as exc:
-        assert "case01.mrk.json or" in str(exc) and "case01.csv" in str(exc)
     (tmp_path / "case01.csv").write_text("label,x,y,z\n")
     assert patient_landmark_file(mesh) == str(tmp_path / "case01.csv")
     (tmp_path / "case01.mrk.json").write_text("{}")
