@@ -6,7 +6,7 @@ from .elastic import evaluate_elastic, registration_elastic
 from .landmarks import LandmarkRegistrationResult, registration_landmarks
 from .lattice import TrilinearLattice
 from .options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
-from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances
+from .result import ElasticRegistrationResult, LevelReport, RigidStart, SurfaceDistances
 from .rigid import RigidRegistrationResult, registration_rigid
 from .settings import RegistrationSettings
 from .verdict import assess_registration, population_outliers
@@ -24,6 +24,7 @@ __all__ = [
     "PatientRecord",
     "RegistrationSettings",
     "RigidRegistrationResult",
+    "RigidStart",
     "SurfaceDistances",
     "TrilinearLattice",
     "assess_registration",
