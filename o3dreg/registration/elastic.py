@@ -21,6 +21,13 @@ from scipy.spatial import cKDTree
 from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays, as_transformation, check_positive
 from ._cost import LevelProblem, Robustness
+from ._robust import (
+    BoundaryChecker,
+    CorrespondenceChecker,
+    DistanceChecker,
+    NormalChecker,
+    support,
+)
 from ._solvers import solve
 from ._target import TARGET_VOXELS_PER_CELL, TargetSurface
 from .deformation import LatticeDeformation, PartitionedDeformation
@@ -522,16 +529,15 @@ def _supported(
 ) -> np.ndarray:
     """Whether each template vertex has data: the masks of the last level, on all vertices and
     the full target at the final positions."""
-    dist, face, closest = query.closest(moved)
-    keep = np.ones(moved.shape[0], dtype=bool)
+    checkers: list[CorrespondenceChecker] = []
     if method.reject_boundary:
-        keep &= ~query.beyond_boundary(moved, face, closest)
+        checkers.append(BoundaryChecker(query))
     if method.max_normal_angle is not None:
-        cos = orientation * (vertex_normals(moved, faces) * query.face_normal(face)).sum(axis=1)
-        keep &= cos >= np.cos(np.radians(method.max_normal_angle))
+        normals = orientation * vertex_normals(moved, faces)
+        checkers.append(NormalChecker(normals, query.face_normals, method.max_normal_angle))
     if method.max_distance_factor is not None and problem is not None:
-        keep &= dist <= method.max_distance_factor * problem.sigma
-    return keep
+        checkers.append(DistanceChecker(method.max_distance_factor, problem.sigma))
+    return support(checkers, moved, *query.closest(moved))
 
 
 def _surface_samples(
