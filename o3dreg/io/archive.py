@@ -56,11 +56,10 @@ def read_archive(
         raise ValueError(f"`path`: {path!r} is empty, not an o3dreg {what}")
     try:
         with zipfile.ZipFile(path) as archive:
-            damaged = archive.testzip()  # reads every member: CRCs and truncation
-        if damaged is not None:
-            raise zipfile.BadZipFile(f"bad CRC-32 of member {damaged!r}")
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {name: data[name] for name in data.files}
+            arrays = {
+                member.removesuffix(".npy"): _read_member(archive, member)
+                for member in archive.namelist()
+            }
     except _CORRUPT as exc:
         raise ValueError(
             f"`path`: {path!r} is not a complete .npz archive (truncated or corrupt: "
@@ -81,6 +80,19 @@ def read_archive(
             if np.issubdtype(value.dtype, np.inexact) and not np.all(np.isfinite(value)):
                 raise ValueError(f"`path`: {path!r}: {name} holds NaN or infinite values")
     return arrays
+
+
+def _read_member(archive: zipfile.ZipFile, member: str) -> Any:
+    """One member as ``np.load`` reads it, decompressed once (``testzip`` and then ``np.load``
+    would decompress it twice); reading it to its end makes zipfile check its CRC-32."""
+    with archive.open(member) as fh:
+        magic = fh.read(len(np.lib.format.MAGIC_PREFIX))
+        fh.seek(0)
+        if magic != np.lib.format.MAGIC_PREFIX:
+            return fh.read()
+        array = np.lib.format.read_array(fh, allow_pickle=False)
+        fh.read()  # to the end: a bad CRC-32 raises zipfile.BadZipFile here
+    return array
 
 
 # What numpy and zipfile raise for an empty, truncated or damaged archive.
