@@ -141,6 +141,7 @@ def _case(
 
 def _page(data: dict[str, Any]) -> str:
     template = resources.files("o3dreg.app").joinpath("explorer.html").read_text("utf-8")
+    data = {**data, "colormaps": {name: _colormap(name) for name in ("coolwarm", "viridis")}}
     # "</" cannot appear inside a <script> element; JSON allows "<\/".
     payload = json.dumps(data, separators=(",", ":"), allow_nan=False).replace("</", "<\\/")
     return template.replace("__TITLE__", html.escape(data["title"])).replace("__DATA__", payload)
@@ -291,7 +292,6 @@ def write_model_explorer(
     data: dict[str, Any] = {
         "title": title or f"o3dreg shape model ({model.number_of_shapes} shapes)",
         "rotation": rotation,
-        "colormaps": {"coolwarm": _colormap("coolwarm"), "viridis": _colormap("viridis")},
         "model": {
             "mean": _b64(model.mean, "<f4"),
             "faces": _b64(faces, "<u4"),
@@ -403,7 +403,6 @@ def write_registration_explorer(
     data = {
         "title": title or f"o3dreg registration: {name}",
         "rotation": view_rotation(view, up),
-        "colormaps": {"coolwarm": _colormap("coolwarm"), "viridis": _colormap("viridis")},
         "model": None,
         "cases": [case],
         "notes": ["Distances in the input's units (mm), in the target's frame."],
