@@ -68,6 +68,14 @@ def _check_view(view: Any) -> tuple[float, float]:
     return az, el
 
 
+def _check_up(up: Any) -> np.ndarray:
+    """``up`` as a unit (3,) vector."""
+    up_ = np.asarray(up, dtype=np.float64)
+    if up_.shape != (3,) or not np.isfinite(up_).all() or np.linalg.norm(up_) == 0:
+        raise ValueError(f"`up` must be a non-zero (3,) vector, got {up!r}")
+    return up_ / np.linalg.norm(up_)
+
+
 def _camera(
     vertices: np.ndarray, view: tuple[float, float], up: np.ndarray, fov: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -92,10 +100,7 @@ def view_rotation(view: Sequence[float], up: Sequence[float]) -> list[float]:
     Rows: the camera's right, up (``up`` as seen on screen) and back (towards the viewer)
     directions, as :func:`render_mesh` places its camera.
     """
-    up_ = np.asarray(up, dtype=np.float64)
-    if up_.shape != (3,) or not np.isfinite(up_).all() or np.linalg.norm(up_) == 0:
-        raise ValueError(f"`up` must be a non-zero (3,) vector, got {up!r}")
-    up_ = up_ / np.linalg.norm(up_)
+    up_ = _check_up(up)
     unit = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
     eye, centre = _camera(unit, _check_view(view), up_, 35.0)
     back = (eye - centre) / np.linalg.norm(eye - centre)
@@ -334,10 +339,7 @@ def render_mesh(
     if width < 16 or height < 16:
         raise ValueError(f"`size` must be at least (16, 16) pixels, got {size!r}")
     view_ = _check_view(view)
-    up_ = np.asarray(up, dtype=np.float64)
-    if up_.shape != (3,) or not np.isfinite(up_).all() or np.linalg.norm(up_) == 0:
-        raise ValueError(f"`up` must be a non-zero (3,) vector, got {up!r}")
-    up_ = up_ / np.linalg.norm(up_)
+    up_ = _check_up(up)
     if time_limit is not None and not (np.isfinite(time_limit) and time_limit > 0):
         raise ValueError(f"`time_limit` must be a positive number of seconds, got {time_limit!r}")
     values = None
@@ -478,10 +480,7 @@ def render_shape_modes(
     if width < 64 or height < 64:
         raise ValueError(f"`panel` must be at least (64, 64) pixels, got {panel!r}")
     view_ = _check_view(view)
-    up_ = np.asarray(up, dtype=np.float64)
-    if up_.shape != (3,) or not np.isfinite(up_).all() or np.linalg.norm(up_) == 0:
-        raise ValueError(f"`up` must be a non-zero (3,) vector, got {up!r}")
-    up_ = up_ / np.linalg.norm(up_)
+    up_ = _check_up(up)
     faces = np.asarray(model.faces)
     values = {(m, c): mode_displacements(model, m, c) for m in rows for c in sds}
     top = max(float(np.abs(v).max()) for v in values.values()) or 1.0
