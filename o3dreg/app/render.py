@@ -76,6 +76,14 @@ def _check_up(up: Any) -> np.ndarray:
     return up_ / np.linalg.norm(up_)
 
 
+def _horizontal_axes(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``e1, e2`` with ``(e1, e2, up)`` orthonormal: the frame both renderers place views in."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    e1 = np.cross(up, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(up, e1)
+
+
 def _camera(
     vertices: np.ndarray, view: tuple[float, float], up: np.ndarray, fov: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -83,11 +91,7 @@ def _camera(
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     centre = (lo + hi) / 2.0
     radius = max(float(np.linalg.norm(hi - lo)) / 2.0, 1e-9)
-    # An orthonormal frame with ``up`` as its third axis.
-    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
-    e1 = np.cross(up, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)
+    e1, e2 = _horizontal_axes(up)
     az, el = np.radians(view[0]), np.radians(view[1])
     direction = np.cos(el) * (np.cos(az) * e2 + np.sin(az) * e1) + np.sin(el) * up
     distance = 0.85 * radius / np.sin(np.radians(fov) / 2.0)
@@ -230,10 +234,7 @@ def _render_matplotlib(
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     # Rotate so that ``up`` is matplotlib's z axis.
-    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
-    e1 = np.cross(up, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)
+    e1, e2 = _horizontal_axes(up)
     # A right-handed frame (e2, -e1, up): with (e2, e1, up) every picture was a mirror image.
     # The camera direction cos(az) e2 + sin(az) e1 of _camera is azimuth -az in this frame.
     basis = np.stack([e2, -e1, up], axis=1)
