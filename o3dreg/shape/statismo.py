@@ -75,25 +75,26 @@ def _fixed_string(text: str) -> np.ndarray:
     return np.array([data], dtype=f"S{len(data) + 1}")
 
 
-def _write_string(group: Any, name: str, text: str) -> None:
+def _nullterm_string(text: str) -> tuple[np.ndarray, Any, Any]:
+    """``text`` with its HDF5 null-terminated string type and one-element space."""
     h5py = _h5py()
     value = _fixed_string(text)
     tid = h5py.h5t.C_S1.copy()
     tid.set_size(value.dtype.itemsize)
     tid.set_strpad(h5py.h5t.STR_NULLTERM)
-    space = h5py.h5s.create_simple((1,))
+    return value, tid, h5py.h5s.create_simple((1,))
+
+
+def _write_string(group: Any, name: str, text: str) -> None:
+    h5py = _h5py()
+    value, tid, space = _nullterm_string(text)
     dset = h5py.h5d.create(group.id, name.encode(), tid, space)
     dset.write(h5py.h5s.ALL, h5py.h5s.ALL, value, mtype=tid)
 
 
 def _write_string_attribute(group: Any, name: str, text: str) -> None:
-    h5py = _h5py()
-    value = _fixed_string(text)
-    tid = h5py.h5t.C_S1.copy()
-    tid.set_size(value.dtype.itemsize)
-    tid.set_strpad(h5py.h5t.STR_NULLTERM)
-    space = h5py.h5s.create_simple((1,))
-    attr = h5py.h5a.create(group.id, name.encode(), tid, space)
+    value, tid, space = _nullterm_string(text)
+    attr = _h5py().h5a.create(group.id, name.encode(), tid, space)
     attr.write(value, mtype=tid)
 
 
