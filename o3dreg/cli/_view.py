@@ -75,6 +75,16 @@ def _colours(values: np.ndarray) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.screenshot:  # before any work: reading the meshes, the distances
+        check_outputs(
+            {"--screenshot": args.screenshot},
+            args.overwrite,
+            inputs={f"MESH {k + 1}": m for k, m in enumerate(args.meshes)}
+            | {"--distance-to": args.distance_to},
+            suffixes={"--screenshot": (".png",)},
+        )
+        if len(args.size) != 2:
+            raise ValueError(f"--size must be W,H, got {args.size}")
     meshes = [read_triangle_mesh(path, name="MESH") for path in args.meshes]
     scalars = None
     if args.distance_to:
@@ -87,15 +97,6 @@ def run(args: argparse.Namespace) -> int:
             args,
         )
     if args.screenshot:
-        check_outputs(
-            {"--screenshot": args.screenshot},
-            args.overwrite,
-            inputs={f"MESH {k + 1}": m for k, m in enumerate(args.meshes)}
-            | {"--distance-to": args.distance_to},
-            suffixes={"--screenshot": (".png",)},
-        )
-        if len(args.size) != 2:
-            raise ValueError(f"--size must be W,H, got {args.size}")
         render_mesh(
             meshes[0],
             args.screenshot,
