@@ -99,17 +99,25 @@ class TargetSurface:
         self._subsamples[budget] = chosen[morton_order(chosen)]
         return self._subsamples[budget]
 
-    def distances(self, moved: np.ndarray, faces: np.ndarray) -> SurfaceDistances:
-        """Distances from the moved template vertices to the target surface and from the
-        target vertices to the moved template surface."""
-        return surface_distances(moved, faces, self.query, self.vertices)
+    def distances(
+        self, moved: np.ndarray, faces: np.ndarray, forward: np.ndarray | None = None
+    ) -> SurfaceDistances:
+        """Distances from the moved template vertices to the target surface (``forward`` when
+        the caller has them already) and from the target vertices to the moved template
+        surface."""
+        return surface_distances(moved, faces, self.query, self.vertices, forward)
 
 
 def surface_distances(
-    moved: np.ndarray, faces: np.ndarray, target: SurfaceDistanceQuery, target_vertices: np.ndarray
+    moved: np.ndarray,
+    faces: np.ndarray,
+    target: SurfaceDistanceQuery,
+    target_vertices: np.ndarray,
+    forward: np.ndarray | None = None,
 ) -> SurfaceDistances:
     """Both ways: ``moved`` to the ``target`` surface, ``target_vertices`` to the moved mesh."""
-    forward = target.distance(moved)
+    if forward is None:
+        forward = target.distance(moved)
     backward = SurfaceDistanceQuery(moved, faces).distance(target_vertices)
     return SurfaceDistances.from_arrays(forward, backward)
 

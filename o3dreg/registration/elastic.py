@@ -346,9 +346,10 @@ def _coarse_to_fine(
             callback(report)
 
     moved = points + previous
-    distances = surface.distances(moved, fs)
+    found = query.closest(moved)  # once for the distances and the support
+    distances = surface.distances(moved, fs, forward=found[0])
     det = float(deformation.jacobian_determinant(points).min()) if deformation.levels else 1.0
-    supported = _supported(moved, fs, query, estimation_method, last_problem, orientation)
+    supported = _supported(moved, fs, query, found, estimation_method, last_problem, orientation)
     success = not failures
     message = "all levels converged" if success else "; ".join(failures)
     return ElasticRegistrationResult(
@@ -523,12 +524,13 @@ def _supported(
     moved: np.ndarray,
     faces: np.ndarray,
     query: SurfaceDistanceQuery,
+    found: tuple[np.ndarray, np.ndarray, np.ndarray],
     method: DistanceEstimation,
     problem: LevelProblem | None,
     orientation: float = 1.0,
 ) -> np.ndarray:
     """Whether each template vertex has data: the masks of the last level, on all vertices and
-    the full target at the final positions."""
+    the full target at the final positions. ``found`` is ``query.closest(moved)``."""
     checkers: list[CorrespondenceChecker] = []
     if method.reject_boundary:
         checkers.append(BoundaryChecker(query))
@@ -537,7 +539,7 @@ def _supported(
         checkers.append(NormalChecker(normals, query.face_normals, method.max_normal_angle))
     if method.max_distance_factor is not None and problem is not None:
         checkers.append(DistanceChecker(method.max_distance_factor, problem.sigma))
-    return support(checkers, moved, *query.closest(moved))
+    return support(checkers, moved, *found)
 
 
 def _surface_samples(
