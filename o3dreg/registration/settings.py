@@ -17,8 +17,9 @@ import numpy as np
 from .elastic import registration_elastic
 from .landmarks import registration_landmarks
 from .options import DistanceEstimation, ElasticCriteria, ElasticLevel
+from .result import RigidStart
 from .rigid import registration_rigid
-from .verdict import assess_registration
+from .verdict import with_rigid_start
 
 __all__ = ["STARTS", "RegistrationSettings"]
 
@@ -160,7 +161,8 @@ class RegistrationSettings:
             source, target, init=init, callback=callback, **self.elastic_options()
         )
         if rigid is not None:
-            result = assess_registration(result, source, target, rigid=rigid)
+            # registration_elastic assessed it already (from ``init``, without a start).
+            result = with_rigid_start(result, RigidStart.from_rigid(rigid))
         return result
 
     def __repr__(self) -> str:

@@ -110,11 +110,22 @@ def assess_registration(result: Any, source: Any, target: Any, *, rigid: Any = N
     start = getattr(result, "rigid_start", None)
     if rigid is not None:
         start = RigidStart.from_rigid(rigid)
-    if start is not None:
-        findings += [("suspect", w) for w in start.warnings]
     status = worst_status(*(s for s, _ in findings))
+    assessed = dataclasses.replace(
+        result, status=status, warnings=tuple(w for _, w in findings), rigid_start=None
+    )
+    return assessed if start is None else with_rigid_start(assessed, start)
+
+
+def with_rigid_start(result: Any, start: RigidStart) -> Any:
+    """An assessed ``result`` (no rigid start of its own) with the rigid start it was given:
+    ``rigid_start`` set, its ambiguity warnings appended as ``'suspect'`` findings. What
+    :func:`assess_registration` adds for ``rigid``, without measuring the registration again."""
     return dataclasses.replace(
-        result, status=status, warnings=tuple(w for _, w in findings), rigid_start=start
+        result,
+        status=worst_status(result.status, *("suspect" for _ in start.warnings)),
+        warnings=tuple(result.warnings) + tuple(start.warnings),
+        rigid_start=start,
     )
 
 
