@@ -154,3 +154,21 @@ def test_a_one_triangle_target_is_refused_by_the_rigid_start():
     triangle = (np.array([[0.0, 0, 0], [40, 0, 0], [0, 40, 0]]), np.array([[0, 1, 2]]))
     with pytest.raises(ValueError, match=r"`target` must be a surface of at least 4 .* got 1"):
         registration_elastic(template, triangle, levels=LEVELS, criteria=ElasticCriteria(3))
+
+
+def test_the_registration_judges_itself_as_assess_registration_does():
+    # registration_elastic makes its verdict from the distances it has just measured and the
+    # target's moments computed once; assess_registration measures everything again. A target
+    # with a far second piece (a sixth of its vertices) makes the target-to-template finding.
+    template = synthetic_form("sphere", 400)
+    main = synthetic_form("sphere", 2000)
+    main.scale(1.1, center=(0.0, 0.0, 0.0))
+    far = synthetic_form("sphere", 400).translate((150.0, 0.0, 0.0))
+    source = (np.asarray(template.vertices), np.asarray(template.triangles))
+    mv, mf = np.asarray(main.vertices), np.asarray(main.triangles)
+    fv, ff = np.asarray(far.vertices), np.asarray(far.triangles)
+    patient = (np.vstack([mv, fv]), np.vstack([mf, ff + mv.shape[0]]))
+    result = registration_elastic(source, patient, init=np.eye(4), levels=LEVELS)
+    again = assess_registration(result, source, patient)
+    assert result.status != "ok" and any("parts of the target" in w for w in result.warnings)
+    assert (result.status, result.warnings) == (again.status, again.warnings)

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable
+from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import open3d as o3d
@@ -20,6 +22,7 @@ from ..volume.cleaning import mesh_components
 from .distance import SurfaceDistanceQuery
 from .result import SurfaceDistances
 from .sampling import morton_order, spatial_subsample
+from .verdict import Moments, moments
 
 logger = logging.getLogger("o3dreg")
 
@@ -99,27 +102,41 @@ class TargetSurface:
         self._subsamples[budget] = chosen[morton_order(chosen)]
         return self._subsamples[budget]
 
+    @cached_property
+    def moments(self) -> Moments:
+        """Area and covariance of the target (for the verdict), computed once."""
+        return moments(self.vertices, self.faces)
+
     def distances(
         self, moved: np.ndarray, faces: np.ndarray, forward: np.ndarray | None = None
-    ) -> SurfaceDistances:
+    ) -> DistanceArrays:
         """Distances from the moved template vertices to the target surface (``forward`` when
         the caller has them already) and from the target vertices to the moved template
         surface."""
-        return surface_distances(moved, faces, self.query, self.vertices, forward)
+        if forward is None:
+            forward = self.query.distance(moved)
+        backward = SurfaceDistanceQuery(moved, faces).distance(self.vertices)
+        return DistanceArrays(forward, backward)
 
 
-def surface_distances(
-    moved: np.ndarray,
-    faces: np.ndarray,
-    target: SurfaceDistanceQuery,
-    target_vertices: np.ndarray,
-    forward: np.ndarray | None = None,
-) -> SurfaceDistances:
-    """Both ways: ``moved`` to the ``target`` surface, ``target_vertices`` to the moved mesh."""
-    if forward is None:
-        forward = target.distance(moved)
-    backward = SurfaceDistanceQuery(moved, faces).distance(target_vertices)
-    return SurfaceDistances.from_arrays(forward, backward)
+@dataclass(frozen=True)
+class DistanceArrays:
+    """Point-to-surface distances both ways, per vertex: what the result's
+    :class:`~o3dreg.SurfaceDistances` summarise and the verdict's percentiles are taken of.
+
+    Attributes
+    ----------
+    forward : (n,) ndarray
+        From each moved template vertex to the target surface.
+    backward : (m,) ndarray
+        From each target vertex to the moved template surface.
+    """
+
+    forward: np.ndarray
+    backward: np.ndarray
+
+    def summary(self) -> SurfaceDistances:
+        return SurfaceDistances.from_arrays(self.forward, self.backward)
 
 
 def canonical_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

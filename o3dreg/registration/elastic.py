@@ -29,7 +29,7 @@ from ._robust import (
     support,
 )
 from ._solvers import solve
-from ._target import TARGET_VOXELS_PER_CELL, TargetSurface
+from ._target import TARGET_VOXELS_PER_CELL, DistanceArrays, TargetSurface
 from .deformation import LatticeDeformation, PartitionedDeformation
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
@@ -40,10 +40,10 @@ from .options import (
     ElasticLevel,
     default_levels,
 )
-from .result import ElasticRegistrationResult, LevelReport, SurfaceDistances
+from .result import ElasticRegistrationResult, LevelReport, RigidStart, SurfaceDistances
 from .rigid import registration_rigid
 from .sampling import spatial_subsample
-from .verdict import assess_registration
+from .verdict import judge, with_rigid_start
 
 __all__ = ["evaluate_elastic", "registration_elastic"]
 
@@ -205,14 +205,28 @@ def registration_elastic(
     points = apply_transformation(rigid, vs)
     labels = template_parts(vs.shape[0], fs) if parts == "connected" else None
     if labels is not None and labels.max() > 0:
-        result = _register_parts(
+        result, measured = _register_parts(
             vs, fs, surface, rigid, labels, levels_, estimation_method, criteria, padding, callback
         )
     else:
-        result = _coarse_to_fine(
+        result, measured = _coarse_to_fine(
             points, fs, rigid, surface, levels_, estimation_method, criteria, padding, callback
         )
-    return assess_registration(result, (vs, fs), (vt, ft), rigid=rigid_start)
+    # The verdict from the distances just measured and the target's moments (as
+    # assess_registration(result, (vs, fs), (vt, ft), rigid=rigid_start) would measure them).
+    assessed = judge(
+        result,
+        points,
+        fs,
+        vt,
+        ft,
+        forward=measured.forward,
+        backward=measured.backward,
+        target_moments=surface.moments,
+    )
+    if rigid_start is None:
+        return assessed
+    return with_rigid_start(assessed, RigidStart.from_rigid(rigid_start))
 
 
 def _coarse_to_fine(
@@ -225,9 +239,10 @@ def _coarse_to_fine(
     criteria: ElasticCriteria,
     padding: float,
     callback: Callable[[LevelReport], Any] | None,
-) -> ElasticRegistrationResult:
+) -> tuple[ElasticRegistrationResult, DistanceArrays]:
     """The levels, coarse to fine, of one deformation of space: the template ``(points, fs)``
-    (rigidly aligned by ``rigid``) onto ``surface``. Inputs validated; no verdict yet."""
+    (rigidly aligned by ``rigid``) onto ``surface``. Inputs validated; no verdict yet (the
+    distances of the result, per vertex, are returned beside it for the verdict)."""
     vt = surface.vertices
     query = surface.query
     origin, size = lattice_box([points, vt], padding)
@@ -347,17 +362,17 @@ def _coarse_to_fine(
 
     moved = points + previous
     found = query.closest(moved)  # once for the distances and the support
-    distances = surface.distances(moved, fs, forward=found[0])
+    measured = surface.distances(moved, fs, forward=found[0])
     det = float(deformation.jacobian_determinant(points).min()) if deformation.levels else 1.0
     supported = _supported(moved, fs, query, found, estimation_method, last_problem, orientation)
     success = not failures
     message = "all levels converged" if success else "; ".join(failures)
-    return ElasticRegistrationResult(
+    result = ElasticRegistrationResult(
         transformation=rigid,
         deformation=deformation,
         vertices=moved,
         faces=fs,
-        distances=distances,
+        distances=measured.summary(),
         history=tuple(history),
         min_jacobian_determinant=det,
         success=success,
@@ -366,6 +381,7 @@ def _coarse_to_fine(
         flipped_triangles=flipped_triangles(points, moved, fs),
         supported=supported,
     )
+    return result, measured
 
 
 def template_parts(number_of_vertices: int, faces: np.ndarray) -> np.ndarray:
@@ -390,8 +406,9 @@ def _register_parts(
     criteria: ElasticCriteria,
     padding: float,
     callback: Any,
-) -> ElasticRegistrationResult:
-    """``parts='connected'``: one elastic registration per source component."""
+) -> tuple[ElasticRegistrationResult, DistanceArrays]:
+    """``parts='connected'``: one elastic registration per source component (with the
+    distances of the whole, per vertex)."""
     vt, ft = surface.mesh
     points = apply_transformation(rigid, vs)
     _, nearest = cKDTree(points).query(vt, workers=-1)
@@ -419,7 +436,7 @@ def _register_parts(
         # The part's target in canonical order (a subset of a canonical mesh already is), without
         # the pieces the split left below ``min_target_component`` of the part's largest.
         part_surface = TargetSurface(vt[used], tmap[tf], method.min_target_component)
-        result = _coarse_to_fine(
+        result, _ = _coarse_to_fine(
             apply_transformation(rigid, vs[sel]),
             pf,
             rigid,
@@ -441,12 +458,13 @@ def _register_parts(
         if not result.success:
             failures.append(f"part {part}: {result.message}")
     success = not failures
-    return ElasticRegistrationResult(
+    measured = surface.distances(moved, fs)
+    result = ElasticRegistrationResult(
         transformation=rigid,
         deformation=PartitionedDeformation(tuple(deformations), points, labels),
         vertices=moved,
         faces=fs,
-        distances=surface.distances(moved, fs),
+        distances=measured.summary(),
         history=tuple(history),
         min_jacobian_determinant=det,
         success=success,
@@ -458,6 +476,7 @@ def _register_parts(
         part_deformations=tuple(deformations),
         part_sites=points,
     )
+    return result, measured
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -636,4 +655,4 @@ def evaluate_elastic(
     moved = apply_transformation(t, vs)
     if deformation is not None:
         moved = deformation.transform(moved)
-    return surface.distances(moved, fs)
+    return surface.distances(moved, fs).summary()

@@ -101,20 +101,44 @@ def assess_registration(result: Any, source: Any, target: Any, *, rigid: Any = N
     vs, fs = as_mesh_arrays(source, "source")
     vt, ft = as_mesh_arrays(target, "target", drop_degenerate=True)
     aligned = apply_transformation(np.asarray(result.transformation), vs)
-    findings: list[tuple[str, str]] = []
-    findings += _degenerate_target(aligned, fs, vt, ft)
-    findings += _folds(result)
-    findings += _distances(result, vt, ft)
-    findings += _support(result)
-    findings += _sizes(aligned, fs, vt, ft)
     start = getattr(result, "rigid_start", None)
     if rigid is not None:
         start = RigidStart.from_rigid(rigid)
+    assessed = judge(result, aligned, fs, vt, ft)
+    return assessed if start is None else with_rigid_start(assessed, start)
+
+
+def judge(
+    result: Any,
+    aligned: np.ndarray,
+    fs: np.ndarray,
+    vt: np.ndarray,
+    ft: np.ndarray,
+    *,
+    forward: np.ndarray | None = None,
+    backward: np.ndarray | None = None,
+    target_moments: Moments | None = None,
+) -> Any:
+    """The verdict of :func:`assess_registration` on validated arrays, without a rigid start.
+
+    ``aligned`` is the source after ``result.transformation``. A caller that has measured them
+    already passes ``forward`` (each of ``result.vertices`` to the surface ``(vt, ft)``),
+    ``backward`` (each of ``vt`` to the registered surface) and ``target_moments``
+    (:func:`moments` of the target); the verdict then queries nothing again.
+    """
+    if target_moments is None:
+        target_moments = moments(vt, ft)
+    source_moments = moments(aligned, fs)
+    findings: list[tuple[str, str]] = []
+    findings += _degenerate_target(source_moments, target_moments, ft)
+    findings += _folds(result)
+    findings += _distances(result, vt, ft, forward, backward)
+    findings += _support(result)
+    findings += _sizes(source_moments, target_moments, fs, ft)
     status = worst_status(*(s for s, _ in findings))
-    assessed = dataclasses.replace(
+    return dataclasses.replace(
         result, status=status, warnings=tuple(w for _, w in findings), rigid_start=None
     )
-    return assessed if start is None else with_rigid_start(assessed, start)
 
 
 def with_rigid_start(result: Any, start: RigidStart) -> Any:
@@ -129,21 +153,29 @@ def with_rigid_start(result: Any, start: RigidStart) -> Any:
     )
 
 
-def _area(vertices: np.ndarray, faces: np.ndarray) -> float:
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+#: A surface's area and, when it is positive, its covariance (:func:`surface_moments`).
+Moments = tuple[float, "np.ndarray | None"]
+
+
+def moments(vertices: np.ndarray, faces: np.ndarray) -> Moments:
+    """Area and covariance of a surface (``None`` for a surface of zero area)."""
+    if faces.shape[0] == 0:
+        return 0.0, None
+    try:
+        area, _, cov = surface_moments(vertices, faces)
+    except ValueError:  # zero area
+        return 0.0, None
+    return area, cov
 
 
 def _diagonal(vertices: np.ndarray) -> float:
     return float(np.linalg.norm(np.ptp(vertices, axis=0))) if vertices.shape[0] else 0.0
 
 
-def _degenerate_target(
-    aligned: np.ndarray, fs: np.ndarray, vt: np.ndarray, ft: np.ndarray
-) -> list[tuple[str, str]]:
+def _degenerate_target(source: Moments, target: Moments, ft: np.ndarray) -> list[tuple[str, str]]:
     if ft.shape[0] < MIN_TARGET_TRIANGLES:
         return [("failed", f"the target is degenerate: {ft.shape[0]} triangle(s)")]
-    area_t, area_s = _area(vt, ft), _area(aligned, fs)
+    area_t, area_s = target[0], source[0]
     if area_t < MIN_TARGET_AREA_FRACTION * area_s:
         return [
             (
@@ -181,12 +213,19 @@ def _folds(result: Any) -> list[tuple[str, str]]:
     return out
 
 
-def _distances(result: Any, vt: np.ndarray, ft: np.ndarray) -> list[tuple[str, str]]:
+def _distances(
+    result: Any,
+    vt: np.ndarray,
+    ft: np.ndarray,
+    forward: np.ndarray | None,
+    backward: np.ndarray | None,
+) -> list[tuple[str, str]]:
     diagonal = _diagonal(vt)
     if diagonal <= 0.0 or ft.shape[0] == 0:
         return []
     out = []
-    forward = SurfaceDistanceQuery(vt, ft).distance(result.vertices)
+    if forward is None:
+        forward = SurfaceDistanceQuery(vt, ft).distance(result.vertices)
     supported = getattr(result, "supported", None)
     if supported is not None and supported.any():
         forward = forward[supported]
@@ -200,7 +239,8 @@ def _distances(result: Any, vt: np.ndarray, ft: np.ndarray) -> list[tuple[str, s
                 f"({100 * p95 / diagonal:.2g}% of the target's size)",
             )
         )
-    backward = SurfaceDistanceQuery(result.vertices, result.faces).distance(vt)
+    if backward is None:
+        backward = SurfaceDistanceQuery(result.vertices, result.faces).distance(vt)
     b95 = float(np.percentile(backward, 95))
     if b95 > TARGET_DISTANCE_SUSPECT * diagonal:
         out.append(
@@ -231,15 +271,11 @@ def _support(result: Any) -> list[tuple[str, str]]:
 
 
 def _sizes(
-    aligned: np.ndarray, fs: np.ndarray, vt: np.ndarray, ft: np.ndarray
+    source: Moments, target: Moments, fs: np.ndarray, ft: np.ndarray
 ) -> list[tuple[str, str]]:
-    if ft.shape[0] == 0 or fs.shape[0] == 0:
-        return []
-    try:
-        _, _, cov_s = surface_moments(aligned, fs)
-        _, _, cov_t = surface_moments(vt, ft)
-    except ValueError:  # zero area: reported as a degenerate target
-        return []
+    cov_s, cov_t = source[1], target[1]
+    if ft.shape[0] == 0 or fs.shape[0] == 0 or cov_s is None or cov_t is None:
+        return []  # zero area: reported as a degenerate target
     ratio = float(np.sqrt(max(np.trace(cov_t), 1e-300) / max(np.trace(cov_s), 1e-300)))
     if ratio > SIZE_RATIO_FAILED or ratio < 1.0 / SIZE_RATIO_FAILED:
         return [
