@@ -36,7 +36,7 @@ STAGES = [
     ("  point-to-surface SurfaceDistanceQuery.closest", "distance.py:closest"),
     ("  cKDTree.query (barycentre assignments)", "query' of 'scipy.spatial"),
     ("  normal equations", "normal_equations"),
-    ("solve _solvers._solve_spd", "_solvers.py:_solve_spd"),
+    ("solve the damped system DampedSystem.solve_damped", "_solvers.py:solve_damped"),
     ("lattice weights / Jacobian (lattice.py)", "lattice.py"),
     ("target levels of detail (vertex clustering)", "simplify_vertex_clustering"),
     ("AABB tree builds SurfaceDistanceQuery.__init__", "distance.py:__init__"),

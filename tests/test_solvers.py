@@ -34,7 +34,9 @@ def test_a_non_finite_step_stops_with_a_message(monkeypatch):
     # A linear solver that returns NaN whatever the damping (as a singular or overflowing system
     # would): the solver used to retry with a larger damping forever.
     problem = small_problem()
-    monkeypatch.setattr(_solvers, "_solve_spd", lambda A, b: np.full(b.shape, np.nan))
+    monkeypatch.setattr(
+        _solvers.DampedSystem, "solve_damped", lambda self, d, b: np.full(b.shape, np.nan)
+    )
     info = _solvers.solve(problem, ElasticCriteria(), "lm")
     assert not info.success
     assert "non-finite" in info.message

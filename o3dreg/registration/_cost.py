@@ -36,6 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from ._assembly import NormalAssembly
 from ._robust import (
     LOSS_CONSTANTS,
     BoundaryChecker,
@@ -98,7 +99,6 @@ class Evaluation:
 
     u: np.ndarray
     residuals: np.ndarray
-    blocks: list[sp.csr_matrix]
     cost: float
     cost_distance: float
     cost_symmetric: float
@@ -111,6 +111,14 @@ class Evaluation:
     target_weights: np.ndarray | None = None
     geometry: Geometry | None = None
     terms: tuple[TermBlock, ...] = ()
+
+    #: Whether the barycentre term's assignment is that of an earlier point (a trial step).
+    held_assignment: bool = False
+
+    @property
+    def blocks(self) -> list[sp.csr_matrix]:
+        """The terms' Jacobian blocks (built on demand)."""
+        return [b.jacobian for b in self.terms]
 
     @property
     def jacobian(self) -> sp.csr_matrix:
@@ -176,14 +184,19 @@ class LevelProblem:
         # W restricted to free nodes, (n, m).
         self.W = sp.csr_matrix((weights[keep], (rows, local[keep])), shape=(n, free_nodes.size))
         self.number_of_unknowns = 3 * free_nodes.size
-        self.surface = PointToSurfaceTerm(self.W, target)
+        self.regulariser = RegulariserTerm(
+            lattice, lookup, free_nodes.size, regularization, n, energy
+        )
+        self.assembly = NormalAssembly(
+            local, np.where(keep, weights, 0.0), free_nodes.size, self.regulariser.node_gram
+        )
+        self.surface = PointToSurfaceTerm(self.W, target, self.assembly)
         self.barycentre = (
             None
             if self.target_points is None
-            else BarycentreTerm(self.W, self.target_points, symmetric_weight, barycentre_offsets)
-        )
-        self.regulariser = RegulariserTerm(
-            lattice, lookup, free_nodes.size, regularization, n, energy
+            else BarycentreTerm(
+                self.W, self.target_points, symmetric_weight, self.assembly, barycentre_offsets
+            )
         )
         self.terms: list[ResidualTerm] = [self.surface]
         if self.barycentre is not None:
@@ -198,11 +211,13 @@ class LevelProblem:
             self.checkers.append(NormalChecker(normals, target.face_normals, rb.max_normal_angle))
         self._robust = rb.loss != "linear" or rb.max_distance_factor is not None
         self.sigma = self.sigma_symmetric = 1.0
+        # The closest points at the level start, shared by the scales and the first evaluation.
+        self._start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         if self._robust:
             # Scales from the data at the level start (u = 0), over the correspondences the
             # other checkers accept (the distance checker itself is measured in these scales).
             floor = SCALE_FLOOR * float(lattice.cell_size.min())
-            dist, face, closest = target.closest(self.base)
+            self._start = dist, face, closest = target.closest(self.base)
             keep = support(self.checkers, self.base, dist, face, closest)
             self.sigma = rb.loss_scale or robust_scale(dist[keep], floor)
             if self.target_points is not None:
@@ -276,31 +291,48 @@ class LevelProblem:
         return self.lattice.with_displacements(d)
 
     def evaluate(self, u: np.ndarray, weights_of: Evaluation | None = None) -> Evaluation:
-        """Residuals and Jacobian blocks at ``u``.
+        """Residuals (and Jacobian blocks, built on demand) at ``u``.
 
-        The robust weights and 0/1 masks are those of ``u`` itself, or, with ``weights_of``,
-        those of that earlier evaluation: Levenberg-Marquardt compares a trial step with the
-        current point under the current weights (one weighted least-squares problem per
-        linearisation, as in iteratively reweighted least squares). Measured under their own
-        weights, a step that brings more template points into support would count their
-        distances as a cost increase and be rejected, although it moved towards the data.
+        With ``weights_of``, the evaluation of a trial step from that earlier point: its robust
+        weights and 0/1 masks are those of ``weights_of``, and so is the barycentre term's
+        assignment of target points to template points. Levenberg-Marquardt compares a trial
+        with the current point under one linearisation (one weighted least-squares problem, as
+        in iteratively reweighted least squares and in ICP, whose assignments are fixed while
+        the transformation is solved for): measured under its own weights, a step that brings
+        more template points into support would count their distances as a cost increase and
+        be rejected although it moved towards the data, and a changing assignment makes the
+        quadratic model's predictions meaningless. :meth:`reweighted` then gives the accepted
+        point its own weights and assignment.
         """
         y = self.moved(u)
-        dist, closest, grad, face = self.surface.measure(y)
-        e = nearest = None
-        if self.barycentre is not None:
-            e, nearest = self.barycentre.measure(y)
-        geometry = Geometry(u, y, dist, closest, grad, face, e, nearest)
+        found = None
+        if self._start is not None and not u.any():
+            found = self._start
+        dist, closest, grad, face = self.surface.measure(y, found)
         if weights_of is None:
-            weights = self._weights(geometry)
-        else:
-            weights = Weights(weights_of.weights, weights_of.support, weights_of.target_weights)
-        return self._assemble(geometry, weights)
+            e = nearest = None
+            if self.barycentre is not None:
+                e, nearest = self.barycentre.measure(y)
+            geometry = Geometry(u, y, dist, closest, grad, face, e, nearest)
+            return self._assemble(geometry, self._weights(geometry))
+        assert weights_of.geometry is not None
+        held = weights_of.geometry
+        geometry = Geometry(u, y, dist, closest, grad, face, held.target_distances, held.nearest)
+        weights = Weights(weights_of.weights, weights_of.support, weights_of.target_weights)
+        targets = None
+        if self.barycentre is not None:
+            targets = weights_of.terms[1].targets
+        return self._assemble(geometry, weights, targets)
 
     def reweighted(self, ev: Evaluation) -> Evaluation:
-        """``ev`` with the weights and masks of its own point (no new distance query)."""
-        assert ev.geometry is not None
-        return self._assemble(ev.geometry, self._weights(ev.geometry))
+        """``ev`` with the weights, masks and barycentre assignment of its own point (no new
+        point-to-surface query)."""
+        g = ev.geometry
+        assert g is not None
+        if ev.held_assignment and self.barycentre is not None:
+            e, nearest = self.barycentre.measure(g.moved)
+            g = Geometry(g.u, g.moved, g.distances, g.closest, g.gradients, g.faces, e, nearest)
+        return self._assemble(g, self._weights(g))
 
     def _weights(self, g: Geometry) -> Weights:
         """Per-point weights (robust kernel times the checkers' support), support masks and
@@ -319,17 +351,26 @@ class LevelProblem:
                 ).check(g.moved, e, g.faces, g.closest)
         return Weights(w, mask, v)
 
-    def _assemble(self, g: Geometry, w: Weights) -> Evaluation:
-        blocks = tuple(term.linearise(g, w) for term in self.terms)
-        surface, regulariser = blocks[0], blocks[-1]
-        barycentre = blocks[1] if self.barycentre is not None else None
+    def _assemble(
+        self,
+        g: Geometry,
+        w: Weights,
+        targets: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> Evaluation:
+        surface = self.surface.linearise(g, w)
+        regulariser = self.regulariser.linearise(g, w)
+        blocks: tuple[TermBlock, ...] = (surface, regulariser)
+        cost_sym = 0.0
+        barycentre = None
+        if self.barycentre is not None:
+            barycentre = self.barycentre.linearise(g, w, targets)
+            blocks = (surface, barycentre, regulariser)
+            cost_sym = barycentre.cost
         cost_d = surface.cost
-        cost_sym = barycentre.cost if barycentre is not None else 0.0
         cost_r = regulariser.cost
         return Evaluation(
             u=g.u,
             residuals=np.concatenate([b.residuals for b in blocks]),
-            blocks=[b.jacobian for b in blocks],
             cost=cost_d + cost_sym + cost_r,
             cost_distance=cost_d,
             cost_symmetric=cost_sym,
@@ -342,19 +383,24 @@ class LevelProblem:
             target_weights=w.target,
             geometry=g,
             terms=blocks,
+            held_assignment=targets is not None,
         )
 
-    def normal_equations(self, ev: Evaluation) -> tuple[sp.csr_matrix, np.ndarray]:
-        """``J^T J`` and ``J^T r``: the sum of the terms' shares (each assembled without ``J``
-        where a cheaper equal form exists, see the terms)."""
-        shares = [term.normal_share(block) for term, block in zip(self.terms, ev.terms)]
-        # Summation order: the matrices surface, regulariser, barycentre; the vectors in term
-        # order. Floating-point sums depend on their order, and LM amplifies a last-bit change
-        # to ~1e-9 of the result over a hierarchy: this is the order of the assembly before the
-        # terms were objects, kept so that results stay bit-identical.
-        A = shares[0][0] + shares[-1][0]
-        g = shares[0][1]
-        for a, b in shares[1:-1]:
-            A = A + a
-            g = g + b
-        return A.tocsr(), g + shares[-1][1]
+    def normal_equations(self, ev: Evaluation) -> tuple[sp.bsr_matrix, np.ndarray]:
+        """``J^T J`` and ``J^T r``, the sum of the terms' shares, assembled on the level's fixed
+        pattern (``_assembly``): the data terms' per-point metrics and right-hand sides are
+        summed first, then scattered once."""
+        n = ev.moved.shape[0]
+        metric = np.zeros((n, 6))
+        isotropic = None
+        rhs = np.zeros((n, 3))
+        for block in ev.terms[:-1]:  # the data terms
+            assert block.rhs is not None
+            if block.metric is not None:
+                metric += block.metric
+            if block.isotropic is not None:
+                isotropic = block.isotropic if isotropic is None else isotropic + block.isotropic
+            rhs += block.rhs
+        A = self.assembly.matrix(metric, isotropic)
+        g = self.assembly.vector(rhs) + self.regulariser.gradient(ev.u)
+        return A, g

@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.optimize import least_squares
@@ -43,18 +44,51 @@ def solve(problem: LevelProblem, criteria: ElasticCriteria, method: str = "lm") 
     return _scipy(problem, criteria, method)
 
 
-def _solve_spd(A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
-    """Solve the damped normal equations.
+#: Largest system solved by a dense Cholesky factorisation (the coarsest level: 81 unknowns at 2
+#: cells per axis). Larger ones go to conjugate gradients: a dense factorisation of a few hundred
+#: unknowns is cheap on an idle machine, but multithreaded BLAS on a loaded one was measured
+#: 10-100x slower than conjugate gradients.
+DENSE_UNKNOWNS = 100
 
-    Jacobi-preconditioned conjugate gradients: the damping ``mu diag(A)`` keeps the system well
-    conditioned, so CG needs a few dozen products (measured: <= 52 on the bunny benchmark), far
-    cheaper than a sparse LU. Falls back to SuperLU if CG does not converge.
+#: Conjugate gradients stop at ``|r| <= CG_RTOL |b|`` (a step needs no more: the next
+#: linearisation corrects it), after at most ``CG_MAXITER`` iterations.
+CG_RTOL = 1e-6
+CG_MAXITER = 1000
+
+
+class DampedSystem:
+    """``(A + diag(d)) x = b`` for one symmetric positive (semi)definite ``A`` and several
+    dampings ``d`` (the retries of one Levenberg-Marquardt iteration).
+
+    Tiny systems are factorised densely (Cholesky; ``A`` is made dense once). Others are solved
+    by Jacobi-preconditioned conjugate gradients: the damping ``mu diag(A)`` keeps the system
+    well conditioned, so CG needs a few dozen products (measured: <= 52 on the bunny benchmark),
+    far cheaper than a sparse LU, which is the fallback if CG does not converge.
     """
-    inv_diag = 1.0 / A.diagonal()
-    x, info = spla.cg(A, b, rtol=1e-6, atol=0.0, M=sp.diags(inv_diag), maxiter=1000)
-    if info != 0:
-        x = spla.spsolve(A.tocsc(), b)
-    return np.asarray(x)
+
+    def __init__(self, A: sp.spmatrix) -> None:
+        self.size = A.shape[0]
+        self.dense = A.toarray() if self.size <= DENSE_UNKNOWNS else None
+        self.A = None if self.dense is not None else A.tocsr()
+
+    def solve_damped(self, damping: np.ndarray, b: np.ndarray) -> np.ndarray:
+        if self.dense is not None:
+            M = self.dense.copy()
+            M[np.diag_indices_from(M)] += damping
+            try:
+                factor = scipy.linalg.cho_factor(M, check_finite=False)
+                return np.asarray(scipy.linalg.cho_solve(factor, b, check_finite=False))
+            except (np.linalg.LinAlgError, ValueError):
+                return np.asarray(scipy.linalg.solve(M, b, assume_a="sym"))
+        assert self.A is not None
+        M = self.A + sp.diags(damping, format="csr")
+        inverse_diagonal = 1.0 / M.diagonal()
+        x, info = spla.cg(
+            M, b, rtol=CG_RTOL, atol=0.0, M=sp.diags(inverse_diagonal), maxiter=CG_MAXITER
+        )
+        if info != 0:
+            x = spla.spsolve(M.tocsc(), b)
+        return np.asarray(x)
 
 
 #: Damping beyond which no step is tried: the step is then ~1e-12 of a gradient step.
@@ -92,8 +126,9 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
             mu = 1e-3
         accepted = False
         non_finite = 0
+        system = DampedSystem(A)
         while not accepted:
-            delta = _solve_spd(A + sp.diags(mu * diag, format="csr"), -g)
+            delta = system.solve_damped(mu * diag, -g)
             if not np.all(np.isfinite(delta)):
                 # A stronger damping makes the system better conditioned; past mu_max the
                 # problem itself is broken: stop and say so (never loop, never raise).

@@ -14,13 +14,16 @@ free nodes (see ``_cost``); ``Wx = W (x) I_3`` acts on the flattened ``(3n,)`` c
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Protocol
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from ._assembly import NormalAssembly, symmetric_outer
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
 
@@ -54,16 +57,33 @@ class Weights:
 
 @dataclass
 class TermBlock:
-    """One term's residuals ``r`` and Jacobian rows ``J`` at one ``u``; ``row_scale`` is the
-    per-template-point factor of a term whose rows are scaled copies of ``W``."""
+    """One term's residuals ``r`` at one ``u`` and what its Jacobian rows and normal-equation
+    share are made of.
+
+    ``jacobian`` is built on demand (Levenberg-Marquardt needs only the cost of a trial step,
+    and only the normal equations at accepted points). A data term's rows are ``W_i (x) v_i``
+    (point-to-surface, ``v_i`` a row vector) or ``s_i W_i (x) I_3`` (barycentre); its share of
+    ``J^T J`` is then ``sum_i (W_i^T W_i) (x) M_i`` with ``metric`` the 6 entries of every
+    ``M_i`` and ``isotropic`` a further ``c_i I``, its share of ``J^T r`` is ``sum_i W_i^T f_i``
+    with ``rhs`` the ``f_i`` (see ``_assembly``).
+    """
 
     residuals: np.ndarray
-    jacobian: sp.csr_matrix
+    make_jacobian: Callable[[], sp.csr_matrix] = field(repr=False)
     row_scale: np.ndarray | None = None
+    metric: np.ndarray | None = None
+    isotropic: np.ndarray | None = None
+    rhs: np.ndarray | None = None
+    #: The barycentre term's ``(b, s)`` of the assignment this block was made with.
+    targets: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def cost(self) -> float:
         return float(self.residuals @ self.residuals)
+
+    @cached_property
+    def jacobian(self) -> sp.csr_matrix:
+        return self.make_jacobian()
 
 
 class ResidualTerm(Protocol):
@@ -76,60 +96,83 @@ class ResidualTerm(Protocol):
     def normal_share(self, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]: ...
 
 
+def _data_share(assembly: NormalAssembly, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]:
+    """A data term's ``(J^T J, J^T r)`` from its per-point metric and right-hand side."""
+    assert block.rhs is not None
+    n = block.rhs.shape[0]
+    metric = block.metric if block.metric is not None else np.zeros((n, 6))
+    A = assembly.matrix(metric, block.isotropic, with_gram=False)
+    return A, assembly.vector(block.rhs)
+
+
 class PointToSurfaceTerm:
     """(a) ``sqrt(w_i) d(y_i, S)`` for every template point: the distance to the target surface.
 
     Its derivative is ``sqrt(w_i)`` times the unit vector from the closest point (point-to-plane
-    on the surface), so row ``i`` of ``J`` is ``sqrt(w_i) grad_i (x) W_i``.
+    on the surface), so row ``i`` of ``J`` is ``W_i (x) v_i`` with ``v_i = sqrt(w_i) grad_i``;
+    its share of ``J^T J`` has ``M_i = v_i v_i^T``, of ``J^T r`` ``f_i = r_i v_i``.
     """
 
     name = "point-to-surface"
 
-    def __init__(self, W: sp.csr_matrix, target: SurfaceDistanceQuery) -> None:
+    def __init__(
+        self, W: sp.csr_matrix, target: SurfaceDistanceQuery, assembly: NormalAssembly
+    ) -> None:
         self.W = W
         self.target = target
+        self.assembly = assembly
         self.number_of_unknowns = 3 * W.shape[1]
 
-    def measure(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Distances, closest points, gradients and closest faces of the points ``y``."""
-        dist, closest, grad, face = self.target.gradient(y, return_faces=True)
+    def measure(
+        self, y: np.ndarray, found: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Distances, closest points, gradients and closest faces of the points ``y``
+        (``found``: ``target.closest(y)`` when the caller has it)."""
+        dist, closest, grad, face = self.target.gradient(y, return_faces=True, found=found)
         return dist, closest, grad, face
 
     def linearise(self, g: Geometry, w: Weights) -> TermBlock:
-        dist, grad = g.distances, g.gradients
-        n = dist.shape[0]
+        dist, rows = g.distances, g.gradients
         r = dist
         if w.point is not None:
             sw = np.sqrt(w.point)
             r = sw * dist
-            grad = grad * sw[:, None]
+            rows = rows * sw[:, None]
+        return TermBlock(
+            r,
+            lambda: self._jacobian(rows),
+            metric=symmetric_outer(rows),
+            rhs=r[:, None] * rows,
+        )
+
+    def _jacobian(self, rows: np.ndarray) -> sp.csr_matrix:
         W = self.W
-        J = sp.csr_matrix(
+        n = rows.shape[0]
+        return sp.csr_matrix(
             (
-                (W.data[:, None] * grad[np.repeat(np.arange(n), np.diff(W.indptr))]).ravel(),
+                (W.data[:, None] * rows[np.repeat(np.arange(n), np.diff(W.indptr))]).ravel(),
                 (3 * W.indices[:, None] + np.arange(3)).ravel(),
                 W.indptr * 3,
             ),
             shape=(n, self.number_of_unknowns),
         )
-        return TermBlock(r, J)
 
     def normal_share(self, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]:
-        J = block.jacobian
-        return J.T @ J, J.T @ block.residuals
+        return _data_share(self.assembly, block)
 
 
 class BarycentreTerm:
     """(b) ``s_i (y_i - b_i)`` for every template point: the target-to-template half of eq. (3).
 
     ``b_i`` is the barycentre of the target points whose nearest moved template point is ``i``
-    (re-assigned at every evaluation, held fixed in the Jacobian as an ICP step does), averaged
-    with the target points' robust weights ``v_j``; ``s_i = sqrt(w_s * mean_j v_j) * m_i`` with
-    ``m_i`` the support mask of point ``i``: a template point with no data of its own gets no
-    row, so data near a cut cannot pull the unsupported part of the template into the covered
-    part. Every template point keeps a (possibly zero) row, so the residual vector keeps its
-    length. With ``offsets``, ``b_i - offset_i`` replaces ``b_i`` (the template's own Voronoi
-    centroid bias, see ``elastic._barycentre_offsets``).
+    (assigned at every accepted point of Levenberg-Marquardt and held fixed for its trial steps
+    and in the Jacobian, as an ICP step does), averaged with the target points' robust weights
+    ``v_j``; ``s_i = sqrt(w_s * mean_j v_j) * m_i`` with ``m_i`` the support mask of point
+    ``i``: a template point with no data of its own gets no row, so data near a cut cannot pull
+    the unsupported part of the template into the covered part. Every template point keeps a
+    (possibly zero) row, so the residual vector keeps its length. With ``offsets``,
+    ``b_i - offset_i`` replaces ``b_i`` (the template's own Voronoi centroid bias, see
+    ``elastic._barycentre_offsets``). Its share of ``J^T J`` is ``s_i^2 I`` per point.
     """
 
     name = "barycentre"
@@ -139,10 +182,11 @@ class BarycentreTerm:
         W: sp.csr_matrix,
         target_points: np.ndarray,
         weight: float,
+        assembly: NormalAssembly,
         offsets: np.ndarray | None = None,
     ) -> None:
         self.W = W
-        self.Wx = sp.kron(W, sp.identity(3), format="csr")  # (3n, 3m) for vector residuals
+        self.assembly = assembly
         self.target_points = target_points
         self.sqrt_ws = float(np.sqrt(weight))
         self.offsets = offsets
@@ -163,10 +207,11 @@ class BarycentreTerm:
         self._nn_bound = 2.0 * float(np.percentile(e, 99)) if e.size else np.inf
         return e, nearest
 
-    def linearise(self, g: Geometry, w: Weights) -> TermBlock:
+    def targets(self, g: Geometry, w: Weights) -> tuple[np.ndarray, np.ndarray]:
+        """The barycentres ``b_i`` (offsets applied) and row scales ``s_i`` of an assignment."""
         assert g.nearest is not None
-        y, nearest = g.moved, g.nearest
-        n = y.shape[0]
+        nearest = g.nearest
+        n = g.moved.shape[0]
         counts = np.bincount(nearest, minlength=n)
         if w.target is not None:
             v = w.target
@@ -189,17 +234,29 @@ class BarycentreTerm:
         scale = self.sqrt_ws * np.sqrt(assigned)
         if self.offsets is not None:
             bary = bary - self.offsets
-        r = (scale[:, None] * (y - bary)).ravel()
-        J = sp.diags(np.repeat(scale, 3), format="csr") @ self.Wx
-        return TermBlock(r, J, row_scale=scale)
+        return bary, scale
+
+    def linearise(
+        self, g: Geometry, w: Weights, held: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> TermBlock:
+        """The block at ``g``; ``held``: the barycentres and scales of an earlier assignment."""
+        bary, scale = held if held is not None else self.targets(g, w)
+        r = scale[:, None] * (g.moved - bary)
+        return TermBlock(
+            r.ravel(),
+            lambda: self._jacobian(scale),
+            row_scale=scale,
+            isotropic=scale * scale,
+            rhs=scale[:, None] * r,
+            targets=(bary, scale),
+        )
+
+    def _jacobian(self, scale: np.ndarray) -> sp.csr_matrix:
+        Wx = sp.kron(self.W, sp.identity(3), format="csr")  # (3n, 3m)
+        return sp.diags(np.repeat(scale, 3), format="csr") @ Wx
 
     def normal_share(self, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]:
-        """``(W^T S^2 W) (x) I_3``, computed on the small ``(m, m)`` node matrix rather than on
-        the ``3n x 3m`` Jacobian, and ``Wx^T (S r)``."""
-        scale = block.row_scale
-        assert scale is not None
-        A = sp.kron(self.W.T @ sp.diags(scale**2) @ self.W, sp.identity(3), format="csr")
-        return A, self.Wx.T @ (np.repeat(scale, 3) * block.residuals)
+        return _data_share(self.assembly, block)
 
 
 def _stencils() -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
@@ -224,7 +281,8 @@ class RegulariserTerm:
     ``'bending'``: second differences along each axis and mixed differences weighted ``sqrt(2)``
     (the thin-plate energy ``int |Hess u|^2``), whose null space is the affine maps: a level may
     add any affine motion without cost. ``'membrane'``: first differences (``int |grad u|^2``).
-    Fixed nodes keep a zero increment. Linear in ``u``: ``J`` and ``J^T J`` are constant.
+    Fixed nodes keep a zero increment. Linear in ``u``: ``J`` and ``J^T J`` are constant;
+    :attr:`node_gram` is ``J^T J`` per node pair (``J^T J = node_gram (x) I_3``).
     """
 
     name = "regulariser"
@@ -241,14 +299,22 @@ class RegulariserTerm:
         G = _stencil_matrix(lattice, lookup, number_of_free_nodes, energy)
         edges = max(G.shape[0], 1)
         self.sqrt_reg = float(np.sqrt(regularization * number_of_points / edges))
-        self.J = sp.kron(G, sp.identity(3), format="csr") * self.sqrt_reg
-        self._gram = (self.J.T @ self.J).tocsr()
+        self.G = (G * self.sqrt_reg).tocsr()
+        self.node_gram = (self.G.T @ self.G).tocsr()
+
+    def residuals(self, u: np.ndarray) -> np.ndarray:
+        return np.asarray(self.G @ u.reshape(-1, 3)).ravel()
+
+    def gradient(self, u: np.ndarray) -> np.ndarray:
+        """``J^T r = J^T J u``."""
+        return np.asarray(self.node_gram @ u.reshape(-1, 3)).ravel()
 
     def linearise(self, g: Geometry, w: Weights) -> TermBlock:
-        return TermBlock(self.J @ g.u, self.J)
+        return TermBlock(self.residuals(g.u), lambda: sp.kron(self.G, sp.identity(3), format="csr"))
 
     def normal_share(self, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]:
-        return self._gram, self.J.T @ block.residuals
+        J = block.jacobian
+        return (J.T @ J).tocsr(), J.T @ block.residuals
 
 
 def _stencil_matrix(

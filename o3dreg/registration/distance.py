@@ -77,14 +77,20 @@ class SurfaceDistanceQuery:
         """Point-to-surface distances, ``(k,)``."""
         return self.closest(points)[0]
 
-    def gradient(self, points: np.ndarray, return_faces: bool = False) -> Any:
+    def gradient(
+        self,
+        points: np.ndarray,
+        return_faces: bool = False,
+        found: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    ) -> Any:
         """Distances, closest points and the gradient of the unsigned distance at each point.
 
         The gradient of ``d(x) = |x - c(x)|`` is the unit vector ``(x - c) / d``; on the surface,
         where it is undefined, the triangle's normal is used (the point-to-plane limit). With
-        ``return_faces``, the closest triangle of each point is returned fourth.
+        ``return_faces``, the closest triangle of each point is returned fourth. ``found``:
+        :meth:`closest` of these points, when the caller has it.
         """
-        dist, face, closest = self.closest(points)
+        dist, face, closest = found if found is not None else self.closest(points)
         diff = np.ascontiguousarray(points) - closest
         on_surface = dist <= 1e-12 * max(1.0, float(np.abs(self.vertices).max()))
         safe = np.where(on_surface, 1.0, dist)

@@ -1,0 +1,101 @@
+"""The normal equations of one level on a sparsity pattern fixed for the level.
+
+Every data term of a level moves the template points ``y_i = base_i + W_i u`` with the same
+constant trilinear weights ``W`` (at most 8 free nodes per point), and its share of ``J^T J`` is
+``sum_i (W_i^T W_i) (x) M_i`` with a symmetric 3x3 matrix ``M_i`` per point (``w_i g_i g_i^T``
+for a point-to-surface row, ``s_i^2 I`` for a barycentre row), its share of ``J^T r`` is
+``sum_i W_i^T (x) f_i``. So the pattern of ``J^T J`` (node pairs sharing a cell, plus the
+regulariser's stencils) and the factor ``W_ia W_ib`` of every point in every pair are known when
+the level starts. :class:`NormalAssembly` computes them once; each linearisation is then one
+sparse-times-dense product ``S @ M`` (``S`` the pair factors, ``(pairs, points)``) and a
+3x3-block sparse matrix built on the stored pattern, instead of sparse-times-sparse products
+whose pattern scipy rediscovers at every step.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+#: The 6 distinct entries of a symmetric 3x3 matrix, as (row, column), in column order of the
+#: ``(n, 6)`` arrays of :meth:`NormalAssembly.matrix`.
+SYMMETRIC_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_FULL = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+
+
+def symmetric_outer(v: np.ndarray) -> np.ndarray:
+    """The 6 distinct entries of ``v_i v_i^T`` for every row of ``v`` ``(n, 3)``: ``(n, 6)``."""
+    return np.stack([v[:, a] * v[:, b] for a, b in SYMMETRIC_ENTRIES], axis=1)
+
+
+class NormalAssembly:
+    """Pattern and pair factors of a level's normal equations.
+
+    Parameters
+    ----------
+    nodes : (n, 8) int ndarray
+        The free-node index of each point's 8 cell corners, ``-1`` for a fixed node.
+    weights : (n, 8) ndarray
+        Their trilinear weights.
+    number_of_free_nodes : int
+    node_gram : (m, m) sparse matrix
+        A constant node-level matrix added to the diagonal of every 3x3 block (the
+        regulariser's ``D^T D``); its pattern joins the points' pattern.
+    """
+
+    def __init__(
+        self,
+        nodes: np.ndarray,
+        weights: np.ndarray,
+        number_of_free_nodes: int,
+        node_gram: sp.spmatrix,
+    ) -> None:
+        m = int(number_of_free_nodes)
+        n = nodes.shape[0]
+        self.number_of_free_nodes = m
+        a = np.broadcast_to(nodes[:, :, None], (n, 8, 8))
+        b = np.broadcast_to(nodes[:, None, :], (n, 8, 8))
+        valid = (a >= 0) & (b >= 0)
+        point = np.broadcast_to(np.arange(n)[:, None, None], (n, 8, 8))[valid]
+        factor = (weights[:, :, None] * weights[:, None, :])[valid]
+        pair_key = a[valid].astype(np.int64) * m + b[valid]
+        gram = sp.coo_matrix(node_gram)
+        gram_key = gram.row.astype(np.int64) * m + gram.col
+        keys = np.union1d(pair_key, gram_key)  # sorted: row-major, the CSR order
+        self.indices = (keys % m).astype(np.int32) if m else np.zeros(0, np.int32)
+        rows = keys // m if m else keys
+        self.indptr = np.searchsorted(rows, np.arange(m + 1)).astype(np.int32)
+        self.pairs = keys.size
+        # S[pair, point] = W_ia W_ib: the node-level matrix of per-point scalars c is S @ c.
+        self.S = sp.csr_matrix(
+            (factor, (np.searchsorted(keys, pair_key), point)), shape=(self.pairs, n)
+        )
+        self.gram_values = np.zeros(self.pairs)
+        np.add.at(self.gram_values, np.searchsorted(keys, gram_key), gram.data)
+        self.diagonal_pairs = np.searchsorted(keys, np.arange(m, dtype=np.int64) * (m + 1))
+        # W^T as CSR (m, n): the right-hand sides are W^T f.
+        rows_w = np.broadcast_to(np.arange(n)[:, None], nodes.shape)
+        keep = nodes >= 0
+        self.WT = sp.csr_matrix((weights[keep], (nodes[keep], rows_w[keep])), shape=(m, n))
+
+    def matrix(
+        self, metric: np.ndarray, isotropic: np.ndarray | None = None, with_gram: bool = True
+    ) -> sp.bsr_matrix:
+        """``sum_i (W_i^T W_i) (x) M_i (+ node_gram (x) I_3)`` as a 3x3-block matrix.
+
+        ``metric`` holds the 6 entries of every ``M_i`` (``(n, 6)``, :data:`SYMMETRIC_ENTRIES`);
+        ``isotropic`` (``(n,)``) adds ``c_i I`` to ``M_i``.
+        """
+        values = self.S @ metric  # (pairs, 6)
+        diagonal = self.gram_values if with_gram else np.zeros(self.pairs)
+        if isotropic is not None:
+            diagonal = diagonal + self.S @ isotropic
+        blocks = values[:, _FULL]  # (pairs, 3, 3)
+        for k in range(3):
+            blocks[:, k, k] += diagonal
+        m = self.number_of_free_nodes
+        return sp.bsr_matrix((blocks, self.indices, self.indptr), shape=(3 * m, 3 * m))
+
+    def vector(self, f: np.ndarray) -> np.ndarray:
+        """``sum_i W_i^T (x) f_i`` for per-point vectors ``f`` ``(n, 3)``, flattened node-major."""
+        return np.asarray(self.WT @ f).ravel()
