@@ -3,7 +3,8 @@
 import numpy as np
 
 from o3dreg.app.synthetic import synthetic_form
-from o3dreg.registration.sampling import spatial_subsample
+from o3dreg.registration import sampling
+from o3dreg.registration.sampling import morton_order, spatial_subsample
 
 
 def test_count_and_order_independence():
@@ -47,3 +48,65 @@ def test_ties_at_the_cell_centre_do_not_depend_on_the_order():
         np.testing.assert_array_equal(
             np.sort(pts[perm][idx_perm], axis=0), np.sort(pts[idx], axis=0)
         )
+
+
+def test_occupied_cells_counted_on_a_bitmap_or_by_sorting_agree(monkeypatch):
+    # Small grids count occupied cells on a bitmap, large ones by sorting the keys: the same
+    # count, so the same cell size and the same subsample.
+    pts = np.asarray(synthetic_form("sphere", 5000).vertices)
+    bitmap = spatial_subsample(pts, 700)
+    monkeypatch.setattr(sampling, "_BITMAP_CELLS_PER_POINT", 0)
+    monkeypatch.setattr(sampling, "_BITMAP_CELLS_FLOOR", 0)
+    np.testing.assert_array_equal(spatial_subsample(pts, 700), bitmap)
+
+
+def test_each_cell_keeps_its_point_nearest_the_centre():
+    pts = np.random.default_rng(2).uniform(0.0, 10.0, size=(4000, 3))
+    idx = spatial_subsample(pts, 300)
+    chosen = pts[idx]
+    # Recover the grid from the chosen points' cells: no other point of a chosen point's cell
+    # is nearer that cell's centre. Cell size found as spatial_subsample does (same search).
+    lo, extent = pts.min(axis=0), np.ptp(pts, axis=0).max()
+    cell = extent / np.sqrt(300)
+    for _ in range(8):
+        keys = np.floor((pts - lo) / cell).astype(np.int64)
+        occupied = np.unique(keys, axis=0).shape[0]
+        if 0.7 <= occupied / 300 <= 1.4:
+            break
+        cell *= np.sqrt(occupied / 300)
+    assert np.unique(keys, axis=0).shape[0] == idx.size  # one point per occupied cell
+    offset = np.linalg.norm(pts - (lo + (keys + 0.5) * cell), axis=1)
+    for i in idx[:50]:
+        same = np.all(keys == keys[i], axis=1)
+        assert offset[i] == offset[same].min()
+    assert chosen.shape == (idx.size, 3)
+
+
+def morton_code(cells):
+    code = np.zeros(cells.shape[0], dtype=np.int64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return code
+
+
+def test_morton_order_follows_the_curve_and_breaks_ties_by_coordinates():
+    rng = np.random.default_rng(3)
+    # Few bits, so many points share a code; exact duplicates too.
+    pts = np.round(rng.uniform(0.0, 1.0, size=(3000, 3)), 2)
+    pts = np.concatenate([pts, pts[:100]])
+    order = morton_order(pts, bits=3)
+    lo, extent = pts.min(axis=0), np.ptp(pts, axis=0).max()
+    cells = np.minimum(((pts - lo) / extent * 8).astype(np.int64), 7)
+    code = morton_code(cells)
+    # Z-order: codes never decrease; among equal codes, (x, y, z) never decreases.
+    key = np.column_stack([code, pts])[order]
+    np.testing.assert_array_equal(np.lexsort(key.T[::-1]), np.arange(key.shape[0]))
+    # The order depends on the positions only.
+    for seed in range(3):
+        perm = np.random.default_rng(seed).permutation(pts.shape[0])
+        np.testing.assert_array_equal(pts[perm][morton_order(pts[perm], bits=3)], pts[order])
+    # The default 10 bits: the code of every point as the bit-by-bit definition.
+    cells10 = np.minimum(((pts - lo) / extent * 1024).astype(np.int64), 1023)
+    code10 = morton_code(cells10)[morton_order(pts)]
+    assert np.all(np.diff(code10) >= 0)
