@@ -462,3 +462,19 @@ def test_the_cli_starts_from_the_library_defaults_or_the_paper():
     assert tuned == DistanceEstimation(
         loss="huber", max_normal_angle=180.0, min_target_component=None
     )
+
+
+def test_the_relative_orientation_from_a_subsample_and_a_level_of_detail(bunny_warped):
+    # The target's orientation is decided from 1000 template vertices against the finest
+    # simplified copy of the target: the same sign as every vertex against the full target.
+    from o3dreg.registration._target import TargetSurface
+    from o3dreg.registration.elastic import ORIENTATION_POINTS, _relative_orientation
+
+    (tv, tf), (v, f), _ = bunny_warped
+    assert tv.shape[0] > ORIENTATION_POINTS
+    for faces, sign in ((f, 1.0), (f[:, ::-1], -1.0)):
+        surface = TargetSurface(v, faces)
+        surface.build_levels_of_detail([4.0 * surface.query.mean_edge])
+        assert surface.finest_detail() is not surface.query
+        assert _relative_orientation(tv, tf, surface.finest_detail()) == sign
+        assert _relative_orientation(tv, tf, surface.query) == sign

@@ -150,3 +150,30 @@ def test_checkers_alone():
     both = support([BoundaryChecker(square), DistanceChecker(2.0, 1.0)], pts, dist, face, closest)
     np.testing.assert_array_equal(both, [True, False, False])
     assert support([], pts, dist, face, closest).all()
+
+
+def test_the_normal_checker_looks_up_only_the_normals_it_needs():
+    # The final support check of a registration runs once on the full target: it asks the
+    # query for the normals of the triangles found (face_normal) instead of computing the
+    # normal of every triangle (face_normals), with the same verdicts.
+    from o3dreg.app.synthetic import synthetic_form
+    from o3dreg.registration.elastic import _supported, vertex_normals
+    from o3dreg.registration.options import DistanceEstimation
+
+    sphere = synthetic_form("sphere", 2000)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    rng = np.random.default_rng(0)
+    pts = v[:300] + rng.normal(scale=2.0, size=(300, 3))
+    normals = vertex_normals(v, f)[:300] + rng.normal(scale=0.8, size=(300, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    lazy_query = SurfaceDistanceQuery(v, f)
+    found = lazy_query.closest(pts)
+    lazy = NormalChecker(normals, lazy_query.face_normal, 45.0).check(pts, *found)
+    assert "face_normals" not in lazy_query.__dict__
+    full = NormalChecker(normals, SurfaceDistanceQuery(v, f).face_normals, 45.0)
+    np.testing.assert_array_equal(lazy, full.check(pts, *found))
+    assert 0 < lazy.sum() < lazy.size  # both verdicts occur
+    method = DistanceEstimation(reject_boundary=False, max_normal_angle=45.0)
+    moved = v[:, :] * 1.01
+    _supported(moved, f, lazy_query, lazy_query.closest(moved), method, None)
+    assert "face_normals" not in lazy_query.__dict__

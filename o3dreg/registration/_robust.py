@@ -8,6 +8,7 @@ by the product of its checkers' masks; each piece here is tested alone.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -90,16 +91,21 @@ class BoundaryChecker:
 class NormalChecker:
     """Rejects correspondences whose template normal and target triangle normal make an angle
     above ``max_angle`` degrees. ``normals`` are the template's, one per point, already turned
-    to the target's orientation."""
+    to the target's orientation. ``face_normals`` holds the unit normal of every target
+    triangle, or looks up those of the triangles it is given (e.g.
+    :meth:`SurfaceDistanceQuery.face_normal`: a single check of a large target then computes
+    only the normals it needs)."""
 
     normals: np.ndarray
-    face_normals: np.ndarray
+    face_normals: np.ndarray | Callable[[np.ndarray], np.ndarray]
     max_angle: float
 
     def check(
         self, points: np.ndarray, distances: np.ndarray, faces: np.ndarray, closest: np.ndarray
     ) -> np.ndarray:
-        cos = (self.normals * self.face_normals[faces]).sum(axis=1)
+        lookup = self.face_normals
+        target = lookup(faces) if callable(lookup) else lookup[faces]
+        cos = (self.normals * target).sum(axis=1)
         return cos >= float(np.cos(np.radians(self.max_angle)))
 
 

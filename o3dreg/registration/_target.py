@@ -87,6 +87,10 @@ class TargetSurface:
         """The simplified target for ``voxel`` (the full target when none was made for it)."""
         return self._details.get(voxel, self.query)
 
+    def finest_detail(self) -> SurfaceDistanceQuery:
+        """The least simplified copy of the target (the full target when none was made)."""
+        return self._details[min(self._details)] if self._details else self.query
+
     def subsample(self, budget: int) -> np.ndarray:
         """An even subsample of about ``budget`` target vertices, nested across budgets.
 

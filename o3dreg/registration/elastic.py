@@ -49,6 +49,9 @@ __all__ = ["evaluate_elastic", "registration_elastic"]
 
 logger = logging.getLogger("o3dreg")
 
+#: Template vertices (an even subsample) whose normals decide the target's relative orientation.
+ORIENTATION_POINTS = 1000
+
 
 def lattice_box(
     points: Sequence[np.ndarray], padding: float = 0.1
@@ -257,7 +260,7 @@ def _coarse_to_fine(
     )
     orientation = 1.0
     if estimation_method.max_normal_angle is not None:
-        orientation = _relative_orientation(points, fs, query)
+        orientation = _relative_orientation(points, fs, surface.finest_detail())
     surface_samples, sample_weights = _surface_samples(points, fs)
     deformation = LatticeDeformation(())
     previous = np.zeros_like(points)
@@ -526,9 +529,18 @@ def _relative_orientation(
     holding its closest point tells which: near +1 when both face the same way, near -1 when
     one is inside out. The normal test of ``max_normal_angle`` then compares the normals reversed
     rather than rejecting every correspondence.
+
+    A median sign needs neither every template vertex nor every target triangle: an even
+    subsample of :data:`ORIENTATION_POINTS` vertices against ``query``, which may be a level of
+    detail of the target (each closest-point query of a template far from the target visits many
+    boxes of a dense target's tree).
     """
+    normals = vertex_normals(points, faces)
+    if points.shape[0] > ORIENTATION_POINTS:
+        keep = spatial_subsample(points, ORIENTATION_POINTS)
+        points, normals = points[keep], normals[keep]
     _, face, _ = query.closest(points)
-    cos = (vertex_normals(points, faces) * query.face_normal(face)).sum(axis=1)
+    cos = (normals * query.face_normal(face)).sum(axis=1)
     if cos.size and float(np.median(cos)) < 0.0:
         logger.info(
             "the target is oriented inside out relative to the template (median normal cosine "
@@ -555,7 +567,8 @@ def _supported(
         checkers.append(BoundaryChecker(query))
     if method.max_normal_angle is not None:
         normals = orientation * vertex_normals(moved, faces)
-        checkers.append(NormalChecker(normals, query.face_normals, method.max_normal_angle))
+        # Only the normals of the triangles found: a million-vertex target has 2M triangles.
+        checkers.append(NormalChecker(normals, query.face_normal, method.max_normal_angle))
     if method.max_distance_factor is not None and problem is not None:
         checkers.append(DistanceChecker(method.max_distance_factor, problem.sigma))
     return support(checkers, moved, *found)
