@@ -213,3 +213,93 @@ def test_far_from_the_origin(demo_population):
     off = np.degrees(Rotation.from_matrix(t[:3, :3] @ patient.motion[:3, :3].T).magnitude())
     assert off < 15.0  # as for patient08: the warp leaves the best rigid fit a few degrees off
     assert result.fitness > 0.95
+
+
+class IcpSpy:
+    """Records every call of Open3D's ICP made by the rigid step: points of the target searched,
+    the iteration cap it was given."""
+
+    def __init__(self, monkeypatch):
+        from o3dreg.registration import rigid
+
+        self.calls = []
+        original = rigid.reg.registration_icp
+
+        def spy(source, target, distance, init, method, criteria):
+            self.calls.append((len(target.points), criteria.max_iteration))
+            return original(source, target, distance, init, method, criteria)
+
+        monkeypatch.setattr(rigid.reg, "registration_icp", spy)
+
+    def on(self, points):
+        """Iteration caps of the calls against a target of ``points`` points."""
+        return [cap for n, cap in self.calls if n == points]
+
+
+def test_the_refinement_stops_at_a_fixed_point_of_icp(bunny_template, bunny_target, monkeypatch):
+    # Before: the refinement ran Open3D's 50 iterations every time, its RMSE test never firing
+    # (the correspondences alternated, the RMSE changing by ~1e-4 mm per iteration).
+    target = moved(bunny_target, known_transform())
+    spy = IcpSpy(monkeypatch)
+    result = registration_rigid(bunny_template, target)
+    full = len(target.vertices)
+    refinement = spy.on(full)
+    assert refinement and sum(refinement) <= 12
+    monkeypatch.undo()
+    # ...and what it returns is where 50 more iterations of plain ICP leave it (on one thread,
+    # as the rigid step runs): within REFINE_STILL of the diagonal, RMS over the template.
+    from o3dreg.registration.rigid import REFINE_STILL, _cloud, _single_thread
+
+    vs, fs = np.asarray(bunny_template.vertices), np.asarray(bunny_template.triangles)
+    vt, ft = np.asarray(target.vertices), np.asarray(target.triangles)
+    diagonal = np.linalg.norm(np.ptp(vt, axis=0))
+    reg = o3d.pipelines.registration
+    with _single_thread():
+        again = reg.registration_icp(
+            _cloud(vs, fs),
+            _cloud(vt, ft),
+            0.05 * diagonal,
+            result.transformation,
+            reg.TransformationEstimationPointToPlane(),
+            reg.ICPConvergenceCriteria(1e-6, 1e-6, 50),
+        )
+    t, u = result.transformation, np.asarray(again.transformation)
+    moved_by = (vs @ t[:3, :3].T + t[:3, 3]) - (vs @ u[:3, :3].T + u[:3, 3])
+    assert np.sqrt((moved_by**2).sum(axis=1).mean()) < 2 * REFINE_STILL * diagonal
+
+
+def count_refinements(monkeypatch):
+    """A list that gets one entry per refinement of a pose on all points."""
+    from o3dreg.registration import rigid
+
+    calls = []
+    refine = rigid._CandidateSearch.refine
+
+    def counted(self, *args):
+        calls.append(1)
+        return refine(self, *args)
+
+    monkeypatch.setattr(rigid._CandidateSearch, "refine", counted)
+    return calls
+
+
+def test_a_runner_up_far_behind_is_not_refined(bunny_template, bunny_target, monkeypatch):
+    from o3dreg.registration.rigid import RUNNER_UP_REFINED
+
+    refinements = count_refinements(monkeypatch)
+    result = registration_rigid(bunny_template, moved(bunny_target, known_transform()))
+    # The bunny's other poses score ~3.6 times the winner: only the winner is refined.
+    assert result.runner_up_score > RUNNER_UP_REFINED * result.score
+    assert len(refinements) == 1
+
+
+def test_a_near_tie_refines_both_poses(monkeypatch):
+    from o3dreg.registration.rigid import RUNNER_UP_REFINED
+
+    cube = synthetic_form("cube", 600)
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("zx", [45.0, 30.0], degrees=True).as_matrix()
+    refinements = count_refinements(monkeypatch)
+    result = registration_rigid(cube, moved(synthetic_form("cube", 3000), turn))
+    assert result.runner_up_score < RUNNER_UP_REFINED * result.score
+    assert len(refinements) == 2

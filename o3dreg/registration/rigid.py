@@ -61,6 +61,20 @@ INPUT_POSE_NEAR = 45.0
 INPUT_POSE_FAR = 90.0
 #: Points of the source and of the coarse target the search from many starts works on.
 SEARCH_POINTS = 1000
+#: The runner-up is refined (as the winner is) only when its score from the search is below this
+#: factor times the winner's refined score: the refinement changed the scores of the winner and
+#: the runner-up by factors 0.875-1.035 on the bunny, the demo's patients and 7 CT mandibles, so
+#: a pose twice as far would need a factor 0.6 to come within AMBIGUITY_RATIO of the winner.
+RUNNER_UP_REFINED = 2.0
+#: ICP runs in bursts of this many iterations (even: see :meth:`_CandidateSearch.icp`) and stops
+#: when a burst moves the source by less than a fraction of the target's diagonal (RMS): at the
+#: search from many starts, SEARCH_STILL (its poses are starts for the refinement, which moves
+#: them by ~3e-3 of the diagonal on the bunny); at the refinement, REFINE_STILL (half of what
+#: the correspondences' alternation near convergence moves the pose by at every iteration on
+#: the bunny, 2e-5; the decimated template bounds the pose to ~1e-3, test_rigid.py).
+ICP_BURST = 4
+SEARCH_STILL = 1e-4
+REFINE_STILL = 1e-5
 #: Two poses are distinct when the source vertices they place differ by more than this fraction
 #: of the target's bounding-box diagonal (RMS): about what ICP's basin of attraction spans.
 DISTINCT_POSE = 0.05
@@ -87,11 +101,10 @@ def surface_moments(
     if area <= 0:
         raise ValueError("the surface has zero area")
     s = a + b + c
-    centroid = (areas[:, None] * s / 3.0).sum(axis=0) / area
-    second = np.einsum("t,ti,tj->ij", areas, a, a)
-    second += np.einsum("t,ti,tj->ij", areas, b, b)
-    second += np.einsum("t,ti,tj->ij", areas, c, c)
-    second += np.einsum("t,ti,tj->ij", areas, s, s)
+    centroid = areas @ s / (3.0 * area)
+    second = np.zeros((3, 3))
+    for p in (a, b, c, s):  # (3, m) @ (m, 3) products: twice as fast as a three-operand einsum
+        second += (p * areas[:, None]).T @ p
     second /= 12.0 * area
     return area, centroid, second - np.outer(centroid, centroid)
 
@@ -110,8 +123,17 @@ def moment_alignments(
         ``T`` with ``T @ [x, 1]`` mapping the source's principal frame onto the target's, one
         per proper (determinant +1) choice of axis signs.
     """
-    _, cs, covs = surface_moments(*source)
-    _, ct, covt = surface_moments(*target)
+    return _moment_frames(surface_moments(*source), surface_moments(*target), with_scaling)
+
+
+def _moment_frames(
+    source: tuple[float, np.ndarray, np.ndarray],
+    target: tuple[float, np.ndarray, np.ndarray],
+    with_scaling: bool,
+) -> list[np.ndarray]:
+    """:func:`moment_alignments` from the two surfaces' :func:`surface_moments`."""
+    _, cs, covs = source
+    _, ct, covt = target
     ls, es = np.linalg.eigh(covs)
     lt, et = np.linalg.eigh(covt)
     es, et = es[:, ::-1], et[:, ::-1]
@@ -177,15 +199,24 @@ def rigid_candidates(
         other, ``'sampled rotation k'`` (:data:`SAMPLED_ROTATIONS` rotations about the
         centroids, in a fixed order).
     """
-    _, cs, covs = surface_moments(*source)
-    _, ct, covt = surface_moments(*target)
+    return _candidates(surface_moments(*source), surface_moments(*target), with_scaling)
+
+
+def _candidates(
+    source: tuple[float, np.ndarray, np.ndarray],
+    target: tuple[float, np.ndarray, np.ndarray],
+    with_scaling: bool,
+) -> list[tuple[str, np.ndarray]]:
+    """:func:`rigid_candidates` from the two surfaces' :func:`surface_moments`."""
+    _, cs, covs = source
+    _, ct, covt = target
     scale = _size_ratio(covs, covt) if with_scaling else 1.0
     out: list[tuple[str, np.ndarray]] = [("input pose", np.eye(4))]
     matched = np.eye(4)
     matched[:3, :3] *= scale
     matched[:3, 3] = ct - scale * cs
     out.append(("centroids matched", matched))
-    moments = moment_alignments(source, target, with_scaling=with_scaling)
+    moments = _moment_frames(source, target, with_scaling)
     out += [(f"moment frame {k + 1}", t) for k, t in enumerate(moments)]
     if _has_close_principal_values(covs) or _has_close_principal_values(covt):
         for k, rot in enumerate(_sampled_rotations(SAMPLED_ROTATIONS)):
@@ -217,9 +248,11 @@ class RigidRegistrationResult(reg.RegistrationResult):  # type: ignore[misc]
         source surface), on the whole target, in the input's units.
     runner_up_score : float or None
         The same for the best pose distinct from the winner (its source vertices more than
-        :data:`DISTINCT_POSE` of the target's diagonal away, RMS), after the same refinement; lower
-        than ``score`` when the input pose broke a near tie in its favour. ``None`` when there
-        was none (a given ``init``, or every start reached one pose).
+        :data:`DISTINCT_POSE` of the target's diagonal away, RMS), after the same refinement when
+        it came within :data:`RUNNER_UP_REFINED` of the winner (otherwise its score from the
+        search, the pose too far behind to come near the winner); lower than ``score`` when the
+        input pose broke a near tie in its favour. ``None`` when there was none (a given
+        ``init``, or every start reached one pose).
     runner_up_transformation : (4, 4) ndarray or None
     candidates : int
         Starting poses tried.
@@ -277,10 +310,11 @@ def registration_rigid(
     """Rigid or similarity alignment of ``source`` onto ``target``.
 
     Without ``init``, every pose of :func:`rigid_candidates` is refined by ICP (at four times
-    ``max_correspondence_distance``, against a coarse copy of the target) and scored by the
-    symmetric surface distance on the whole target; the best and the best distinct other pose
-    are refined at ``max_correspondence_distance`` against the full target and scored again.
-    The lower score wins. Open3D runs on one thread here, so the same input gives a
+    ``max_correspondence_distance``, a subsample of the source against a coarse copy of the
+    target) and scored by the symmetric surface distance on the whole target; the best pose is
+    refined at ``max_correspondence_distance`` with all points and scored again, and so is the
+    best distinct other pose unless it scored more than :data:`RUNNER_UP_REFINED` times the
+    winner. The lower score wins. Open3D runs on one thread here, so the same input gives a
     bit-identical pose.
 
     Parameters
@@ -300,7 +334,10 @@ def registration_rigid(
         Default: ``TransformationEstimationPointToPlane()`` (or ``PointToPoint(with_scaling=True)``
         when ``with_scaling``).
     criteria : open3d.pipelines.registration.ICPConvergenceCriteria, optional
-        Default: 50 iterations, relative fitness and RMSE 1e-6.
+        Default: 50 iterations, relative fitness and RMSE 1e-6. ICP also stops when
+        :data:`ICP_BURST` iterations move the source by less than :data:`REFINE_STILL` of the
+        target's diagonal (RMS): near convergence, the correspondences can alternate between
+        two sets and keep the RMSE test from ever stopping it.
 
     Returns
     -------
@@ -336,8 +373,12 @@ def registration_rigid(
     if given:
         candidates = [("init", as_transformation(init, "init"))]
     else:
-        _check_sizes(vs, fs, vt, ft, with_scaling)
-        candidates = rigid_candidates((vs, fs), (vt, ft), with_scaling=with_scaling)
+        _check_target(ft)
+        # Each surface's moments once: they serve the size check and every start.
+        moments_s, moments_t = surface_moments(vs, fs), surface_moments(vt, ft)
+        if not with_scaling:
+            _check_sizes(moments_s[2], moments_t[2])
+        candidates = _candidates(moments_s, moments_t, with_scaling)
     diagonal = float(np.linalg.norm(np.ptp(vt, axis=0)))
     if max_correspondence_distance is None:
         max_correspondence_distance = 0.05 * diagonal
@@ -373,18 +414,15 @@ def registration_rigid(
         return search.run(candidates, estimation_method, criteria)
 
 
-def _check_sizes(
-    vs: np.ndarray, fs: np.ndarray, vt: np.ndarray, ft: np.ndarray, with_scaling: bool
-) -> None:
+def _check_target(ft: np.ndarray) -> None:
     if ft.shape[0] < MIN_TARGET_TRIANGLES:
         raise ValueError(
             f"`target` must be a surface of at least {MIN_TARGET_TRIANGLES} non-degenerate "
             f"triangles to register onto, got {ft.shape[0]}: is it the right file?"
         )
-    if with_scaling:
-        return
-    _, _, covs = surface_moments(vs, fs)
-    _, _, covt = surface_moments(vt, ft)
+
+
+def _check_sizes(covs: np.ndarray, covt: np.ndarray) -> None:
     ratio = _size_ratio(covs, covt)
     if ratio > MAX_SIZE_RATIO or ratio < 1.0 / MAX_SIZE_RATIO:
         size_s, size_t = np.sqrt(np.trace(covs)), np.sqrt(np.trace(covt))
@@ -456,15 +494,45 @@ class _CandidateSearch:
         start: np.ndarray,
         method: Any,
         criteria: Any,
+        still: float = REFINE_STILL,
     ) -> Any:
-        """Open3D's ICP on the centred clouds; the transformation returned in input coordinates."""
+        """Open3D's ICP on the centred clouds; the transformation returned in input coordinates.
+
+        Run in bursts of :data:`ICP_BURST` iterations (``criteria.max_iteration`` in all), and
+        stopped when a burst moves the source points by less than ``still`` times the target's
+        diagonal (RMS): near convergence the nearest-neighbour correspondences often
+        alternate between two sets, the inlier RMSE then changes by ~1e-5 at every iteration
+        and Open3D's test (fitness and RMSE changes below ``criteria``) never fires. The bursts
+        have an even length, so such a cycle returns to the same pose at their ends.
+        """
         to_centred, from_centred = np.eye(4), np.eye(4)
         to_centred[:3, 3], from_centred[:3, 3] = -self.ct, self.ct
         into_source, out_of_source = np.eye(4), np.eye(4)
         into_source[:3, 3], out_of_source[:3, 3] = self.cs, -self.cs
-        centred = to_centred @ start @ into_source
-        result = reg.registration_icp(source, target, distance, centred, method, criteria)
-        result.transformation = from_centred @ np.asarray(result.transformation) @ out_of_source
+        pose = to_centred @ start @ into_source
+        points = np.asarray(source.points)
+        still *= self.diagonal
+        done = 0
+        while True:
+            burst = min(ICP_BURST, criteria.max_iteration - done)
+            result = reg.registration_icp(
+                source,
+                target,
+                distance,
+                pose,
+                method,
+                reg.ICPConvergenceCriteria(
+                    criteria.relative_fitness, criteria.relative_rmse, burst
+                ),
+            )
+            done += burst
+            previous, pose = pose, np.asarray(result.transformation)
+            if done >= criteria.max_iteration:
+                break
+            moved = apply_transformation(pose, points) - apply_transformation(previous, points)
+            if np.sqrt((moved**2).sum(axis=1).mean()) <= still:
+                break
+        result.transformation = from_centred @ pose @ out_of_source
         return result
 
     def refine(self, start: np.ndarray, method: Any, criteria: Any) -> Any:
@@ -488,6 +556,14 @@ class _CandidateSearch:
         order = np.argsort([cheap(t) for _, t in sampled], kind="stable")
         return fixed + [sampled[k] for k in order[:SAMPLED_KEPT]]
 
+    def _refined(
+        self, entry: tuple[float, str, Any], method: Any, criteria: Any
+    ) -> tuple[float, str, Any]:
+        icp = self.refine(np.asarray(entry[2].transformation), method, criteria)
+        score = self.score(np.asarray(icp.transformation))
+        logger.debug("rigid start %s refined: score %.4g -> %.4g", entry[1], entry[0], score)
+        return score, entry[1], icp
+
     def _distinct(self, a: np.ndarray, b: np.ndarray) -> bool:
         pa, pb = apply_transformation(a, self.vs), apply_transformation(b, self.vs)
         rms = float(np.sqrt(((pa - pb) ** 2).sum(axis=1).mean()))
@@ -497,24 +573,38 @@ class _CandidateSearch:
         self, candidates: list[tuple[str, np.ndarray]], method: Any, criteria: Any
     ) -> RigidRegistrationResult:
         tried = self._preselect(candidates)
-        scored: list[tuple[float, str, np.ndarray]] = []
+        scored: list[tuple[float, str, Any]] = []
         for name, guess in tried:
             icp = self.icp(
-                self.search_src, self.coarse, 4.0 * self.distance, guess, method, criteria
+                self.search_src,
+                self.coarse,
+                4.0 * self.distance,
+                guess,
+                method,
+                criteria,
+                SEARCH_STILL,
             )
-            t = np.asarray(icp.transformation)
-            score = self.score(t)
+            score = self.score(np.asarray(icp.transformation))
             logger.debug("rigid candidate %s: fitness %.3f, score %.4g", name, icp.fitness, score)
-            scored.append((score, name, t))
+            scored.append((score, name, icp))
         order = sorted(range(len(scored)), key=lambda k: (scored[k][0], k))
         best = scored[order[0]]
-        runner = next((scored[k] for k in order[1:] if self._distinct(best[2], scored[k][2])), None)
-        finals = []
-        for entry in (best, runner):
-            if entry is None:
-                continue
-            icp = self.refine(entry[2], method, criteria)
-            finals.append((self.score(np.asarray(icp.transformation)), entry[1], icp))
+        runner = next(
+            (
+                scored[k]
+                for k in order[1:]
+                if self._distinct(
+                    np.asarray(best[2].transformation), np.asarray(scored[k][2].transformation)
+                )
+            ),
+            None,
+        )
+        finals = [self._refined(best, method, criteria)]
+        if runner is not None:
+            # A runner-up far behind keeps its search pose and score: no refinement brings it
+            # within AMBIGUITY_RATIO of the winner (see RUNNER_UP_REFINED), so it cannot win.
+            far = runner[0] >= RUNNER_UP_REFINED * finals[0][0]
+            finals.append(runner if far else self._refined(runner, method, criteria))
         finals.sort(key=lambda f: f[0])
         win_score, win_name, win = finals[0]
         runner_score: float | None = None
