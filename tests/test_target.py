@@ -51,3 +51,41 @@ def test_levels_of_detail_only_where_coarser_than_the_target():
     assert target.at_detail(fine) is target.query
     # The simplified surface stays within about a voxel of the full one.
     assert target.query.distance(simplified.vertices).max() < coarse
+
+
+def reference_canonical_mesh(vertices, faces):
+    """canonical_mesh as its docstring states it, with NumPy's lexsort and unique."""
+    order = np.lexsort((vertices[:, 2], vertices[:, 1], vertices[:, 0]))
+    v, first = np.unique(vertices[order], axis=0, return_index=True)
+    remap = np.empty(len(vertices), dtype=np.int64)
+    remap[order] = np.searchsorted(first, np.arange(len(order)), side="right") - 1
+    f = remap[faces]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
+    shift = np.argmin(f, axis=1)
+    f = np.stack([f[np.arange(len(f)), (shift + k) % 3] for k in range(3)], axis=1)
+    f = np.unique(f, axis=0)
+    used = np.unique(f)
+    keep = np.full(len(v), -1)
+    keep[used] = np.arange(used.size)
+    return v[used], keep[f]
+
+
+def test_canonical_mesh_is_the_lexicographic_order_without_repeats():
+    # Duplicate vertices (a soup), repeated and rotated triangles (orientation kept), triangles
+    # that merging makes degenerate, ties in x, unreferenced vertices: the same mesh as the
+    # definition computed with lexsort and unique.
+    rng = np.random.default_rng(4)
+    v, f = sphere(10.0, 12)
+    v = np.round(v, 1)  # ties in x (and merged poles)
+    soup = v[f.ravel()]
+    faces = np.arange(soup.shape[0]).reshape(-1, 3)
+    faces = np.concatenate([faces, faces[:40], faces[:30][:, [1, 2, 0]], faces[:20][:, [2, 0, 1]]])
+    soup = np.concatenate([soup, rng.normal(size=(5, 3))])  # unreferenced
+    perm = rng.permutation(faces.shape[0])
+    cv, cf = canonical_mesh(soup, faces[perm])
+    rv, rf = reference_canonical_mesh(soup, faces[perm])
+    np.testing.assert_array_equal(cv, rv)
+    np.testing.assert_array_equal(cf, rf)
+    # A reversed triangle is another triangle (the orientation is kept).
+    flipped = np.concatenate([faces, faces[:1, ::-1]])
+    assert canonical_mesh(soup, flipped)[1].shape[0] == cf.shape[0] + 1

@@ -172,3 +172,26 @@ def test_the_registration_judges_itself_as_assess_registration_does():
     again = assess_registration(result, source, patient)
     assert result.status != "ok" and any("parts of the target" in w for w in result.warnings)
     assert (result.status, result.warnings) == (again.status, again.warnings)
+
+
+def test_the_verdicts_moments_are_the_surface_integrals():
+    # The verdict's size check uses the area and the trace of the covariance of a surface,
+    # computed a coordinate at a time: the same integrals as surface_moments (to rounding), and
+    # on a sphere of radius R close to 4 pi R^2 and R^2 (|x - c| = R everywhere).
+    from o3dreg.registration.rigid import surface_moments
+    from o3dreg.registration.verdict import moments
+
+    sphere = synthetic_form("sphere", 20000)
+    v = np.asarray(sphere.vertices) + np.array([100.0, -50.0, 3.0])  # off the origin
+    f = np.asarray(sphere.triangles)
+    area, size = moments(v, f)
+    ref_area, _, cov = surface_moments(v, f)
+    assert area == pytest.approx(ref_area, rel=1e-12)
+    # Both subtract |c|^2 (30 times R^2 here) from the second moment: agree to ~1e-14, not bits.
+    assert size == pytest.approx(np.trace(cov), rel=1e-10)
+    radius = np.linalg.norm(v - v.mean(axis=0), axis=1).mean()
+    # The inscribed polyhedron of 20k vertices: area and size within 0.1% of the sphere's.
+    assert area == pytest.approx(4 * np.pi * radius**2, rel=1e-3)
+    assert size == pytest.approx(radius**2, rel=1e-3)
+    assert moments(v, f[:0]) == (0.0, None)
+    assert moments(np.zeros((3, 3)), np.array([[0, 1, 2]])) == (0.0, None)

@@ -21,7 +21,7 @@ from ..io.mesh import to_open3d
 from ..volume.cleaning import mesh_components
 from .distance import SurfaceDistanceQuery
 from .result import SurfaceDistances
-from .sampling import morton_order, spatial_subsample
+from .sampling import lexicographic_order, morton_order, spatial_subsample
 from .verdict import Moments, moments
 
 logger = logging.getLogger("o3dreg")
@@ -152,7 +152,7 @@ def canonical_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     from the result is then independent of the input's vertex and face numbering, and triangle
     soups (STL) get their connectivity back, so open boundaries are found.
     """
-    order = np.lexsort((vertices[:, 2], vertices[:, 1], vertices[:, 0]))
+    order = lexicographic_order(vertices)
     sorted_v = vertices[order]
     new = np.ones(order.size, dtype=bool)
     new[1:] = np.any(sorted_v[1:] != sorted_v[:-1], axis=1)
@@ -160,29 +160,37 @@ def canonical_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     remap = np.empty(order.size, dtype=np.int64)
     remap[order] = ids
     v = sorted_v[new]
-    f = remap[faces]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
-    if f.shape[0] == 0:
-        return v, f
-    shift = np.argmin(f, axis=1)
-    rows = np.arange(f.shape[0])[:, None]
-    f = f[rows, (shift[:, None] + np.arange(3)) % 3]
+    f0, f1, f2 = (remap[faces[:, k]] for k in range(3))
+    keep = (f0 != f1) & (f1 != f2) & (f2 != f0)
+    f0, f1, f2 = f0[keep], f1[keep], f2[keep]
+    if f0.size == 0:
+        return v, np.zeros((0, 3), dtype=np.int64)
+    # Rotate each triangle (orientation kept) to start at its smallest index.
+    second, third = f1 < f0, f2 < np.minimum(f0, f1)  # the smallest is f1, or f2
+    r0 = np.where(third, f2, np.where(second, f1, f0))
+    r1 = np.where(third, f0, np.where(second, f2, f1))
+    r2 = np.where(third, f1, np.where(second, f0, f2))
     n = np.int64(v.shape[0])
     if v.shape[0] < 2**21:
         # One int64 key per triangle (three indices of 21 bits): a plain sort, decoded, is the
-        # lexicographic order at a fraction of the cost of lexsort on a million triangles.
-        key = np.sort((f[:, 0] * n + f[:, 1]) * n + f[:, 2])
+        # lexicographic order at a fraction of the cost of lexsort on a million triangles, and
+        # repeated triangles are repeated keys.
+        key = np.sort((r0 * n + r1) * n + r2)
+        unique = np.ones(key.size, dtype=bool)
+        unique[1:] = key[1:] != key[:-1]
+        key = key[unique]
         f = np.stack([key // (n * n), (key // n) % n, key % n], axis=1)
     else:
+        f = np.stack([r0, r1, r2], axis=1)
         f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
-    repeated = np.zeros(f.shape[0], dtype=bool)
-    repeated[1:] = np.all(f[1:] == f[:-1], axis=1)
-    f = f[~repeated]
+        repeated = np.zeros(f.shape[0], dtype=bool)
+        repeated[1:] = np.all(f[1:] == f[:-1], axis=1)
+        f = f[~repeated]
     used = np.zeros(v.shape[0], dtype=bool)
     used[f.ravel()] = True
     if not used.all():
-        keep = np.cumsum(used) - 1
-        v, f = v[used], keep[f]
+        keep_v = np.cumsum(used) - 1
+        v, f = v[used], keep_v[f]
     return v, f
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["morton_order", "spatial_subsample"]
+__all__ = ["lexicographic_order", "morton_order", "spatial_subsample"]
 
 #: Cell grids up to this many cells per point (plus a floor) count their occupied cells on a
 #: bitmap; larger ones by sorting the cell keys.
@@ -112,19 +112,29 @@ def morton_order(points: np.ndarray, bits: int = 10) -> np.ndarray:
     cells = np.minimum(((points - lo) / extent * (1 << bits)).astype(np.int64), (1 << bits) - 1)
     spread = _SPREAD_10 if bits == 10 else _spread_bits(bits)
     code = spread[cells[:, 0]] | (spread[cells[:, 1]] << 1) | (spread[cells[:, 2]] << 2)
-    order = np.argsort(code)
-    sorted_code = code[order]
-    same = sorted_code[1:] == sorted_code[:-1]
+    return _break_ties(np.argsort(code), code, (points[:, 2], points[:, 1], points[:, 0]))
+
+
+def lexicographic_order(points: np.ndarray) -> np.ndarray:
+    """Indices sorting ``points`` by x, then y, then z, then index: ``np.lexsort((z, y, x))``,
+    at a quarter of its cost (one sort on x; only the points sharing an x sorted further)."""
+    x = np.ascontiguousarray(points[:, 0])
+    return _break_ties(np.argsort(x), x, (points[:, 2], points[:, 1]))
+
+
+def _break_ties(order: np.ndarray, primary: np.ndarray, keys: tuple[np.ndarray, ...]) -> np.ndarray:
+    """``order`` (an argsort of ``primary``) as ``np.lexsort((*keys, primary))`` orders: each run
+    of equal ``primary`` values (and only those) sorted by ``keys`` (the last most significant),
+    then by index. Taken in their positions' order, the runs come in ``primary`` order, so
+    sorting their points by ``(primary, keys, index)`` and putting them back fills every run's
+    positions with its own points."""
+    sorted_primary = primary[order]
+    same = sorted_primary[1:] == sorted_primary[:-1]
     if same.any():
-        # Points sharing a code: those runs (and only they) ordered by coordinates, then by
-        # index (equal points). Taken in their positions' order, the runs come in code order, so
-        # sorting them by (code, x, y, z, index) and putting them back fills every run's
-        # positions with its own points.
-        tied = np.zeros(n, dtype=bool)
+        tied = np.zeros(order.size, dtype=bool)
         tied[1:] = same
         tied[:-1] |= same
         at = np.flatnonzero(tied)
         run = order[at]
-        p = points[run]
-        order[at] = run[np.lexsort((run, p[:, 2], p[:, 1], p[:, 0], code[run]))]
+        order[at] = run[np.lexsort((run, *(k[run] for k in keys), primary[run]))]
     return order

@@ -26,11 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from .._geometry import apply_transformation
+from .._geometry import apply_transformation, face_cross, row_norms
 from .._validation import as_mesh_arrays
 from .distance import SurfaceDistanceQuery
 from .result import RigidStart
-from .rigid import MIN_TARGET_TRIANGLES, surface_moments
+from .rigid import MIN_TARGET_TRIANGLES
 
 __all__ = ["STATUSES", "assess_registration", "population_outliers", "worst_status"]
 
@@ -153,19 +153,32 @@ def with_rigid_start(result: Any, start: RigidStart) -> Any:
     )
 
 
-#: A surface's area and, when it is positive, its covariance (:func:`surface_moments`).
-Moments = tuple[float, "np.ndarray | None"]
+#: A surface's area and, when it is positive, its size: the trace of its covariance
+#: ``1/A int |x - c|^2 dA`` (as from :func:`~o3dreg.registration.rigid.surface_moments`).
+Moments = tuple[float, "float | None"]
 
 
 def moments(vertices: np.ndarray, faces: np.ndarray) -> Moments:
-    """Area and covariance of a surface (``None`` for a surface of zero area)."""
+    """Area and size of a surface (``None`` for a surface of zero area).
+
+    The exact integrals of :func:`~o3dreg.registration.rigid.surface_moments`, only the trace of
+    the covariance, a coordinate at a time (a million-triangle target in a fraction of the time).
+    """
     if faces.shape[0] == 0:
         return 0.0, None
-    try:
-        area, _, cov = surface_moments(vertices, faces)
-    except ValueError:  # zero area
+    areas = 0.5 * row_norms(face_cross(vertices, faces))
+    area = float(areas.sum())
+    if not area > 0.0:
         return 0.0, None
-    return area, cov
+    size = 0.0
+    for axis in range(3):
+        col = np.ascontiguousarray(vertices[:, axis])
+        a, b, c = (col[faces[:, k]] for k in range(3))
+        s = a + b + c
+        centroid = float(areas @ s) / (3.0 * area)
+        second = float(areas @ (a * a + b * b + c * c + s * s)) / (12.0 * area)
+        size += second - centroid * centroid
+    return area, size
 
 
 def _diagonal(vertices: np.ndarray) -> float:
@@ -273,10 +286,10 @@ def _support(result: Any) -> list[tuple[str, str]]:
 def _sizes(
     source: Moments, target: Moments, fs: np.ndarray, ft: np.ndarray
 ) -> list[tuple[str, str]]:
-    cov_s, cov_t = source[1], target[1]
-    if ft.shape[0] == 0 or fs.shape[0] == 0 or cov_s is None or cov_t is None:
+    size_s, size_t = source[1], target[1]
+    if ft.shape[0] == 0 or fs.shape[0] == 0 or size_s is None or size_t is None:
         return []  # zero area: reported as a degenerate target
-    ratio = float(np.sqrt(max(np.trace(cov_t), 1e-300) / max(np.trace(cov_s), 1e-300)))
+    ratio = float(np.sqrt(max(size_t, 1e-300) / max(size_s, 1e-300)))
     if ratio > SIZE_RATIO_FAILED or ratio < 1.0 / SIZE_RATIO_FAILED:
         return [
             (
