@@ -41,7 +41,7 @@ from .options import (
     default_levels,
 )
 from .result import ElasticRegistrationResult, LevelReport, RigidStart, SurfaceDistances
-from .rigid import registration_rigid
+from .rigid import default_start
 from .sampling import spatial_subsample
 from .verdict import judge, with_rigid_start
 
@@ -200,7 +200,7 @@ def registration_elastic(
 
     rigid_start = None
     if init is None:
-        rigid_start = registration_rigid((vs, fs), (vt, ft))
+        rigid_start = default_start(vs, fs, surface.query)
         rigid = np.array(rigid_start.transformation)
     else:
         rigid = as_transformation(init, "init")

@@ -367,6 +367,45 @@ def registration_rigid(
     """
     vs, fs = as_mesh_arrays(source, "source", drop_degenerate=True)
     vt, ft = as_mesh_arrays(target, "target", drop_degenerate=True)
+    return _registration_rigid(
+        vs,
+        fs,
+        vt,
+        ft,
+        None,
+        init=init,
+        max_correspondence_distance=max_correspondence_distance,
+        with_scaling=with_scaling,
+        estimation_method=estimation_method,
+        criteria=criteria,
+    )
+
+
+def default_start(
+    vs: np.ndarray, fs: np.ndarray, target: SurfaceDistanceQuery
+) -> RigidRegistrationResult:
+    """``registration_rigid((vs, fs), (target.vertices, target.faces))`` with its defaults, for
+    a target already validated and given with its distance query (``registration_elastic``'s):
+    the AABB tree of a large target is not built a second time."""
+    vs, fs = as_mesh_arrays((vs, fs), "source", drop_degenerate=True)
+    return _registration_rigid(vs, fs, target.vertices, target.faces, target)
+
+
+def _registration_rigid(
+    vs: np.ndarray,
+    fs: np.ndarray,
+    vt: np.ndarray,
+    ft: np.ndarray,
+    target_query: SurfaceDistanceQuery | None,
+    *,
+    init: Any = None,
+    max_correspondence_distance: float | None = None,
+    with_scaling: bool = False,
+    estimation_method: Any = None,
+    criteria: Any = None,
+) -> RigidRegistrationResult:
+    """:func:`registration_rigid` on validated arrays; ``target_query``: the target's distance
+    query when one exists (built here otherwise)."""
     if not isinstance(with_scaling, bool):
         raise TypeError(f"`with_scaling` must be a bool, got {type(with_scaling).__name__}")
     given = init is not None
@@ -405,7 +444,9 @@ def registration_rigid(
             f"got {type(criteria).__name__}"
         )
     with _single_thread():
-        search = _CandidateSearch(vs, fs, vt, ft, max_correspondence_distance, diagonal)
+        search = _CandidateSearch(
+            vs, fs, vt, ft, max_correspondence_distance, diagonal, target_query
+        )
         if given:
             final = search.refine(candidates[0][1], estimation_method, criteria)
             return RigidRegistrationResult(
@@ -457,6 +498,7 @@ class _CandidateSearch:
         ft: np.ndarray,
         max_correspondence_distance: float,
         diagonal: float,
+        target_query: SurfaceDistanceQuery | None = None,
     ) -> None:
         self.vs, self.fs = vs, fs
         # ICP runs on centred copies: Open3D's point-to-plane step linearises the rotation about
@@ -473,7 +515,7 @@ class _CandidateSearch:
         self.search_points = np.asarray(self.search_src.points) + self.cs
         self.coarse = self.tgt.voxel_down_sample(_voxel_for(vt, SEARCH_POINTS))
         self.coarse_points = np.asarray(self.coarse.points) + self.ct
-        self.query = SurfaceDistanceQuery(vt, ft)
+        self.query = SurfaceDistanceQuery(vt, ft) if target_query is None else target_query
         self.source_query = SurfaceDistanceQuery(vs, fs)
 
     def score(self, transformation: np.ndarray) -> float:
