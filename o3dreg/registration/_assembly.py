@@ -53,26 +53,28 @@ class NormalAssembly:
         m = int(number_of_free_nodes)
         n = nodes.shape[0]
         self.number_of_free_nodes = m
-        a = np.broadcast_to(nodes[:, :, None], (n, 8, 8))
-        b = np.broadcast_to(nodes[:, None, :], (n, 8, 8))
-        valid = (a >= 0) & (b >= 0)
-        point = np.broadcast_to(np.arange(n)[:, None, None], (n, 8, 8))[valid]
-        factor = (weights[:, :, None] * weights[:, None, :])[valid]
-        pair_key = a[valid].astype(np.int64) * m + b[valid]
+        # Points of one cell share their 8 nodes: the node pairs are found per cell (a few
+        # hundred to a few thousand), then looked up for every point.
+        cells, first, cell_of = np.unique(nodes, axis=0, return_index=True, return_inverse=True)
+        cell_of = cell_of.ravel()
+        a = np.broadcast_to(cells[:, :, None], (cells.shape[0], 8, 8))
+        b = np.broadcast_to(cells[:, None, :], (cells.shape[0], 8, 8))
+        cell_valid = (a >= 0) & (b >= 0)
+        cell_key = np.where(cell_valid, a.astype(np.int64) * m + b, -1)
         gram = sp.coo_matrix(node_gram)
         gram_key = gram.row.astype(np.int64) * m + gram.col
-        keys = np.union1d(pair_key, gram_key)  # sorted: row-major, the CSR order
+        keys = np.union1d(cell_key[cell_valid], gram_key)  # sorted: row-major, the CSR order
         self.indices = (keys % m).astype(np.int32) if m else np.zeros(0, np.int32)
-        rows = keys // m if m else keys
-        self.indptr = np.searchsorted(rows, np.arange(m + 1)).astype(np.int32)
+        self.indptr = np.searchsorted(keys // max(m, 1), np.arange(m + 1)).astype(np.int32)
         self.pairs = keys.size
+        cell_slot = np.searchsorted(keys, cell_key)
         # S[pair, point] = W_ia W_ib: the node-level matrix of per-point scalars c is S @ c.
-        self.S = sp.csr_matrix(
-            (factor, (np.searchsorted(keys, pair_key), point)), shape=(self.pairs, n)
-        )
+        valid = cell_valid[cell_of]
+        point = np.broadcast_to(np.arange(n)[:, None, None], (n, 8, 8))[valid]
+        factor = (weights[:, :, None] * weights[:, None, :])[valid]
+        self.S = sp.csr_matrix((factor, (cell_slot[cell_of][valid], point)), shape=(self.pairs, n))
         self.gram_values = np.zeros(self.pairs)
         np.add.at(self.gram_values, np.searchsorted(keys, gram_key), gram.data)
-        self.diagonal_pairs = np.searchsorted(keys, np.arange(m, dtype=np.int64) * (m + 1))
         # W^T as CSR (m, n): the right-hand sides are W^T f.
         rows_w = np.broadcast_to(np.arange(n)[:, None], nodes.shape)
         keep = nodes >= 0

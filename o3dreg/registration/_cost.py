@@ -211,8 +211,10 @@ class LevelProblem:
             self.checkers.append(NormalChecker(normals, target.face_normals, rb.max_normal_angle))
         self._robust = rb.loss != "linear" or rb.max_distance_factor is not None
         self.sigma = self.sigma_symmetric = 1.0
-        # The closest points at the level start, shared by the scales and the first evaluation.
+        # The closest points (and barycentre assignment) at the level start, shared by the scales
+        # and the first evaluation.
         self._start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._start_assignment: tuple[np.ndarray, np.ndarray] | None = None
         if self._robust:
             # Scales from the data at the level start (u = 0), over the correspondences the
             # other checkers accept (the distance checker itself is measured in these scales).
@@ -220,10 +222,14 @@ class LevelProblem:
             self._start = dist, face, closest = target.closest(self.base)
             keep = support(self.checkers, self.base, dist, face, closest)
             self.sigma = rb.loss_scale or robust_scale(dist[keep], floor)
-            if self.target_points is not None:
-                e, _ = cKDTree(self.base[keep] if keep.any() else self.base).query(
-                    self.target_points, workers=-1
-                )
+            if self.barycentre is not None:
+                if keep.all():
+                    # Every point supported: the scale's assignment is the first evaluation's.
+                    self._start_assignment = e, _ = self.barycentre.measure(self.base)
+                else:
+                    e, _ = cKDTree(self.base[keep] if keep.any() else self.base).query(
+                        self.barycentre.target_points, workers=-1
+                    )
                 self.sigma_symmetric = rb.loss_scale or robust_scale(e, floor)
         if rb.max_distance_factor is not None:
             self.checkers.append(DistanceChecker(rb.max_distance_factor, self.sigma))
@@ -305,14 +311,16 @@ class LevelProblem:
         point its own weights and assignment.
         """
         y = self.moved(u)
-        found = None
-        if self._start is not None and not u.any():
-            found = self._start
+        at_start = not u.any()
+        found = self._start if at_start else None
         dist, closest, grad, face = self.surface.measure(y, found)
         if weights_of is None:
             e = nearest = None
             if self.barycentre is not None:
-                e, nearest = self.barycentre.measure(y)
+                if at_start and self._start_assignment is not None:
+                    e, nearest = self._start_assignment
+                else:
+                    e, nearest = self.barycentre.measure(y)
             geometry = Geometry(u, y, dist, closest, grad, face, e, nearest)
             return self._assemble(geometry, self._weights(geometry))
         assert weights_of.geometry is not None

@@ -191,21 +191,58 @@ class BarycentreTerm:
         self.sqrt_ws = float(np.sqrt(weight))
         self.offsets = offsets
         self._nn_bound = np.inf
+        # Search state of :meth:`measure`: the positions, nearest template point, gap between
+        # the nearest and second-nearest distance at each target point's last search.
+        self._last: np.ndarray | None = None
+        self._moved = 0.0
+        self._mark = np.zeros(0)
+        self._gap = np.zeros(0)
+        self._nearest = np.zeros(0, dtype=np.int64)
 
     def measure(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest moved template point of every target point (exact), and its distance.
 
-        The points move little between evaluations, so the query is bounded by a radius that
-        held for nearly all of them last time (a bounded k-d tree search prunes more: measured
-        40% faster); the few points without a neighbour inside it are searched again unbounded.
+        Only the target points whose nearest template point may have changed are searched
+        again. A search returns the nearest and second-nearest distances ``e1 <= e2``; while no
+        template point has moved by more than ``D`` in total since, the nearest is still
+        nearer than any other if ``e1 + D < e2 - D`` (triangle inequality), so only points with
+        ``2 D >= e2 - e1`` are searched, ``D`` bounded by the sum of the largest moves of the
+        template between searches. The k-d tree search is bounded by a radius that held for
+        nearly all points last time (it prunes more: measured 40% faster); the few points
+        without a neighbour inside it are searched again unbounded.
         """
-        tree = cKDTree(y, leafsize=32)
-        e, nearest = tree.query(self.target_points, workers=-1, distance_upper_bound=self._nn_bound)
-        missed = ~np.isfinite(e)
-        if missed.any():
-            e[missed], nearest[missed] = tree.query(self.target_points[missed], workers=-1)
-        self._nn_bound = 2.0 * float(np.percentile(e, 99)) if e.size else np.inf
-        return e, nearest
+        t = self.target_points
+        if self._last is None or self._last.shape != y.shape:
+            search = np.ones(t.shape[0], dtype=bool)
+            self._moved = 0.0
+            self._mark = np.zeros(t.shape[0])
+            self._gap = np.zeros(t.shape[0])
+            self._nearest = np.zeros(t.shape[0], dtype=np.int64)
+        else:
+            self._moved += float(np.sqrt(((y - self._last) ** 2).sum(axis=1)).max())
+            search = 2.0 * (self._moved - self._mark) >= self._gap
+        self._last = y.copy()
+        if search.any():
+            tree = cKDTree(y, leafsize=32)
+            points = t[search]
+            k = min(2, y.shape[0])
+            bound = self._nn_bound
+            e, nearest = tree.query(points, k=k, workers=-1, distance_upper_bound=bound)
+            e, nearest = e.reshape(-1, k), nearest.reshape(-1, k)
+            missed = ~np.isfinite(e[:, 0])
+            if missed.any():
+                e2, n2 = tree.query(points[missed], k=k, workers=-1)
+                e[missed], nearest[missed] = e2.reshape(-1, k), n2.reshape(-1, k)
+                bound = np.inf
+            # A second neighbour beyond the search radius is at least that far.
+            second = np.minimum(e[:, 1], bound) if k == 2 else np.full(e.shape[0], np.inf)
+            self._nearest[search] = nearest[:, 0]
+            self._gap[search] = second - e[:, 0]
+            self._mark[search] = self._moved
+        nearest = self._nearest.copy()
+        distance = np.sqrt(((t - y[nearest]) ** 2).sum(axis=1))
+        self._nn_bound = 2.0 * float(np.percentile(distance, 99)) if distance.size else np.inf
+        return distance, nearest
 
     def targets(self, g: Geometry, w: Weights) -> tuple[np.ndarray, np.ndarray]:
         """The barycentres ``b_i`` (offsets applied) and row scales ``s_i`` of an assignment."""
