@@ -12,15 +12,17 @@ from o3dreg.registration.lattice import TrilinearLattice
 from o3dreg.registration.options import ElasticCriteria
 
 
-def small_problem() -> LevelProblem:
-    source, target = synthetic_form("cube", 300), synthetic_form("sphere", 1500)
-    points = np.asarray(source.vertices) * 0.9
+def small_problem(
+    source: str = "cube", scale: float = 0.9, resolution: int = 4, vertices: int = 300
+) -> LevelProblem:
+    source_mesh, target = synthetic_form(source, vertices), synthetic_form("sphere", 1500)
+    points = np.asarray(source_mesh.vertices) * scale
     tv, tf = np.asarray(target.vertices), np.asarray(target.triangles)
     origin, size = lattice_box([points, tv])
     return LevelProblem(
         points,
         np.zeros_like(points),
-        TrilinearLattice.zeros(origin, size, (4, 4, 4)),
+        TrilinearLattice.zeros(origin, size, (resolution,) * 3),
         np.ones(points.shape[0], dtype=bool),
         SurfaceDistanceQuery(tv, tf),
         tv,
@@ -64,7 +66,12 @@ def test_a_non_finite_cost_stops_with_a_message(monkeypatch):
 
 @pytest.mark.parametrize("resolution", [2, 4])
 def test_a_healthy_level_still_converges(resolution):
-    problem = small_problem()
+    # The target shrunk by 10%: an exact solution exists (a scaling, free under the bending
+    # energy) at which both distance terms vanish, so the level converges in a few steps. (The
+    # cube onto the sphere above needs 15-20+ steps: its barycentre term slides the vertices
+    # towards their Voronoi centroids, Lloyd's slow relaxation, and its exact symmetric ties
+    # make the count depend on how nearest-neighbour searches break ties.)
+    problem = small_problem("sphere", 0.9, resolution, vertices=1500)
     info = _solvers.solve(problem, ElasticCriteria(), "lm")
     assert info.success
     assert info.evaluation.cost < info.initial_cost

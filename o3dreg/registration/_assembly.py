@@ -55,7 +55,7 @@ class NormalAssembly:
         self.number_of_free_nodes = m
         # Points of one cell share their 8 nodes: the node pairs are found per cell (a few
         # hundred to a few thousand), then looked up for every point.
-        cells, first, cell_of = np.unique(nodes, axis=0, return_index=True, return_inverse=True)
+        cells, cell_of = np.unique(nodes, axis=0, return_inverse=True)
         cell_of = cell_of.ravel()
         a = np.broadcast_to(cells[:, :, None], (cells.shape[0], 8, 8))
         b = np.broadcast_to(cells[:, None, :], (cells.shape[0], 8, 8))

@@ -234,9 +234,15 @@ class BarycentreTerm:
                 e2, n2 = tree.query(points[missed], k=k, workers=-1)
                 e[missed], nearest[missed] = e2.reshape(-1, k), n2.reshape(-1, k)
                 bound = np.inf
-            # A second neighbour beyond the search radius is at least that far.
-            second = np.minimum(e[:, 1], bound) if k == 2 else np.full(e.shape[0], np.inf)
-            self._nearest[search] = nearest[:, 0]
+            first = nearest[:, 0]
+            second = np.full(e.shape[0], np.inf)
+            if k == 2:
+                # Exact ties (symmetric shapes) go to the smaller index, whatever the tree's
+                # order; a second neighbour beyond the search radius is at least that far.
+                tied = e[:, 1] == e[:, 0]
+                first = np.where(tied, nearest.min(axis=1), first)
+                second = np.minimum(e[:, 1], bound)
+            self._nearest[search] = first
             self._gap[search] = second - e[:, 0]
             self._mark[search] = self._moved
         nearest = self._nearest.copy()
