@@ -55,6 +55,20 @@ def test_boundary_detection_on_a_square():
     assert not SurfaceDistanceQuery(*arrays(closed)).has_boundary
 
 
+def test_boundary_test_only_looks_at_triangles_touching_the_boundary(bunny_target):
+    # The cut bunny: points around it, far and near. Only closest points on triangles with an
+    # open edge or corner are tested; the answer must be that of testing every point.
+    (v, f), _ = cut_top(arrays(bunny_target), 0.3)
+    q = SurfaceDistanceQuery(v, f)
+    rng = np.random.default_rng(0)
+    pts = v[rng.choice(len(v), 3000)] + rng.normal(scale=5.0, size=(3000, 3))
+    _, face, closest = q.closest(pts)
+    beyond = q.beyond_boundary(pts, face, closest)
+    np.testing.assert_array_equal(beyond, q._beyond(pts, face, closest))
+    assert 0 < beyond.sum() < len(pts)  # both answers occur
+    assert q._touches_boundary.mean() < 0.1  # few triangles are tested at all
+
+
 def test_robust_weights_formulas():
     r = np.array([0.0, 0.5, 1.0, 2.0, 4.0])
     np.testing.assert_allclose(robust_weights(r, "huber", 1.0), [1, 1, 1, 0.5, 0.25])

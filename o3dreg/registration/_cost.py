@@ -98,7 +98,6 @@ class Evaluation:
     """Residuals, Jacobian blocks and cost terms at one ``u``."""
 
     u: np.ndarray
-    residuals: np.ndarray
     cost: float
     cost_distance: float
     cost_symmetric: float
@@ -114,6 +113,11 @@ class Evaluation:
 
     #: Whether the barycentre term's assignment is that of an earlier point (a trial step).
     held_assignment: bool = False
+
+    @property
+    def residuals(self) -> np.ndarray:
+        """All residuals, the terms' in order (built on demand: the solver needs the cost)."""
+        return np.concatenate([b.residuals for b in self.terms])
 
     @property
     def blocks(self) -> list[sp.csr_matrix]:
@@ -378,7 +382,6 @@ class LevelProblem:
         cost_r = regulariser.cost
         return Evaluation(
             u=g.u,
-            residuals=np.concatenate([b.residuals for b in blocks]),
             cost=cost_d + cost_sym + cost_r,
             cost_distance=cost_d,
             cost_symmetric=cost_sym,
@@ -410,5 +413,7 @@ class LevelProblem:
                 isotropic = block.isotropic if isotropic is None else isotropic + block.isotropic
             rhs += block.rhs
         A = self.assembly.matrix(metric, isotropic)
-        g = self.assembly.vector(rhs) + self.regulariser.gradient(ev.u)
+        regulariser = ev.terms[-1].gradient
+        assert regulariser is not None
+        g = self.assembly.vector(rhs) + regulariser
         return A, g

@@ -68,17 +68,28 @@ class TermBlock:
     with ``rhs`` the ``f_i`` (see ``_assembly``).
     """
 
-    residuals: np.ndarray
+    value: np.ndarray | Callable[[], np.ndarray] = field(repr=False)
     make_jacobian: Callable[[], sp.csr_matrix] = field(repr=False)
+    #: ``|r|^2``, given where it is cheaper than from ``r`` (the regulariser: ``u^T (J^T J) u``).
+    known_cost: float | None = None
     row_scale: np.ndarray | None = None
     metric: np.ndarray | None = None
     isotropic: np.ndarray | None = None
     rhs: np.ndarray | None = None
     #: The barycentre term's ``(b, s)`` of the assignment this block was made with.
     targets: tuple[np.ndarray, np.ndarray] | None = None
+    #: ``J^T r`` of a term whose share does not go through per-point metrics (the regulariser).
+    gradient: np.ndarray | None = None
 
-    @property
+    @cached_property
+    def residuals(self) -> np.ndarray:
+        """The residual vector ``r`` (built on demand where only its norm is needed)."""
+        return self.value() if callable(self.value) else self.value
+
+    @cached_property
     def cost(self) -> float:
+        if self.known_cost is not None:
+            return self.known_cost
         return float(self.residuals @ self.residuals)
 
     @cached_property
@@ -348,12 +359,18 @@ class RegulariserTerm:
     def residuals(self, u: np.ndarray) -> np.ndarray:
         return np.asarray(self.G @ u.reshape(-1, 3)).ravel()
 
-    def gradient(self, u: np.ndarray) -> np.ndarray:
-        """``J^T r = J^T J u``."""
-        return np.asarray(self.node_gram @ u.reshape(-1, 3)).ravel()
-
     def linearise(self, g: Geometry, w: Weights) -> TermBlock:
-        return TermBlock(self.residuals(g.u), lambda: sp.kron(self.G, sp.identity(3), format="csr"))
+        U = g.u.reshape(-1, 3)
+        gradient = np.asarray(self.node_gram @ U)
+        # |D u|^2 = u^T (D^T D) u: the product with the small node Gram matrix, which the
+        # normal equations need anyway, instead of the long residual vector.
+        cost = max(float((U * gradient).sum()), 0.0)
+        return TermBlock(
+            lambda: self.residuals(g.u),
+            lambda: sp.kron(self.G, sp.identity(3), format="csr"),
+            known_cost=cost,
+            gradient=gradient.ravel(),
+        )
 
     def normal_share(self, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]:
         J = block.jacobian

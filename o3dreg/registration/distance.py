@@ -168,9 +168,24 @@ class SurfaceDistanceQuery:
         -------
         (k,) bool ndarray
         """
-        open_edge, on_boundary, edge = self._boundary()
+        on_boundary = self._boundary()[1]
+        beyond = np.zeros(points.shape[0], dtype=bool)
         if points.shape[0] == 0 or not on_boundary.any():
-            return np.zeros(points.shape[0], dtype=bool)
+            return beyond
+        # Only a closest point on a triangle touching the boundary can be on it.
+        near = np.flatnonzero(self._touches_boundary[face])
+        if near.size:
+            beyond[near] = self._beyond(points[near], face[near], closest[near])
+        return beyond
+
+    @cached_property
+    def _touches_boundary(self) -> np.ndarray:
+        """Per triangle: whether an edge or a corner of it lies on the open boundary."""
+        open_edge, on_boundary, _ = self._boundary()
+        return open_edge.any(axis=1) | on_boundary[self.faces].any(axis=1)
+
+    def _beyond(self, points: np.ndarray, face: np.ndarray, closest: np.ndarray) -> np.ndarray:
+        open_edge, on_boundary, edge = self._boundary()
         corners = self.faces[face]
         bary = barycentric(self.vertices[corners], closest)
         tiny = bary <= 1e-9
