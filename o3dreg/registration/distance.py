@@ -182,7 +182,7 @@ class SurfaceDistanceQuery:
     def _touches_boundary(self) -> np.ndarray:
         """Per triangle: whether an edge or a corner of it lies on the open boundary."""
         open_edge, on_boundary, _ = self._boundary()
-        return open_edge.any(axis=1) | on_boundary[self.faces].any(axis=1)
+        return np.asarray(open_edge.any(axis=1) | on_boundary[self.faces].any(axis=1))
 
     def _beyond(self, points: np.ndarray, face: np.ndarray, closest: np.ndarray) -> np.ndarray:
         open_edge, on_boundary, edge = self._boundary()
