@@ -41,6 +41,9 @@ class NormalAssembly:
     node_gram : (m, m) sparse matrix
         A constant node-level matrix added to the diagonal of every 3x3 block (the
         regulariser's ``D^T D``); its pattern joins the points' pattern.
+    cells : (n,) int ndarray
+        One key per point, equal for points of the same cell (its first corner's lattice node
+        number).
     """
 
     def __init__(
@@ -49,13 +52,15 @@ class NormalAssembly:
         weights: np.ndarray,
         number_of_free_nodes: int,
         node_gram: sp.spmatrix,
+        cells: np.ndarray,
     ) -> None:
         m = int(number_of_free_nodes)
         n = nodes.shape[0]
         self.number_of_free_nodes = m
         # Points of one cell share their 8 nodes: the node pairs are found per cell (a few
         # hundred to a few thousand), then looked up for every point.
-        cells, cell_of = np.unique(nodes, axis=0, return_inverse=True)
+        _, first, cell_of = np.unique(cells, return_index=True, return_inverse=True)
+        cells = nodes[first]
         cell_of = cell_of.ravel()
         a = np.broadcast_to(cells[:, :, None], (cells.shape[0], 8, 8))
         b = np.broadcast_to(cells[:, None, :], (cells.shape[0], 8, 8))

@@ -192,7 +192,11 @@ class LevelProblem:
             lattice, lookup, free_nodes.size, regularization, n, energy
         )
         self.assembly = NormalAssembly(
-            local, np.where(keep, weights, 0.0), free_nodes.size, self.regulariser.node_gram
+            local,
+            np.where(keep, weights, 0.0),
+            free_nodes.size,
+            self.regulariser.node_gram,
+            cells=nodes[:, 0],
         )
         self.surface = PointToSurfaceTerm(self.W, target, self.assembly)
         self.barycentre = (
@@ -212,7 +216,9 @@ class LevelProblem:
         if rb.reject_boundary and target.has_boundary:
             self.checkers.append(BoundaryChecker(target))
         if rb.max_normal_angle is not None and normals is not None:
-            self.checkers.append(NormalChecker(normals, target.face_normals, rb.max_normal_angle))
+            # Normals of the triangles found only (a level checks a few thousand of them a few
+            # times; the target may have millions).
+            self.checkers.append(NormalChecker(normals, target.face_normal, rb.max_normal_angle))
         self._robust = rb.loss != "linear" or rb.max_distance_factor is not None
         self.sigma = self.sigma_symmetric = 1.0
         # The closest points (and barycentre assignment) at the level start, shared by the scales
