@@ -2,14 +2,16 @@
 
 Every term has the same contract: from what an evaluation measured (:class:`Geometry`) and the
 weights of the current linearisation (:class:`Weights`), :meth:`linearise` gives its residuals
-and their Jacobian rows with respect to the level's unknowns ``u`` (a :class:`TermBlock`), and
-:meth:`normal_share` gives the term's share ``(J^T J, J^T r)`` of the normal equations, assembled
-without forming ``J^T J`` from ``J`` where a cheaper equal form exists. The level cost is the sum
-of the terms (:class:`~o3dreg.registration._cost.LevelProblem`); a new distance term is a class
-here with those two methods (tests/test_terms.py checks the contract for every term).
+and what their Jacobian rows with respect to the level's unknowns ``u`` are made of (a
+:class:`TermBlock`; the rows themselves are built on demand), and :meth:`normal_share` gives the
+term's share ``(J^T J, J^T r)`` of the normal equations. The data terms' shares go through
+per-point 3x3 matrices on the level's fixed pattern (``_assembly``), never through ``J``. The
+level cost is the sum of the terms (:class:`~o3dreg.registration._cost.LevelProblem`); a new
+distance term is a class here with those two methods (tests/test_terms.py checks the contract
+for every term).
 
 The moved points are ``y = base + W u`` with ``W`` the constant sparse trilinear weights of the
-free nodes (see ``_cost``); ``Wx = W (x) I_3`` acts on the flattened ``(3n,)`` coordinates.
+free nodes (see ``_cost``).
 """
 
 from __future__ import annotations
