@@ -8,9 +8,11 @@ with plain and with robust weights.
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from _helpers import level_problem
 
 from o3dreg.app.synthetic import synthetic_form
+from o3dreg.registration._assembly import NormalAssembly, symmetric_outer
 from o3dreg.registration._cost import Robustness
 from o3dreg.registration._robust import (
     BoundaryChecker,
@@ -177,3 +179,34 @@ def test_the_normal_checker_looks_up_only_the_normals_it_needs():
     moved = v[:, :] * 1.01
     _supported(moved, f, lazy_query, lazy_query.closest(moved), method, None)
     assert "face_normals" not in lazy_query.__dict__
+
+
+def test_normal_assembly_is_the_sum_over_points():
+    # Random trilinear-like weights on 8 of 30 nodes per point (some fixed: -1), random symmetric
+    # 3x3 metrics and vectors: the fixed-pattern assembly must equal the dense sum
+    # sum_i (W_i^T W_i) (x) M_i + G (x) I_3 and W^T f, whatever the cells' order.
+    rng = np.random.default_rng(4)
+    n, m = 200, 30
+    cells = rng.integers(0, 12, n)
+    cell_nodes = np.stack([rng.choice(m, 8, replace=False) for _ in range(12)])
+    cell_nodes[3, :2] = -1  # a cell with fixed corners
+    nodes = cell_nodes[cells]
+    weights = np.where(nodes >= 0, rng.random((n, 8)), 0.0)
+    gram = sp.random(m, m, density=0.2, random_state=5)
+    gram = (gram + gram.T).tocsr()
+    assembly = NormalAssembly(nodes, weights, m, gram, cells=cells)
+    v = rng.normal(size=(n, 3))
+    iso = rng.random(n)
+    f = rng.normal(size=(n, 3))
+    W = np.zeros((n, m))
+    for i in range(n):
+        for k in range(8):
+            if nodes[i, k] >= 0:
+                W[i, nodes[i, k]] += weights[i, k]
+    expected = sum(
+        np.kron(np.outer(W[i], W[i]), np.outer(v[i], v[i]) + iso[i] * np.eye(3)) for i in range(n)
+    ) + np.kron(gram.toarray(), np.eye(3))
+    A = assembly.matrix(symmetric_outer(v), iso)
+    # The same products summed in another order: equal to rounding.
+    np.testing.assert_allclose(A.toarray(), expected, rtol=0, atol=1e-12 * abs(expected).max())
+    np.testing.assert_allclose(assembly.vector(f), (W.T @ f).ravel(), rtol=0, atol=1e-12)
