@@ -59,8 +59,11 @@ AMBIGUITY_RATIO = 1.2
 #: poses a near-symmetric shape confuses are a half-turn apart. The nearer pose is kept.
 INPUT_POSE_NEAR = 45.0
 INPUT_POSE_FAR = 90.0
-#: Points of the source and of the coarse target the search from many starts works on.
+#: Points of the coarse target and of the source subsample the search from many starts works
+#: on (ICP and scores). 500 source points instead of 1000 made the search 25% faster for the
+#: same winners (27 cases: bunny, demo, CT mandibles; final symmetric distances within 0.2%).
 SEARCH_POINTS = 1000
+SEARCH_SOURCE_POINTS = 500
 #: The runner-up is refined (as the winner is) only when its score from the search is below this
 #: factor times the winner's refined score: the refinement changed the scores of the winner and
 #: the runner-up by factors 0.875-1.035 on the bunny, the demo's patients and 7 CT mandibles, so
@@ -508,9 +511,10 @@ class _CandidateSearch:
         self.distance = max_correspondence_distance
         self.diagonal = diagonal
         # ICP from many starts runs with a spatial subsample of the source against a coarse copy
-        # of the target (about SEARCH_POINTS points each): the basin needs the shape, not the
-        # detail. Only the two best poses are refined on all points.
-        keep = spatial_subsample(vs, SEARCH_POINTS) if vs.shape[0] > SEARCH_POINTS else None
+        # of the target: the basin needs the shape, not the detail. Only the two best poses are
+        # refined on all points.
+        n = SEARCH_SOURCE_POINTS
+        keep = spatial_subsample(vs, n) if vs.shape[0] > n else None
         self.search_src = self.src if keep is None else self.src.select_by_index(keep.tolist())
         self.search_points = np.asarray(self.search_src.points) + self.cs
         self.coarse = self.tgt.voxel_down_sample(_voxel_for(vt, SEARCH_POINTS))
