@@ -39,7 +39,7 @@ STAGES = [
     ("solve the damped system DampedSystem.solve_damped", "_solvers.py:solve_damped"),
     ("lattice weights / Jacobian (lattice.py)", "lattice.py"),
     ("target levels of detail (vertex clustering)", "simplify_vertex_clustering"),
-    ("AABB tree builds SurfaceDistanceQuery.__init__", "distance.py:__init__"),
+    ("AABB tree builds SurfaceDistanceQuery._tree", "distance.py:_tree"),
     ("final distances both ways (TargetSurface.distances)", "_target.py:distances"),
 ]
 

@@ -118,7 +118,7 @@ class TargetSurface:
         the caller has them already) and from the target vertices to the moved template
         surface."""
         if forward is None:
-            forward = self.query.distance(moved)
+            forward = self.query.closest_few(moved)[0]
         backward = SurfaceDistanceQuery(moved, faces).distance(self.vertices)
         return DistanceArrays(forward, backward)
 

@@ -7,17 +7,24 @@ from typing import Any
 
 import igl
 import numpy as np
+from scipy.spatial import cKDTree
 
-from .._geometry import barycentric
+from .._geometry import barycentric, face_cross, row_norms
 
 __all__ = ["SurfaceDistanceQuery"]
+
+#: Below this many triangles, :meth:`SurfaceDistanceQuery.closest_few` builds the full tree
+#: (a fraction of a second).
+CLOSEST_FEW_MIN_FACES = 200_000
 
 
 class SurfaceDistanceQuery:
     """Closest points on a triangle mesh, for many queries against one surface.
 
-    The AABB tree is built once at construction (the expensive part) and reused by every call,
-    as the registration queries the same target surface at each iteration.
+    The AABB tree is built once, on the first :meth:`closest` (the expensive part), and reused by
+    every later call, as the registration queries the same target surface at each iteration. A
+    surface queried only a few times (a large target seen through its levels of detail) answers
+    :meth:`closest_few` without it.
 
     Parameters
     ----------
@@ -29,8 +36,17 @@ class SurfaceDistanceQuery:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         self.faces = np.ascontiguousarray(faces, dtype=np.int64)
-        self._tree = igl.AABB()
-        self._tree.init(self.vertices, self.faces)
+
+    @cached_property
+    def _tree(self) -> Any:
+        tree = igl.AABB()
+        tree.init(self.vertices, self.faces)
+        return tree
+
+    @property
+    def has_tree(self) -> bool:
+        """Whether the AABB tree is built (by the first :meth:`closest`)."""
+        return "_tree" in self.__dict__
 
     @cached_property
     def face_normals(self) -> np.ndarray:
@@ -45,9 +61,8 @@ class SurfaceDistanceQuery:
         return self._normals(self.faces[face])
 
     def _normals(self, faces: np.ndarray) -> np.ndarray:
-        a, b, c = (self.vertices[faces[:, k]] for k in range(3))
-        normals = np.cross(b - a, c - a)
-        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        normals = face_cross(self.vertices, faces)
+        length = row_norms(normals)[:, None]
         return normals / np.where(length > 0, length, 1.0)
 
     def __repr__(self) -> str:
@@ -72,6 +87,47 @@ class SurfaceDistanceQuery:
             return np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 3))
         sqr, face, closest = self._tree.squared_distance(self.vertices, self.faces, pts)
         return np.sqrt(sqr), face, closest
+
+    def closest_few(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`closest` for a few points on a large surface whose tree is not built yet.
+
+        Building the AABB tree of a million-vertex surface costs seconds and hundreds of MB; a
+        k-d tree of its vertices costs a tenth of that and bounds where the closest triangles
+        are. The nearest vertex of a point ``x``, at distance ``r``, bounds its distance to the
+        surface: ``d <= r``. Every point of a triangle lies within ``L / sqrt(3)`` of one of its
+        corners (``L`` its longest edge; equality at an equilateral triangle's centre), so the
+        closest triangle has a corner ``w`` with ``|x - w| <= r + reach(w)``, ``reach(w)`` the
+        longest edge of the triangles around ``w`` over ``sqrt(3)``. The AABB tree of the
+        triangles with such a corner gives the same distances and closest points as the full
+        tree (the minimum over a set holding the closest triangle, computed the same way); where
+        several triangles are exactly as close (a closest point on a shared edge or corner) it may
+        name another of them. Small surfaces, surfaces whose tree is built, and queries that
+        would gather a quarter of the triangles use the full tree.
+        """
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        if self.has_tree or pts.shape[0] == 0 or self.faces.shape[0] < CLOSEST_FEW_MIN_FACES:
+            return self.closest(pts)
+        _, reach = self._edges
+        used = np.flatnonzero(reach > 0)  # the corners of triangles: the others bound nothing
+        sites = self.vertices[used]
+        tree = cKDTree(sites, balanced_tree=False, compact_nodes=False)
+        r, _ = tree.query(pts)
+        # A relative margin far above rounding in |x - w| and the bounds.
+        margin = 1.0 + 1e-9
+        balls = tree.query_ball_point(pts, (r + reach.max()) * margin, return_sorted=False)
+        counts = np.array([len(b) for b in balls])
+        near = used[np.concatenate([np.asarray(b, dtype=np.int64) for b in balls])]
+        owner = np.repeat(np.arange(pts.shape[0]), counts)
+        gap = row_norms(self.vertices[near] - pts[owner])
+        near = near[gap <= (r[owner] + reach[near]) * margin]
+        corner = np.zeros(self.vertices.shape[0], dtype=bool)
+        corner[near] = True
+        f = self.faces
+        candidates = np.flatnonzero(corner[f[:, 0]] | corner[f[:, 1]] | corner[f[:, 2]])
+        if 4 * candidates.size > f.shape[0]:
+            return self.closest(pts)
+        dist, face, closest = SurfaceDistanceQuery(self.vertices, f[candidates]).closest(pts)
+        return dist, candidates[face], closest
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Point-to-surface distances, ``(k,)``."""
@@ -137,15 +193,31 @@ class SurfaceDistanceQuery:
         self._boundary_cache = cached
         return cached
 
-    @cached_property
+    @property
     def mean_edge(self) -> float:
         """Mean length of the triangles' edges (each interior edge counted twice)."""
+        return self._edges[0]
+
+    @cached_property
+    def _edges(self) -> tuple[float, np.ndarray]:
+        """The mean edge length, and per vertex its reach: the longest edge of the triangles
+        around it over ``sqrt(3)`` (0 for a vertex of no triangle; see :meth:`closest_few`)."""
         v, f = self.vertices, self.faces
-        # One edge slot at a time: a million-triangle mesh needs no (m, 3, 3) temporaries.
-        lengths = [
-            np.linalg.norm(v[f[:, (k + 1) % 3]] - v[f[:, (k + 2) % 3]], axis=1) for k in range(3)
-        ]
-        return float(np.concatenate(lengths).mean()) if f.size else 0.0
+        reach = np.zeros(v.shape[0])
+        if not f.size:
+            return 0.0, reach
+        # One edge slot and one coordinate at a time: a million-triangle mesh needs no (m, 3)
+        # temporaries of strided arithmetic.
+        cols = [np.ascontiguousarray(v[:, i]) for i in range(3)]
+        lengths = []
+        for k in range(3):
+            a, b = f[:, (k + 1) % 3], f[:, (k + 2) % 3]
+            d = [col[a] - col[b] for col in cols]
+            lengths.append(np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
+        longest = np.maximum(np.maximum(lengths[0], lengths[1]), lengths[2]) / np.sqrt(3.0)
+        for k in range(3):
+            np.maximum.at(reach, f[:, k], longest)
+        return float(np.concatenate(lengths).mean()), reach
 
     @property
     def has_boundary(self) -> bool:

@@ -364,7 +364,9 @@ def _coarse_to_fine(
             callback(report)
 
     moved = points + previous
-    found = query.closest(moved)  # once for the distances and the support
+    # Once for the distances and the support; without the full target's tree when the levels
+    # only queried its levels of detail.
+    found = query.closest_few(moved)
     measured = surface.distances(moved, fs, forward=found[0])
     det = float(deformation.jacobian_determinant(points).min()) if deformation.levels else 1.0
     supported = _supported(moved, fs, query, found, estimation_method, last_problem, orientation)
