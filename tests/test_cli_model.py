@@ -102,13 +102,44 @@ def test_cli_errors(files, tmp_path, capsys):
     assert "no model.npz" in capsys.readouterr().err
     out = tmp_path / "one"
     code = build_model(files, [str(files / "p0.ply")], out, "--levels", "2")
-    assert code == 1
-    assert "at least 2" in capsys.readouterr().err
+    # One patient cannot make a model: refused before any work (was: registered, then exit 1).
+    assert code == 2
+    assert "at least 2 distinct patient meshes" in capsys.readouterr().err
+    assert not out.exists()
     # A malformed --levels is refused by the argument parser: exit status 2, as for bad input.
     with pytest.raises(SystemExit) as exc:
         build_model(files, [str(files / "p0.ply")], out, "--levels", "x")
     assert exc.value.code == 2
     assert "expected comma-separated integers" in capsys.readouterr().err
+
+
+def test_one_mesh_under_two_names_is_refused_before_any_work(files, tmp_path, capsys):
+    # Before: both were registered, model.npz written, then numpy's "cannot reshape array of
+    # size 0" (exit 2), leaving model.npz, template.ply and registrations/ behind.
+    twin = tmp_path / "twin.ply"
+    twin.write_bytes((files / "p0.ply").read_bytes())
+    out = tmp_path / "model"
+    code = build_model(files, [str(files / "p0.ply"), str(twin)], out, "--levels", "2")
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "at least 2 distinct patient meshes" in err and "got 2 file(s) with 1 distinct" in err
+    assert f"{files / 'p0.ply'} and {twin} hold the same mesh" in err
+    assert not out.exists()
+
+
+def test_a_repeated_patient_beside_others_is_kept_with_a_warning(tmp_path, caplog):
+    from o3dreg.app.model_folder import _check_distinct_patients
+
+    _, targets, *_ = population(2, seed=7)
+    for name, mesh in (("a", targets[0]), ("b", targets[0]), ("c", targets[1])):
+        write_triangle_mesh(tmp_path / f"{name}.ply", mesh)
+    paths = [str(tmp_path / f"{name}.ply") for name in "abc"]
+    with caplog.at_level("WARNING", logger="o3dreg"):
+        _check_distinct_patients(paths)
+    assert f"{paths[0]} and {paths[1]} hold the same mesh" in caplog.text
+    # An unreadable file counts as distinct (the batch reports it).
+    (tmp_path / "broken.ply").write_text("garbage")
+    _check_distinct_patients([paths[0], str(tmp_path / "broken.ply")])
 
 
 @pytest.mark.slow

@@ -33,6 +33,14 @@ def test_generalization_of_a_three_mode_population(data):
     assert np.all(np.diff(curve.values) < 1e-9)
 
 
+def test_generalization_with_a_repeated_shape(data):
+    # Leaving out the third shape leaves two copies of one: that model is the mean alone.
+    tf, truths = data
+    curve = generalization([truths[0], truths[0], truths[1]], tf)
+    assert list(curve.modes) == [0, 1]
+    assert np.all(np.isfinite(curve.values)) and curve.values[1] <= curve.values[0]
+
+
 def test_specificity_is_seeded_and_small_for_exact_model(data, tmp_path):
     tf, truths = data
     model = build_shape_model(truths, tf)

@@ -156,6 +156,24 @@ def test_build_bad_input(pop):
         model.synthesize(np.ones(10))
 
 
+def test_shapes_that_do_not_differ_are_refused(pop):
+    # Before: two copies of one shape gave a model of 0 modes, which failed later with numpy's
+    # "cannot reshape array of size 0" when written in the statismo layout.
+    (_, tf), _, truths, _, _ = pop
+    with pytest.raises(
+        ValueError, match=r"^`shapes` must hold at least 2 distinct shapes.*got 2 .*\(a, b: "
+    ):
+        build_shape_model([truths[0], truths[0].copy()], tf, names=["a", "b"])
+    # One shape in three poses: Procrustes leaves rounding (~1e-14 of the size) between them.
+    posed = [_posed(truths[0], seed) for seed in range(3)]
+    with pytest.raises(ValueError, match="after Procrustes alignment"):
+        build_shape_model(posed, tf)
+    # Not aligned, the poses are different shapes; aligned, a repeated shape beside another is
+    # a valid (if odd) population.
+    assert build_shape_model(posed, tf, align=False).number_of_modes == 2
+    assert build_shape_model([truths[0], truths[0], truths[1]], tf).number_of_modes == 1
+
+
 def test_model_faces_are_the_template_triangles_checked_and_kept(pop, tmp_path):
     (_, tf), _, truths, _, _ = pop
     # A triangle with a repeated corner is kept: the model's triangles are the template's, as

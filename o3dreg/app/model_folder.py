@@ -10,6 +10,7 @@ A model folder holds ``template.ply`` (the template the model is defined on), ``
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -124,6 +125,32 @@ def patient_landmark_file(mesh_path: str | os.PathLike[str]) -> str:
     raise OSError(f"no landmark file for patient {path!r}: expected {' or '.join(tried)}")
 
 
+def _check_distinct_patients(targets: Sequence[str]) -> None:
+    """Before any work: the patient files hold at least 2 distinct meshes. Identical meshes give
+    identical registrations, so a model of no variance. Files that cannot be read here are
+    counted as distinct (the batch reports them, or reads them where it runs)."""
+    groups: dict[str, list[str]] = {}
+    unread = 0
+    for path in targets:
+        try:
+            mesh = read_triangle_mesh(path)
+        except (OSError, ValueError, RuntimeError):
+            unread += 1
+            continue
+        digest = hashlib.sha256(np.asarray(mesh.vertices).tobytes())
+        digest.update(np.asarray(mesh.triangles).tobytes())
+        groups.setdefault(digest.hexdigest(), []).append(os.fspath(path))
+    repeated = [" and ".join(paths) for paths in groups.values() if len(paths) > 1]
+    if len(groups) + unread < 2:
+        same = "".join(f"; {paths} hold the same mesh" for paths in repeated)
+        raise ValueError(
+            f"`targets` must hold at least 2 distinct patient meshes to build a model, got "
+            f"{len(targets)} file(s) with {len(groups)} distinct mesh(es){same}"
+        )
+    for paths in repeated:
+        logger.warning("build_model_folder: %s hold the same mesh (counted twice)", paths)
+
+
 def build_model_folder(
     template: o3d.geometry.TriangleMesh,
     targets: Sequence[str],
@@ -190,6 +217,10 @@ def build_model_folder(
     ------
     FileExistsError
         When ``output`` already holds a model and ``overwrite`` is false (naming the folder).
+    ValueError
+        Before any work, when ``targets`` hold fewer than 2 distinct meshes (one patient, or
+        one mesh under several names: a model of no variance); after the registrations (kept,
+        no model file written), when the registered shapes do not differ.
     """
     if levels is not None:
         if settings is not None:
@@ -205,6 +236,7 @@ def build_model_folder(
             "overwrite=True to rebuild it (finished registrations are reused) or choose another "
             "folder"
         )
+    _check_distinct_patients(targets)
     inits = None
     if landmarks is not None:
         inits = np.stack(
@@ -242,7 +274,13 @@ def build_model_folder(
         surfaces = [read_triangle_mesh(r.source) for r in batch.registered if r.name in used]
         slid = slide_semilandmarks(shapes, surfaces, scaling=scaling)
         shapes = slid.shapes
-    model = build_shape_model(shapes, faces, names=names, scaling=scaling)
+    try:
+        model = build_shape_model(shapes, faces, names=names, scaling=scaling)
+    except ValueError as exc:  # the patients' shapes do not differ: no model file is written
+        raise ValueError(
+            f"{exc}; no model written, the registrations in "
+            f"{os.path.join(out, 'registrations')!r} are kept"
+        ) from exc
     model.save(os.path.join(out, "model.npz"), overwrite=True)
     write_statismo(os.path.join(out, "model.h5"), model, overwrite=True)
     os.makedirs(os.path.join(out, "modes"), exist_ok=True)

@@ -20,6 +20,11 @@ __all__ = ["build_shape_model"]
 
 logger = logging.getLogger("o3dreg")
 
+#: Aligned shapes whose points lie within this fraction of the mean shape's size (RMS distance
+#: of its points from their centroid) of their mean positions, RMS, are one shape: what is left
+#: is rounding (the same mesh twice, or one shape in two poses, aligned by Procrustes).
+SAME_SHAPE = 1e-9
+
 
 def _template_faces(faces: Any, points: int) -> np.ndarray:
     """A new ``(m, 3) int64`` array: ``faces`` as given, or the triangles of a template mesh."""
@@ -79,8 +84,9 @@ def build_shape_model(
     Raises
     ------
     ValueError
-        Fewer than 2 shapes, different vertex counts, or ``faces`` not indexing the points (a
-        mesh: other vertex count than the shapes).
+        Fewer than 2 shapes, shapes that do not differ (after alignment, within
+        :data:`SAME_SHAPE` of their size: a model of no variance), different vertex counts, or
+        ``faces`` not indexing the points (a mesh: other vertex count than the shapes).
     TypeError
         ``faces`` neither an array of triangles nor a mesh.
 
@@ -117,7 +123,11 @@ def _build(
     number_of_modes: int | None,
     names: tuple[str, ...],
     align: bool,
+    *,
+    distinct: bool = True,
 ) -> ShapeModel:
+    """The model of validated shapes; with ``distinct``, shapes that do not differ raise (the
+    leave-one-out models of :func:`~o3dreg.generalization` may be the mean alone)."""
     s, n, _ = x.shape
     if align:
         gpa = generalized_procrustes(x, scaling=scaling)
@@ -125,6 +135,17 @@ def _build(
     else:
         aligned, mean = x, x.mean(axis=0)
     data = (aligned - mean).reshape(s, -1)
+    if distinct:
+        spread = float(np.sqrt((data**2).sum() / (s * n)))
+        size = float(np.sqrt(((mean - mean.mean(axis=0)) ** 2).sum(axis=1).mean()))
+        if not spread > SAME_SHAPE * size:
+            shown = ", ".join(names[:6]) + (", ..." if s > 6 else "")
+            raise ValueError(
+                f"`shapes` must hold at least 2 distinct shapes to build a model, got {s} that "
+                f"are the same shape{' after Procrustes alignment' if align else ''} ({shown}: "
+                f"RMS distance of their points from the mean shape {spread:.3g}, for a shape of "
+                f"RMS radius {size:.4g}): is one patient's mesh given under several names?"
+            )
     _, sv, vt = np.linalg.svd(data, full_matrices=False)
     variances = sv**2 / (s - 1)
     total = float(variances.sum())
