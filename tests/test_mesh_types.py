@@ -139,7 +139,8 @@ def test_build_shape_model_takes_the_template_as_any_mesh_kind(kind):
 
 
 def test_build_shape_model_refuses_a_template_of_another_size():
-    shapes = np.stack([V, V + 0.1, V - 0.1])
+    # Three shapes that differ (translated copies are one shape: a model of no variance).
+    shapes = np.stack([V, V * (1.0, 1.1, 1.0), V * (1.0, 1.0, 0.9)])
     other = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0).subdivide_midpoint(1)
     with pytest.raises(ValueError, match=r"`faces` as a mesh .* \(8\), got 26"):
         build_shape_model(shapes, other)

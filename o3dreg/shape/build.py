@@ -26,7 +26,7 @@ logger = logging.getLogger("o3dreg")
 SAME_SHAPE = 1e-9
 
 
-def _template_faces(faces: Any, points: int) -> np.ndarray:
+def template_faces(faces: Any, points: int) -> np.ndarray:
     """A new ``(m, 3) int64`` array: ``faces`` as given, or the triangles of a template mesh."""
     if isinstance(faces, np.ndarray):
         return as_faces(faces, points, "faces")
@@ -97,7 +97,7 @@ def build_shape_model(
     .. [2] M. Berar et al., ICIAR 2004, LNCS 3212, section 3.3, eq. (4) and Table 4.
     """
     x = as_shape_array(shapes)
-    f = _template_faces(faces, x.shape[1])
+    f = template_faces(faces, x.shape[1])
     if not isinstance(scaling, bool):
         raise TypeError(f"`scaling` must be a bool, got {type(scaling).__name__}")
     s = x.shape[0]
@@ -113,10 +113,10 @@ def build_shape_model(
         names_ = tuple(str(n) for n in names)
         if len(names_) != s:
             raise ValueError(f"`names` must hold {s} names, got {len(names_)}")
-    return _build(x, f, scaling, number_of_modes, names_, align)
+    return pca_model(x, f, scaling, number_of_modes, names_, align)
 
 
-def _build(
+def pca_model(
     x: np.ndarray,
     faces: np.ndarray,
     scaling: bool,

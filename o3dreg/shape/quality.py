@@ -16,7 +16,7 @@ import numpy as np
 from .._geometry import apply_transformation
 from .._validation import check_positive
 from ..io.mesh import atomic_write
-from .build import _build, _template_faces
+from .build import pca_model, template_faces
 from .model import ShapeModel
 from .procrustes import as_shape_array, fit_transformation
 
@@ -158,7 +158,7 @@ def generalization(
         ``modes`` starts at 0 (the mean alone).
     """
     x = as_shape_array(shapes, min_shapes=3)
-    f = _template_faces(faces, x.shape[1])
+    f = template_faces(faces, x.shape[1])
     if not isinstance(scaling, bool):
         raise TypeError(f"`scaling` must be a bool, got {type(scaling).__name__}")
     s = x.shape[0]
@@ -171,7 +171,7 @@ def generalization(
         # The others may all be one shape (a population with a repeated patient): the model is
         # then the mean alone.
         names = tuple(f"s{j}" for j in range(s - 1))
-        model = _build(rest, f, scaling, None, names, True, distinct=False)
+        model = pca_model(rest, f, scaling, None, names, True, distinct=False)
         for m in range(top + 1):
             kk = min(m, model.number_of_modes)
             errors[i, m] = model.project(x[i], number_of_modes=kk).mean_error
