@@ -3,7 +3,8 @@
 * ``'lm'``: Levenberg-Marquardt on the sparse normal equations ``(J^T J + mu D) delta = -J^T r``
   with Marquardt's diagonal scaling ``D = diag(J^T J)`` and Nielsen's damping update. The system
   is symmetric positive definite and sparse (27-node stencil); it is solved by Jacobi-preconditioned
-  conjugate gradients (SuperLU as a fallback).
+  conjugate gradients (SuperLU as a fallback), the coarsest level's by a dense Cholesky
+  factorisation (:class:`DampedSystem`).
 * ``'trf'``: :func:`scipy.optimize.least_squares` ``method='trf'`` with the sparse Jacobian.
 * ``'lm-dense'``: :func:`scipy.optimize.least_squares` ``method='lm'`` (MINPACK, dense Jacobian).
 
@@ -50,9 +51,12 @@ def solve(problem: LevelProblem, criteria: ElasticCriteria, method: str = "lm") 
 #: 10-100x slower than conjugate gradients.
 DENSE_UNKNOWNS = 100
 
-#: Conjugate gradients stop at ``|r| <= CG_RTOL |b|`` (a step needs no more: the next
-#: linearisation corrects it), after at most ``CG_MAXITER`` iterations.
-CG_RTOL = 1e-6
+#: Conjugate gradients stop at ``|r| <= CG_RTOL |b|``, after at most ``CG_MAXITER`` iterations.
+#: A Levenberg-Marquardt step needs no more (the next linearisation corrects it): measured on
+#: the bunny (3k -> 36k, medium and large warps, symmetric and single distance), 1e-4 instead
+#: of 1e-6 leaves every evaluation count and the correspondence errors to 4 digits unchanged,
+#: with a third fewer CG iterations (660 -> 428 over a symmetric registration).
+CG_RTOL = 1e-4
 CG_MAXITER = 1000
 
 
@@ -62,8 +66,8 @@ class DampedSystem:
 
     Tiny systems are factorised densely (Cholesky; ``A`` is made dense once). Others are solved
     by Jacobi-preconditioned conjugate gradients: the damping ``mu diag(A)`` keeps the system
-    well conditioned, so CG needs a few dozen products (measured: <= 52 on the bunny benchmark),
-    far cheaper than a sparse LU, which is the fallback if CG does not converge.
+    well conditioned, so CG needs a few dozen products, far cheaper than a sparse LU, which is
+    the fallback if CG does not converge.
     """
 
     def __init__(self, A: sp.spmatrix) -> None:
