@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .._geometry import apply_transformation, face_cross, row_norms
+from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays
 from .distance import SurfaceDistanceQuery
 from .result import RigidStart
@@ -166,18 +166,22 @@ def moments(vertices: np.ndarray, faces: np.ndarray) -> Moments:
     """
     if faces.shape[0] == 0:
         return 0.0, None
-    areas = 0.5 * row_norms(face_cross(vertices, faces))
+    # Every corner coordinate gathered once (contiguous columns and index arrays), the cross
+    # products from them: a million-triangle target in a few gathers.
+    corner = [np.ascontiguousarray(faces[:, k]) for k in range(3)]
+    a, b, c = ([np.ascontiguousarray(vertices[:, i])[idx] for i in range(3)] for idx in corner)
+    e, g = [b[i] - a[i] for i in range(3)], [c[i] - a[i] for i in range(3)]
+    cross = [e[1] * g[2] - e[2] * g[1], e[2] * g[0] - e[0] * g[2], e[0] * g[1] - e[1] * g[0]]
+    areas = 0.5 * np.sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2])
     area = float(areas.sum())
     if not area > 0.0:
         return 0.0, None
     size = 0.0
     for axis in range(3):
-        col = np.ascontiguousarray(vertices[:, axis])
-        a, b, c = (col[faces[:, k]] for k in range(3))
-        s = a + b + c
+        s = a[axis] + b[axis] + c[axis]
         centroid = float(areas @ s) / (3.0 * area)
-        second = float(areas @ (a * a + b * b + c * c + s * s)) / (12.0 * area)
-        size += second - centroid * centroid
+        second = a[axis] * a[axis] + b[axis] * b[axis] + c[axis] * c[axis] + s * s
+        size += float(areas @ second) / (12.0 * area) - centroid * centroid
     return area, size
 
 
