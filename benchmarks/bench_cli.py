@@ -13,12 +13,16 @@ sizes), starting at the identity. o3dreg runs ``--repeat`` times (best kept), th
 
     python benchmarks/bench_cli.py
     python benchmarks/bench_cli.py --repeat 5
+    python benchmarks/bench_cli.py --profile   # and where o3dreg register's time goes
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
+import os
+import pstats
 import subprocess
 import sys
 import tempfile
@@ -28,6 +32,19 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+#: Profile groups of ``o3dreg register``: (label, substring of "file:function" in cProfile's keys).
+STAGES = [
+    ("read the two meshes (io.mesh.read_triangle_mesh)", "mesh.py:read_triangle_mesh"),
+    ("target preparation (TargetSurface)", "_target.py:__init__"),
+    # Below 200k target vertices, the rigid step's first score builds the target's AABB tree,
+    # which the elastic levels use afterwards.
+    ("rigid step (rigid.default_start)", "rigid.py:default_start"),
+    ("elastic levels (elastic._coarse_to_fine)", "elastic.py:_coarse_to_fine"),
+    ("verdict (verdict.judge)", "verdict.py:judge"),
+    ("write the result (io.mesh.write_triangle_mesh)", "mesh.py:write_triangle_mesh"),
+]
 
 
 def make_case(folder: Path) -> dict:
@@ -95,6 +112,41 @@ def child(method: str, folder: Path) -> dict:
     return {"method": method, "seconds": seconds, "cpu": time.process_time() - cpu}
 
 
+def profile(folder: Path) -> str:
+    """cProfile of one ``o3dreg register`` run (after a warm-up run), grouped by stage."""
+    from o3dreg.cli import main
+
+    args = [
+        "register",
+        str(folder / "template.ply"),
+        str(folder / "target.ply"),
+        "-o",
+        str(folder / "out-profile.ply"),
+        "--overwrite",
+        "--quiet",
+    ]
+    main(args)
+    prof = cProfile.Profile()
+    start = time.perf_counter()
+    prof.enable()
+    main(args)
+    prof.disable()
+    total = time.perf_counter() - start
+    stats = pstats.Stats(prof).stats  # type: ignore[attr-defined]
+    lines = [
+        f"\nprofile: o3dreg register, {total:.3f} s wall (cProfile on)",
+        f"{'stage':<52}{'calls':>7}{'cum s':>8}{'% total':>8}",
+    ]
+    for label, key in STAGES:
+        calls, cum = 0, 0.0
+        for (file, _line, func), (_cc, nc, _tt, ct, _callers) in stats.items():
+            if key == f"{os.path.basename(file)}:{func}":
+                calls += nc
+                cum += ct
+        lines.append(f"{label:<52}{calls:>7}{cum:>8.3f}{100 * cum / total:>8.1f}")
+    return "\n".join(lines)
+
+
 def error(folder: Path, method: str) -> float:
     from o3dreg.io.mesh import read_triangle_mesh
 
@@ -109,6 +161,9 @@ def main() -> None:
     )
     parser.add_argument("--child", nargs=2, metavar=("METHOD", "FOLDER"), help=argparse.SUPPRESS)
     parser.add_argument("--repeat", type=int, default=3, help="o3dreg runs (best time kept)")
+    parser.add_argument(
+        "--profile", action="store_true", help="also profile one o3dreg run, by stage"
+    )
     args = parser.parse_args()
     if args.child:
         print(json.dumps(child(args.child[0], Path(args.child[1]))))
@@ -131,6 +186,7 @@ def main() -> None:
                 cpus.append(run["cpu"])
             rows[method] = (min(times), min(cpus), error(folder, method))
             print(f"done {method}: {min(times):.2f} s", file=sys.stderr)
+        profiled = profile(folder) if args.profile else ""
     diag = case["diagonal"]
     print(
         f"3k -> 50k: template {case['template']} vertices -> target {case['target']} vertices "
@@ -146,6 +202,8 @@ def main() -> None:
         f"o3dreg register is {t1 / t0:.1f}x faster than nricp_amberg (wall clock; CPU time "
         f"{c1 / c0:.1f}x) at {e0 / e1:.2f}x its error (target: >= 15x at <= 1x)"
     )
+    if profiled:
+        print(profiled)
 
 
 if __name__ == "__main__":
