@@ -67,7 +67,7 @@ SEARCH_POINTS = 1000
 SEARCH_SOURCE_POINTS = 500
 #: The runner-up is refined (as the winner is) only when its score from the search is below this
 #: factor times the winner's refined score: the refinement changed the scores of the winner and
-#: the runner-up by factors 0.875-1.035 on the bunny, the demo's patients and 7 CT mandibles, so
+#: the runner-up by factors 0.84-1.035 on the bunny, the demo's patients and 7 CT mandibles, so
 #: a pose twice as far would need a factor 0.6 to come within AMBIGUITY_RATIO of the winner.
 RUNNER_UP_REFINED = 2.0
 #: ICP runs in bursts of this many iterations (even: see :meth:`_CandidateSearch.icp`) and stops
