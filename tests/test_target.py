@@ -89,3 +89,38 @@ def test_canonical_mesh_is_the_lexicographic_order_without_repeats():
     # A reversed triangle is another triangle (the orientation is kept).
     flipped = np.concatenate([faces, faces[:1, ::-1]])
     assert canonical_mesh(soup, flipped)[1].shape[0] == cf.shape[0] + 1
+
+
+def test_vertex_clustering_is_open3ds():
+    # The levels of detail: the same simplified mesh as Open3D's simplify_vertex_clustering
+    # (Average) followed by remove_degenerate_triangles and remove_unreferenced_vertices, in
+    # canonical order. The means are summed in another order: equal to rounding.
+    from o3dreg.io.mesh import to_open3d
+    from o3dreg.registration._target import cluster_vertices
+
+    v, f = canonical_mesh(*sphere(10.0, 60))
+    v = v + np.array([3.0, -7.0, 1.0])  # off the origin: the grid starts at the data
+    for voxel in (0.8, 2.5):
+        mesh = to_open3d(v, f).simplify_vertex_clustering(
+            voxel, o3d.geometry.SimplificationContraction.Average
+        )
+        mesh.remove_degenerate_triangles()
+        mesh.remove_unreferenced_vertices()
+        ov, of = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+        cv, cf = cluster_vertices(v, f, voxel)
+        assert cv.shape == ov.shape and cf.shape == of.shape
+        # Match Open3D's vertices to ours (each the mean of the same voxel's vertices).
+        tree = o3d.geometry.KDTreeFlann(to_open3d(cv, cf))
+        match = np.array([tree.search_knn_vector_3d(p, 1)[1][0] for p in ov])
+        np.testing.assert_allclose(cv[match], ov, rtol=0, atol=1e-12 * np.abs(v).max())
+        assert np.unique(match).size == match.size
+
+        def rotated(faces):
+            shift = np.argmin(faces, axis=1)
+            rows = np.arange(len(faces))[:, None]
+            return {tuple(t) for t in faces[rows, (shift[:, None] + np.arange(3)) % 3]}
+
+        assert rotated(match[of]) == rotated(cf)  # the same triangles, orientation kept
+        # Canonical: the triangles sorted, every vertex used.
+        np.testing.assert_array_equal(cf, cf[np.lexsort(cf.T[::-1])])
+        assert np.unique(cf).size == cv.shape[0]

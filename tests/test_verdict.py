@@ -174,7 +174,7 @@ def test_the_registration_judges_itself_as_assess_registration_does():
     assert (result.status, result.warnings) == (again.status, again.warnings)
 
 
-def test_the_verdicts_moments_are_the_surface_integrals():
+def test_the_verdicts_moments_are_the_surface_integrals(monkeypatch):
     # The verdict's size check uses the area and the trace of the covariance of a surface,
     # computed a coordinate at a time: the same integrals as surface_moments (to rounding), and
     # on a sphere of radius R close to 4 pi R^2 and R^2 (|x - c| = R everywhere).
@@ -193,5 +193,10 @@ def test_the_verdicts_moments_are_the_surface_integrals():
     # The inscribed polyhedron of 20k vertices: area and size within 0.1% of the sphere's.
     assert area == pytest.approx(4 * np.pi * radius**2, rel=1e-3)
     assert size == pytest.approx(radius**2, rel=1e-3)
+    # Summed in blocks of triangles (any block size, the same sums to rounding).
+    from o3dreg.registration import verdict
+
+    monkeypatch.setattr(verdict, "MOMENTS_BLOCK", 1000)
+    assert moments(v, f) == pytest.approx((area, size), rel=1e-12)
     assert moments(v, f[:0]) == (0.0, None)
     assert moments(np.zeros((3, 3)), np.array([[0, 1, 2]])) == (0.0, None)

