@@ -187,7 +187,7 @@ def moments(vertices: np.ndarray, faces: np.ndarray) -> Moments:
 
 
 #: Triangles per block of :func:`moments`.
-MOMENTS_BLOCK = 1 << 16
+MOMENTS_BLOCK = 1 << 18
 
 
 def _diagonal(vertices: np.ndarray) -> float:
