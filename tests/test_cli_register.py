@@ -53,8 +53,15 @@ def test_register_writes_all_outputs(pair, tmp_path, capsys):
 
 def test_json_output_and_no_symmetric(pair, tmp_path, capsys):
     code = register(pair, tmp_path / "o.ply", "--json", "--no-symmetric", "--levels", "2,4")
-    data = json.loads(capsys.readouterr().out)
-    assert code == 0 and data["levels"][0]["resolution"] == 2
+    single = json.loads(capsys.readouterr().out)
+    assert code == 0 and single["levels"][0]["resolution"] == 2
+    assert register(pair, tmp_path / "s.ply", "--json", "--levels", "2,4") == 0
+    symmetric = json.loads(capsys.readouterr().out)
+    # Same rigid start, same first level: the symmetric cost adds the barycentre term's
+    # (positive) share to the same point-to-surface and regulariser terms, so --no-symmetric
+    # must show a smaller starting cost.
+    assert single["transformation"] == symmetric["transformation"]
+    assert single["levels"][0]["initial_cost"] < symmetric["levels"][0]["initial_cost"]
 
 
 def test_refusals_leave_nothing(pair, tmp_path, capsys):

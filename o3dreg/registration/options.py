@@ -213,7 +213,8 @@ class DistanceEstimation:
         on the bunny, 3k -> 36k: mean correspondence error 0.173% -> 0.146% of the diagonal,
         target->template mean 0.141 -> 0.097 mm). It assumes that density ratio: on targets
         as coarse as the template it moves vertices that are already in place, and it weakens
-        the spreading of the paper's cone -> sphere case (sphere->cone mean 0.52 -> 0.96 mm).
+        the spreading of the paper's cone -> sphere case (sphere->cone mean 0.31 -> 0.61 mm with the
+        term at every level).
     target_points_per_source_point : float
         At most this many target vertices per template vertex enter the barycentre term (an even
         spatial subsample of the target when it is denser). Default 10: every barycentre still
@@ -255,9 +256,8 @@ class DistanceEstimation:
         correspondences after the rigid step and compared reversed. Default 90: only surfaces
         facing away from each other (the inner side of a thin shell, debris) are kept apart; a
         smaller angle also drops correct matches where the shapes differ much (the cone onto a
-        sphere ends 3.5 mm target->template mean at 90, as with no normal test, and 11.6 mm at
-        60). ``None`` (or 180)
-        disables it.
+        sphere ends 2.4 mm target->template mean at 90, as with no normal test, and 11.2 mm at
+        60). ``None`` (or 180) disables it.
     min_target_component : float or None
         Ignore the connected components of the target with fewer vertices than this fraction
         of its largest component (islands, debris, loose fragments a marching-cubes surface
@@ -360,7 +360,7 @@ def default_levels() -> list[ElasticLevel]:
     evaluations. Measured (bunny, 3k -> 36k, medium warp, paper's plain least squares): mean
     correspondence error 0.180% of the diagonal with the term at every level, 0.085% with this
     schedule (single distance: 0.092%); the cone -> sphere of Table 1 keeps its spreading
-    (sphere -> cone mean 1.5 mm, against 0.5 mm with the term at every level and 33.6 mm with
+    (sphere -> cone mean 0.7 mm, against 0.3 mm with the term at every level and 33.6 mm with
     the single distance). ``symmetric_scale=1`` on every level is eq. (3) at every level, the
     published method.
     """
