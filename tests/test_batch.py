@@ -40,6 +40,11 @@ def test_batch_writes_each_patient_and_reports_failures(small, tmp_path):
             assert (out / f"{name}{suffix}").is_file()
         record = json.loads((out / f"{name}.json").read_text())
         assert record["status"] == "registered" and record["distances"]["source_to_target_mean"] < 1
+        # How the rigid start was chosen travels with the record (no init given: searched).
+        start = record["rigid_start"]
+        assert start["candidates"] >= 1 and start["score"] >= 0.0
+        assert start["runner_up_score"] is None or start["runner_up_score"] >= start["score"]
+    assert result.records[1].rigid_start is None  # a failure has none
     assert json.loads((out / "broken.json").read_text())["status"] == "failed"
     assert not [p for p in os.listdir(out) if ".part" in p]  # nothing half-written
     table = result.table()
@@ -55,6 +60,7 @@ def test_batch_resumes_and_force_reregisters(small, tmp_path):
     again = register_batch(template, targets[:2], tmp_path, levels=FAST)
     assert all(r.skipped for r in again.records)
     assert again.records[0].distances == first.records[0].distances
+    assert again.records[0].rigid_start == first.records[0].rigid_start is not None
     forced = register_batch(template, targets[:2], tmp_path, levels=FAST, force=True)
     assert not any(r.skipped for r in forced.records)
 

@@ -77,6 +77,10 @@ class PatientRecord:
         (registered again on the next run).
     warnings : tuple of str
         The reasons behind ``verdict``, one plain sentence each.
+    rigid_start : dict or None
+        How the rigid start was chosen (``RigidStart.as_dict()``: the winner's and runner-up's
+        scores, candidates, ICP figures, ambiguity warnings); ``None`` when the start was given
+        (``init``) or for a failure.
     skipped : bool
         ``True`` when the record was read back from an earlier run.
     """
@@ -92,6 +96,7 @@ class PatientRecord:
     source: str = ""
     verdict: str = "unknown"
     warnings: tuple[str, ...] = ()
+    rigid_start: dict[str, Any] | None = None
     skipped: bool = False
 
     def __repr__(self) -> str:
@@ -392,6 +397,7 @@ def save_registered(
         source=source,
         verdict=str(result.status),
         warnings=tuple(result.warnings),
+        rigid_start=None if result.rigid_start is None else result.rigid_start.as_dict(),
     )
     logger.info(
         "batch: %s registered in %.1f s (mean distances %.3g / %.3g)",
