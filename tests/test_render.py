@@ -95,6 +95,20 @@ def test_view_screenshot_is_written_headless_in_bounded_time(tmp_path, cone):
     assert "mean 0.000" in done.stdout  # a mesh is at distance 0 from itself
 
 
+def test_view_screenshot_of_several_meshes_is_refused_before_any_work(tmp_path, cone, capsys):
+    # It drew the first mesh only, silently.
+    import open3d as o3d
+
+    from o3dreg.cli import main
+
+    a, b, png = tmp_path / "a.ply", tmp_path / "b.ply", tmp_path / "ab.png"
+    o3d.io.write_triangle_mesh(str(a), cone)
+    o3d.io.write_triangle_mesh(str(b), cone)
+    assert main(["view", str(a), str(b), "--screenshot", str(png)]) == 2
+    assert "--screenshot renders one MESH, got 2" in capsys.readouterr().err
+    assert not png.exists()
+
+
 def _sphere_model(radii):
     import open3d as o3d
 

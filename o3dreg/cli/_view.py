@@ -26,7 +26,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "view",
         help="show meshes in Open3D's interactive viewer",
         description="Open meshes in Open3D's viewer where a display exists; --screenshot renders "
-        "the first mesh to a PNG instead (works without a display or GPU: matplotlib by default, "
+        "one mesh to a PNG instead (works without a display or GPU: matplotlib by default, "
         "about a second; --backend open3d uses Filament, under --time-limit).",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -85,6 +85,12 @@ def run(args: argparse.Namespace) -> int:
         )
         if len(args.size) != 2:
             raise ValueError(f"--size must be W,H, got {args.size}")
+        if len(args.meshes) > 1:
+            # Drawing only the first would silently leave the others out of the picture.
+            raise ValueError(
+                f"--screenshot renders one MESH, got {len(args.meshes)}: write one picture per "
+                "mesh, or open them together in a window (without --screenshot)"
+            )
     meshes = [read_triangle_mesh(path, name="MESH") for path in args.meshes]
     scalars = None
     if args.distance_to:
