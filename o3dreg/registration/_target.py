@@ -156,33 +156,7 @@ def canonical_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     f0, f1, f2 = f0[keep], f1[keep], f2[keep]
     if f0.size == 0:
         return v, np.zeros((0, 3), dtype=np.int64)
-    # Rotate each triangle (orientation kept) to start at its smallest index.
-    second, third = f1 < f0, f2 < np.minimum(f0, f1)  # the smallest is f1, or f2
-    r0 = np.where(third, f2, np.where(second, f1, f0))
-    r1 = np.where(third, f0, np.where(second, f2, f1))
-    r2 = np.where(third, f1, np.where(second, f0, f2))
-    n = np.int64(v.shape[0])
-    if v.shape[0] < 2**21:
-        # One int64 key per triangle (three indices of 21 bits): a plain sort, decoded, is the
-        # lexicographic order at a fraction of the cost of lexsort on a million triangles, and
-        # repeated triangles are repeated keys.
-        key = np.sort((r0 * n + r1) * n + r2)
-        unique = np.ones(key.size, dtype=bool)
-        unique[1:] = key[1:] != key[:-1]
-        key = key[unique]
-        f = np.stack([key // (n * n), (key // n) % n, key % n], axis=1)
-    else:
-        f = np.stack([r0, r1, r2], axis=1)
-        f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
-        repeated = np.zeros(f.shape[0], dtype=bool)
-        repeated[1:] = np.all(f[1:] == f[:-1], axis=1)
-        f = f[~repeated]
-    used = np.zeros(v.shape[0], dtype=bool)
-    used[f.ravel()] = True
-    if not used.all():
-        keep_v = np.cumsum(used) - 1
-        v, f = v[used], keep_v[f]
-    return v, f
+    return _drop_unused(v, _sorted_triangles(f0, f1, f2, v.shape[0]))
 
 
 def cluster_vertices(
@@ -213,24 +187,42 @@ def cluster_vertices(
     f0, f1, f2 = (cluster[faces[:, k]] for k in range(3))
     keep = (f0 != f1) & (f1 != f2) & (f2 != f0)
     f0, f1, f2 = f0[keep], f1[keep], f2[keep]
-    # Each kept triangle rotated (orientation kept) to start at its smallest index, then sorted
-    # and made unique on one int64 key (or lexsort when three indices do not fit in 63 bits).
-    second, third = f1 < f0, f2 < np.minimum(f0, f1)
+    v, f = _drop_unused(v, _sorted_triangles(f0, f1, f2, v.shape[0]))
+    return v, f.reshape(-1, 3)
+
+
+def _sorted_triangles(f0: np.ndarray, f1: np.ndarray, f2: np.ndarray, n: int) -> np.ndarray:
+    """Triangles ``(f0, f1, f2)`` (no two corners equal) each rotated, orientation kept, to start
+    at its smallest index, sorted lexicographically, repeats removed: ``(k, 3)``."""
+    second, third = f1 < f0, f2 < np.minimum(f0, f1)  # the smallest is f1, or f2
     r0 = np.where(third, f2, np.where(second, f1, f0))
     r1 = np.where(third, f0, np.where(second, f2, f1))
     r2 = np.where(third, f1, np.where(second, f0, f2))
-    n = np.int64(v.shape[0])
-    if v.shape[0] < 2**21:
-        key = np.unique((r0 * n + r1) * n + r2)
-        f = np.stack([key // (n * n), (key // n) % n, key % n], axis=1)
-    else:
-        f = np.unique(np.stack([r0, r1, r2], axis=1), axis=0)
+    m = np.int64(n)
+    if n < 2**21:
+        # One int64 key per triangle (three indices of 21 bits): a plain sort, decoded, is the
+        # lexicographic order at a fraction of the cost of lexsort on a million triangles, and
+        # repeated triangles are repeated keys.
+        key = np.sort((r0 * m + r1) * m + r2)
+        unique = np.ones(key.size, dtype=bool)
+        unique[1:] = key[1:] != key[:-1]
+        key = key[unique]
+        return np.stack([key // (m * m), (key // m) % m, key % m], axis=1)
+    f = np.stack([r0, r1, r2], axis=1)
+    f = f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))]
+    repeated = np.zeros(f.shape[0], dtype=bool)
+    repeated[1:] = np.all(f[1:] == f[:-1], axis=1)
+    return f[~repeated]
+
+
+def _drop_unused(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh without the vertices no triangle uses (renumbered in order)."""
     used = np.zeros(v.shape[0], dtype=bool)
     used[f.ravel()] = True
-    if not used.all():
-        remap = np.cumsum(used) - 1
-        v, f = v[used], remap[f]
-    return v, f.reshape(-1, 3)
+    if used.all():
+        return v, f
+    remap = np.cumsum(used) - 1
+    return v[used], remap[f]
 
 
 def drop_small_components(
