@@ -29,7 +29,8 @@ def symmetric_outer(v: np.ndarray) -> np.ndarray:
 
 
 class NormalAssembly:
-    """Pattern and pair factors of a level's normal equations.
+    """Pattern and pair factors of a level's normal equations, and the trilinear weight matrix
+    ``W`` (``(n, m)``, free nodes only) they come from.
 
     Parameters
     ----------
@@ -80,10 +81,11 @@ class NormalAssembly:
         self.S = sp.csr_matrix((factor, (cell_slot[cell_of][valid], point)), shape=(self.pairs, n))
         self.gram_values = np.zeros(self.pairs)
         np.add.at(self.gram_values, np.searchsorted(keys, gram_key), gram.data)
-        # W^T as CSR (m, n): the right-hand sides are W^T f.
+        # The trilinear weights W (n, m) of the free nodes, and W^T for the right-hand sides.
         rows_w = np.broadcast_to(np.arange(n)[:, None], nodes.shape)
         keep = nodes >= 0
-        self.WT = sp.csr_matrix((weights[keep], (nodes[keep], rows_w[keep])), shape=(m, n))
+        self.W = sp.csr_matrix((weights[keep], (rows_w[keep], nodes[keep])), shape=(n, m))
+        self.WT = self.W.T.tocsr()
 
     def matrix(
         self, metric: np.ndarray, isotropic: np.ndarray | None = None, with_gram: bool = True

@@ -104,7 +104,6 @@ class Evaluation:
     cost_regularization: float
     distances: np.ndarray
     moved: np.ndarray
-    symmetric_scale: np.ndarray | None = None
     weights: np.ndarray | None = None
     support: np.ndarray | None = None
     target_weights: np.ndarray | None = None
@@ -120,14 +119,9 @@ class Evaluation:
         return np.concatenate([b.residuals for b in self.terms])
 
     @property
-    def blocks(self) -> list[sp.csr_matrix]:
-        """The terms' Jacobian blocks (built on demand)."""
-        return [b.jacobian for b in self.terms]
-
-    @property
     def jacobian(self) -> sp.csr_matrix:
-        """The full sparse Jacobian (the residual blocks stacked)."""
-        return sp.vstack(self.blocks, format="csr")
+        """The full sparse Jacobian: the terms' blocks (built on demand) stacked."""
+        return sp.vstack([b.jacobian for b in self.terms], format="csr")
 
 
 class LevelProblem:
@@ -183,21 +177,18 @@ class LevelProblem:
         lookup[free_nodes] = np.arange(free_nodes.size)
         self.free_nodes = free_nodes
         local = lookup[nodes]
-        keep = local >= 0
-        rows = np.broadcast_to(np.arange(n)[:, None], local.shape)[keep]
-        # W restricted to free nodes, (n, m).
-        self.W = sp.csr_matrix((weights[keep], (rows, local[keep])), shape=(n, free_nodes.size))
         self.number_of_unknowns = 3 * free_nodes.size
         self.regulariser = RegulariserTerm(
             lattice, lookup, free_nodes.size, regularization, n, energy
         )
         self.assembly = NormalAssembly(
             local,
-            np.where(keep, weights, 0.0),
+            np.where(local >= 0, weights, 0.0),
             free_nodes.size,
             self.regulariser.node_gram,
             cells=nodes[:, 0],
         )
+        self.W = self.assembly.W  # (n, m): the trilinear weights of the free nodes
         self.surface = PointToSurfaceTerm(self.W, target, self.assembly)
         self.barycentre = (
             None
@@ -394,7 +385,6 @@ class LevelProblem:
             cost_regularization=cost_r,
             distances=g.distances,
             moved=g.moved,
-            symmetric_scale=None if barycentre is None else barycentre.row_scale,
             weights=w.point,
             support=w.support,
             target_weights=w.target,

@@ -74,7 +74,6 @@ class TermBlock:
     make_jacobian: Callable[[], sp.csr_matrix] = field(repr=False)
     #: ``|r|^2``, given where it is cheaper than from ``r`` (the regulariser: ``u^T (J^T J) u``).
     known_cost: float | None = None
-    row_scale: np.ndarray | None = None
     metric: np.ndarray | None = None
     isotropic: np.ndarray | None = None
     rhs: np.ndarray | None = None
@@ -301,7 +300,6 @@ class BarycentreTerm:
         return TermBlock(
             r.ravel(),
             lambda: self._jacobian(scale),
-            row_scale=scale,
             isotropic=scale * scale,
             rhs=scale[:, None] * r,
             targets=(bary, scale),
