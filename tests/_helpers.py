@@ -58,6 +58,18 @@ def assert_untouched(mesh: o3d.geometry.TriangleMesh, snap: tuple[np.ndarray, np
     np.testing.assert_array_equal(np.asarray(mesh.triangles), snap[1])
 
 
+def similarity_transform(angle_deg: float, axis: Any, shift: Any, scale: float = 1.0) -> np.ndarray:
+    """The 4x4 map ``x -> scale * R x + shift``, ``R`` a rotation by ``angle_deg`` about ``axis``."""
+    t = np.eye(4)
+    axis = np.asarray(axis, dtype=float)
+    t[:3, :3] = (
+        scale
+        * Rotation.from_rotvec(np.radians(angle_deg) * axis / np.linalg.norm(axis)).as_matrix()
+    )
+    t[:3, 3] = shift
+    return t
+
+
 def level_problem(
     points: np.ndarray,
     target: tuple[np.ndarray, np.ndarray],

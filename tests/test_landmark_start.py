@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
+from _helpers import similarity_transform
 
 from o3dreg import registration_landmarks, write_landmarks
 from o3dreg.cli import main
@@ -17,15 +17,7 @@ POINTS = np.array(
 
 
 def similarity(scale=1.0, angle=130.0, axis=(0.2, 1.0, -0.4), shift=(12.0, -30.0, 7.0)):
-    t = np.eye(4)
-    t[:3, :3] = (
-        scale
-        * Rotation.from_rotvec(
-            np.radians(angle) * np.asarray(axis) / np.linalg.norm(axis)
-        ).as_matrix()
-    )
-    t[:3, 3] = shift
-    return t
+    return similarity_transform(angle, axis, shift, scale)
 
 
 def test_a_known_similarity_is_recovered_from_labelled_pairs():

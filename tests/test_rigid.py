@@ -3,7 +3,7 @@
 import numpy as np
 import open3d as o3d
 import pytest
-from _helpers import assert_untouched, snapshot
+from _helpers import assert_untouched, similarity_transform, snapshot
 from scipy.spatial.transform import Rotation
 
 from o3dreg import registration_rigid
@@ -12,15 +12,7 @@ from o3dreg.registration.rigid import moment_alignments, surface_moments
 
 
 def known_transform(angle_deg=35.0, axis=(1.0, 2.0, 0.5), shift=(12.0, -7.0, 4.0), scale=1.0):
-    t = np.eye(4)
-    t[:3, :3] = (
-        scale
-        * Rotation.from_rotvec(
-            np.radians(angle_deg) * np.asarray(axis) / np.linalg.norm(axis)
-        ).as_matrix()
-    )
-    t[:3, 3] = shift
-    return t
+    return similarity_transform(angle_deg, axis, shift, scale)
 
 
 def moved(mesh, t):
