@@ -242,6 +242,13 @@ def write_report(
         model.variance_table(),
         "```",
         "",
+        "Standard deviations in mm of the whole shape vector (the coordinates of all "
+        f"{len(model.mean)} vertices); per vertex (RMS) they are "
+        + ", ".join(
+            f"{float(sd) / np.sqrt(len(model.mean)):.2f}" for sd in model.standard_deviations
+        )
+        + " mm.",
+        "",
         "![Variance explained per mode](images/variances.png)",
         "",
         "Modes 1 and 2 at -3, 0 and +3 standard deviations (paper Figure 6), coloured by the "
