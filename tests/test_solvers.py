@@ -75,3 +75,77 @@ def test_a_healthy_level_still_converges(resolution):
     info = _solvers.solve(problem, ElasticCriteria(), "lm")
     assert info.success
     assert info.evaluation.cost < info.initial_cost
+
+
+def test_the_extrapolation_is_the_rest_of_a_geometric_series():
+    d = np.array([3.0, -1.0, 2.0, 0.5])
+    for r in (0.5, 0.8):
+        # Steps d, r d, r^2 d, ... sum to d / (1 - r): after the second, r^2 d / (1 - r) remain.
+        jump = _solvers._extrapolation(r * d, d)
+        np.testing.assert_allclose(jump, r * r * d / (1.0 - r), rtol=1e-12)
+    assert _solvers._extrapolation(d, None) is None  # no earlier step
+    assert _solvers._extrapolation(0.99 * d, d) is None  # ratio near 1: a guess too far
+    assert _solvers._extrapolation(0.1 * d, d) is None  # already converging fast
+    turned = np.array([1.0, 3.0, 0.0, 0.0])  # orthogonal to d: not one series
+    assert abs(turned @ d) < 1e-12
+    assert _solvers._extrapolation(0.5 * turned, d) is None
+    assert _solvers._extrapolation(np.zeros(4), d) is None
+
+
+def lloyd_problem() -> LevelProblem:
+    # The cone onto the sphere on a 2-cell lattice (the paper's pair): the barycentre term
+    # spreads the cone's vertices over the sphere towards their Voronoi centroids, a linearly
+    # converging fixed-point iteration where the extrapolation is offered.
+    source, target = synthetic_form("cone", 500), synthetic_form("sphere", 3000)
+    points = np.asarray(source.vertices)
+    tv, tf = np.asarray(target.vertices), np.asarray(target.triangles)
+    origin, size = lattice_box([points, tv])
+    return LevelProblem(
+        points,
+        np.zeros_like(points),
+        TrilinearLattice.zeros(origin, size, (2, 2, 2)),
+        np.ones(points.shape[0], dtype=bool),
+        SurfaceDistanceQuery(tv, tf),
+        tv,
+        1.0,
+        0.1,
+        robustness=Robustness(loss="cauchy", min_jacobian_determinant=0.05),
+    )
+
+
+def test_a_jump_that_does_not_lower_the_cost_is_discarded(monkeypatch):
+    with monkeypatch.context() as never:
+        never.setattr(_solvers, "EXTRAPOLATION_MIN_COSINE", 2.0)  # no jump offered
+        plain = _solvers.solve(lloyd_problem(), ElasticCriteria(), "lm")
+    problem = lloyd_problem()
+    original = problem.evaluate
+    offered = []
+
+    def no_better(u, *args, reassign=False, **kwargs):
+        ev = original(u, *args, reassign=reassign, **kwargs)
+        if reassign:
+            offered.append(u)
+            ev.cost = float(kwargs.get("weights_of", args[0] if args else None).cost)
+        return ev
+
+    monkeypatch.setattr(problem, "evaluate", no_better)
+    info = _solvers.solve(problem, ElasticCriteria(), "lm")
+    assert offered  # the case does offer jumps
+    # Every jump costing as much as the current point was refused: the iterates are the plain
+    # solver's, bit for bit; only the refused evaluations were counted on top.
+    np.testing.assert_array_equal(info.evaluation.u, plain.evaluation.u)
+    assert info.iterations == plain.iterations
+    assert info.evaluations == plain.evaluations + len(offered)
+
+
+def test_kept_jumps_shorten_a_lloyd_level(monkeypatch):
+    with_jumps = _solvers.solve(lloyd_problem(), ElasticCriteria(), "lm")
+    monkeypatch.setattr(_solvers, "EXTRAPOLATION_MIN_COSINE", 2.0)  # never offered
+    plain = _solvers.solve(lloyd_problem(), ElasticCriteria(), "lm")
+    assert with_jumps.success and plain.success
+    # The jumps skip steps of the same fixed-point iteration: measured 14 iterations (15
+    # evaluations) -> 9 (14, the jumps' included), ending 1.5% lower. Asserted: fewer
+    # iterations and evaluations, and no higher a cost.
+    assert with_jumps.iterations < plain.iterations
+    assert with_jumps.evaluations < plain.evaluations
+    assert with_jumps.evaluation.cost <= plain.evaluation.cost

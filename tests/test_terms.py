@@ -210,3 +210,43 @@ def test_normal_assembly_is_the_sum_over_points():
     # The same products summed in another order: equal to rounding.
     np.testing.assert_allclose(A.toarray(), expected, rtol=0, atol=1e-12 * abs(expected).max())
     np.testing.assert_allclose(assembly.vector(f), (W.T @ f).ravel(), rtol=0, atol=1e-12)
+
+
+def brute_force_nearest(points: np.ndarray, sites: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest site of every point by comparing all distances; exact ties to the smaller index
+    (``argmin`` returns the first minimum)."""
+    d = np.sqrt(((points[:, None, :] - sites[None, :, :]) ** 2).sum(axis=2))
+    nearest = d.argmin(axis=1)
+    return d[np.arange(points.shape[0]), nearest], nearest
+
+
+def test_the_barycentre_assignment_is_exact_along_any_path():
+    # The term re-searches only the target points whose nearest template point may have changed
+    # since their last search (and within a radius that held last time): along a path of small
+    # steps, large jumps, moves back and a far excursion (which empties that radius for most
+    # points), every assignment must be the brute-force one. A radius reset for every point
+    # after one of them missed it once let the others keep stale assignments (up to 2 mm off).
+    from o3dreg.registration._terms import BarycentreTerm
+
+    rng = np.random.default_rng(3)
+    sites = rng.normal(size=(60, 3)) * 10.0
+    sites[1] = sites[0] * [1, 1, -1]  # mirror pairs: exact ties on the plane z = 0
+    targets = rng.normal(size=(2000, 3)) * 12.0
+    targets[:50, 2] = 0.0
+    sites[0, 2] = 3.0
+    sites[1, 2] = -3.0
+    term = BarycentreTerm(sp.csr_matrix((60, 1)), targets, 1.0, assembly=None)  # type: ignore[arg-type]
+    y = sites.copy()
+    path = []
+    for step in range(12):
+        move = rng.normal(size=3) * (0.05 if step % 3 else 2.0) + 0.3 * np.sin(y / 7.0 + step)
+        y = y + move
+        path.append(y.copy())
+    path.append(sites + 40.0)  # a far excursion: most points miss the radius
+    path.append(sites.copy())  # and back
+    path.append(sites + 0.01)
+    for y in path:
+        distance, nearest = term.measure(y)
+        expected_distance, expected = brute_force_nearest(targets, y)
+        np.testing.assert_array_equal(nearest, expected)
+        np.testing.assert_allclose(distance, expected_distance, rtol=1e-12)

@@ -272,6 +272,13 @@ class LevelProblem:
         return base, ops
 
     @property
+    def reassigns(self) -> bool:
+        """Whether the cost re-assigns target points to template points (the barycentre term):
+        Levenberg-Marquardt's accepted steps are then a linearly converging fixed-point
+        iteration (see ``_solvers._extrapolation``)."""
+        return self.barycentre is not None
+
+    @property
     def guards_folding(self) -> bool:
         """Whether :meth:`min_determinant` samples the map (the folding guard is on)."""
         return self._fold is not None
@@ -297,7 +304,9 @@ class LevelProblem:
         d[self.free_nodes] = u.reshape(-1, 3)
         return self.lattice.with_displacements(d)
 
-    def evaluate(self, u: np.ndarray, weights_of: Evaluation | None = None) -> Evaluation:
+    def evaluate(
+        self, u: np.ndarray, weights_of: Evaluation | None = None, *, reassign: bool = False
+    ) -> Evaluation:
         """Residuals (and Jacobian blocks, built on demand) at ``u``.
 
         With ``weights_of``, the evaluation of a trial step from that earlier point: its robust
@@ -310,6 +319,12 @@ class LevelProblem:
         be rejected although it moved towards the data, and a changing assignment makes the
         quadratic model's predictions meaningless. :meth:`reweighted` then gives the accepted
         point its own weights and assignment.
+
+        With ``reassign`` (and ``weights_of``), the barycentre term's assignment is that of ``u``
+        itself while the weights and masks stay those of ``weights_of``: a point reached by
+        extrapolating several steps (see ``_solvers``) is compared with the current one under
+        the same weights (a jump cannot look better by pushing points into rejection), each
+        with the assignment a Levenberg-Marquardt step from it would start from.
         """
         y = self.moved(u)
         at_start = not u.any()
@@ -326,10 +341,13 @@ class LevelProblem:
             return self._assemble(geometry, self._weights(geometry))
         assert weights_of.geometry is not None
         held = weights_of.geometry
-        geometry = Geometry(u, y, dist, closest, grad, face, held.target_distances, held.nearest)
+        e, nearest = held.target_distances, held.nearest
+        if reassign and self.barycentre is not None:
+            e, nearest = self.barycentre.measure(y)
+        geometry = Geometry(u, y, dist, closest, grad, face, e, nearest)
         weights = Weights(weights_of.weights, weights_of.support, weights_of.target_weights)
         targets = None
-        if self.barycentre is not None:
+        if self.barycentre is not None and not reassign:
             targets = weights_of.terms[1].targets
         return self._assemble(geometry, weights, targets)
 

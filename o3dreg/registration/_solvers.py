@@ -98,9 +98,42 @@ class DampedSystem:
 #: Damping beyond which no step is tried: the step is then ~1e-12 of a gradient step.
 _MU_MAX = 1e12
 
+#: Extrapolation of linearly converging steps (see :func:`_extrapolation`): the smallest cosine
+#: between two successive accepted steps, and the range of their length ratio, for which the
+#: sum of the geometric series they start is tried.
+EXTRAPOLATION_MIN_COSINE = 0.9
+EXTRAPOLATION_RATIO = (0.3, 0.95)
+
 
 def _cell(problem: LevelProblem) -> float:
     return float(problem.lattice.cell_size.min())
+
+
+def _extrapolation(step: np.ndarray, previous: np.ndarray | None) -> np.ndarray | None:
+    """Where the steps ``previous, step`` lead if they go on as a geometric series, or ``None``.
+
+    Where the barycentre term works (the coarse levels of the symmetric distance), each
+    accepted step re-assigns target points to template points and the next one moves the
+    template points towards the new barycentres: a fixed-point iteration (Lloyd's), which
+    converges linearly. Its successive steps are then nearly parallel and shrink by a steady
+    factor ``r`` (measured on the bunny's 2-cell level: cosines 0.93-0.98, ``r`` 0.6-0.7), so
+    the rest of the series, ``step * r / (1 - r)``, is a good guess of the remaining way (the
+    one-vector form of Aitken's / Anderson's acceleration). Only offered when the two steps
+    are within :data:`EXTRAPOLATION_MIN_COSINE` of parallel and ``r`` within
+    :data:`EXTRAPOLATION_RATIO` (a ratio near 1 would jump far on a guess); the solver keeps the
+    jump only if it lowers the cost.
+    """
+    if previous is None:
+        return None
+    norm, norm_previous = float(np.linalg.norm(step)), float(np.linalg.norm(previous))
+    if norm == 0.0 or norm_previous == 0.0:
+        return None
+    cosine = float(step @ previous) / (norm * norm_previous)
+    ratio = norm / norm_previous
+    low, high = EXTRAPOLATION_RATIO
+    if cosine < EXTRAPOLATION_MIN_COSINE or not low < ratio < high:
+        return None
+    return step * (ratio / (1.0 - ratio))
 
 
 def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> SolveInfo:
@@ -115,6 +148,7 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
     guard = threshold is not None and problem.guards_folding
     det = problem.min_determinant(u) if guard else 1.0
     folds_rejected = 0
+    previous_step: np.ndarray | None = None
     message = f"reached max_iteration={criteria.max_iteration}"
     success = False
     iterations = 0
@@ -197,6 +231,21 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
             message = f"relative step {step:.2e} < relative_step"
             success = True
             break
+        jump = _extrapolation(delta, previous_step) if problem.reassigns else None
+        previous_step = delta
+        if jump is not None:
+            # Measured with its own barycentre assignment under the current weights and masks,
+            # against the current point's cost under the same (``ev``): kept only if lower, and
+            # (with the folding guard) only if it does not bring det(dT/dx) below the threshold.
+            far = problem.evaluate(u + jump, weights_of=ev, reassign=True)
+            evaluations += 1
+            far_det = problem.min_determinant(u + jump) if guard else det
+            unfolded = not guard or not (far_det < threshold and far_det < det)  # type: ignore[operator]
+            if np.isfinite(far.cost) and far.cost < ev.cost and unfolded:
+                u = u + jump
+                ev = problem.reweighted(far)
+                det = far_det
+                previous_step = None  # the series restarts from the new point
     if folds_rejected:
         message += f" ({folds_rejected} folding step(s) rejected)"
     return SolveInfo(ev, initial, iterations, evaluations, success, message)

@@ -238,14 +238,16 @@ class BarycentreTerm:
             tree = cKDTree(y, leafsize=32)
             points = t[search]
             k = min(2, y.shape[0])
-            bound = self._nn_bound
-            e, nearest = tree.query(points, k=k, workers=-1, distance_upper_bound=bound)
+            e, nearest = tree.query(points, k=k, workers=-1, distance_upper_bound=self._nn_bound)
             e, nearest = e.reshape(-1, k), nearest.reshape(-1, k)
+            # The radius each point was searched within (a second neighbour beyond it is at
+            # least that far): the bound, or none for the points searched again unbounded.
+            bound = np.full(e.shape[0], self._nn_bound)
             missed = ~np.isfinite(e[:, 0])
             if missed.any():
                 e2, n2 = tree.query(points[missed], k=k, workers=-1)
                 e[missed], nearest[missed] = e2.reshape(-1, k), n2.reshape(-1, k)
-                bound = np.inf
+                bound[missed] = np.inf
             first = nearest[:, 0]
             second = np.full(e.shape[0], np.inf)
             if k == 2:
