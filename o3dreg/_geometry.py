@@ -32,15 +32,40 @@ def barycentric(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
     return bary / bary.sum(axis=1, keepdims=True)
 
 
+#: Triangles per block of the per-triangle kernels below. Blocks keep every temporary small
+#: (a few hundred kB): on a million triangles, whole-array temporaries of 16 MB each are fresh
+#: memory whose first touch costs more than the arithmetic (kernel page faults; with NumPy's
+#: transparent huge pages, measured 1.3 s against 0.1 s in a fresh process).
+BLOCK = 1 << 15
+
+
 def face_cross(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """``(b - a) x (c - a)`` of every triangle ``(a, b, c)``, ``(m, 3)``: its normal times twice
     its area.
 
     The same numbers as ``np.cross`` (the same products and differences, in the same order),
-    computed a component at a time: ``np.cross`` is 20 times slower on a million triangles.
+    computed a component at a time and a block of triangles at a time: ``np.cross`` is 20 times
+    slower on a million triangles.
     """
     # Contiguous columns: strided (m, 3) arithmetic is several times slower.
     cols = [np.ascontiguousarray(vertices[:, i]) for i in range(3)]
+    out = np.empty((faces.shape[0], 3))
+    for start in range(0, faces.shape[0], BLOCK):
+        out[start : start + BLOCK] = _cross_block(cols, faces[start : start + BLOCK])
+    return out
+
+
+def face_doubled_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``|(b - a) x (c - a)|`` of every triangle, ``(m,)``: twice its area. The same numbers as
+    ``row_norms(face_cross(vertices, faces))``, without the ``(m, 3)`` intermediate."""
+    cols = [np.ascontiguousarray(vertices[:, i]) for i in range(3)]
+    out = np.empty(faces.shape[0])
+    for start in range(0, faces.shape[0], BLOCK):
+        out[start : start + BLOCK] = row_norms(_cross_block(cols, faces[start : start + BLOCK]))
+    return out
+
+
+def _cross_block(cols: list[np.ndarray], faces: np.ndarray) -> np.ndarray:
     corner = [np.ascontiguousarray(faces[:, k]) for k in range(3)]
     a = [col[corner[0]] for col in cols]
     b = [col[corner[1]] - a_i for col, a_i in zip(cols, a)]

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from ._geometry import face_cross, row_norms
+from ._geometry import face_doubled_areas
 
 __all__ = [
     "as_faces",
@@ -201,7 +201,7 @@ def _degenerate_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     repeated = (
         (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
     )
-    doubled_area = row_norms(face_cross(vertices, faces))
+    doubled_area = face_doubled_areas(vertices, faces)
     # Column by column: a reduction over axis 0 of an (n, 3) array is many times slower.
     scale = max(float(np.ptp(vertices[:, k])) for k in range(3)) if vertices.shape[0] > 1 else 1.0
     # Relative to the mesh extent, so the test is independent of units.

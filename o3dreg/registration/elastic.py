@@ -19,6 +19,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from .._geometry import apply_transformation
+from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive
 from ._cost import LevelProblem, Robustness
 from ._robust import (
@@ -94,6 +95,7 @@ def _check_levels(levels: Any) -> list[ElasticLevel]:
     return list(levels)
 
 
+@small_pages()
 def registration_elastic(
     source: Any,
     target: Any,

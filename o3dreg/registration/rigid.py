@@ -20,6 +20,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from .._geometry import apply_transformation
+from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive
 from ..io.mesh import to_open3d
 from .distance import SurfaceDistanceQuery
@@ -306,6 +307,7 @@ class RigidRegistrationResult(reg.RegistrationResult):  # type: ignore[misc]
         )
 
 
+@small_pages()
 def registration_rigid(
     source: Any,
     target: Any,

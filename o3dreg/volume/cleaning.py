@@ -16,7 +16,7 @@ import open3d as o3d
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components as graph_components
 
-from .._geometry import face_cross, row_norms
+from .._geometry import face_doubled_areas
 from .._validation import as_mesh_arrays, as_points, check_positive
 from ..io.mesh import to_open3d
 
@@ -136,7 +136,7 @@ def mesh_components(vertices: np.ndarray, faces: np.ndarray) -> Components:
         pairs = np.unique(np.repeat(raw, 3) * vertices.shape[0] + faces.ravel())
         vertex_counts = np.bincount(pairs // vertices.shape[0], minlength=k)
     triangle_counts = np.bincount(raw, minlength=k)
-    tri_area = 0.5 * row_norms(face_cross(vertices, faces))
+    tri_area = 0.5 * face_doubled_areas(vertices, faces)
     areas = np.bincount(raw, weights=tri_area, minlength=k)
     first = np.full(k, faces.shape[0], dtype=np.int64)
     np.minimum.at(first, raw, np.arange(raw.size))
