@@ -102,8 +102,11 @@ def _triangle_labels(n_vertices: int, faces: np.ndarray) -> np.ndarray:
         a, b = faces[:, k], faces[:, (k + 1) % 3]
         keys[:, k] = np.minimum(a, b) * n + np.maximum(a, b)
     key = keys.ravel()  # entry e belongs to triangle e // 3
+    # Stable (timsort): on a mesh in canonical order the keys come in long sorted runs.
     order = np.argsort(key, kind="stable")
-    same = key[order[1:]] == key[order[:-1]]
+    sorted_key = key[order]
+    same = sorted_key[1:] == sorted_key[:-1]
+    del sorted_key
     triangle = order // 3
     # Consecutive triangles on the same edge are linked (a chain when 3+ share it).
     i, j = triangle[:-1][same], triangle[1:][same]
