@@ -369,6 +369,12 @@ def registration_rigid(
         :data:`MAX_SIZE_RATIO` (different units): convert one of them, or pass
         ``with_scaling=True`` for a similarity start.
 
+    Notes
+    -----
+    NumPy's transparent-huge-page advice is switched off while the call runs and the caller's
+    setting restored afterwards (on a million-vertex target it cost a third of the run on a
+    kernel that compacts memory for huge pages; see ``docs/benchmarks.md``).
+
     Examples
     --------
     >>> import open3d as o3d, numpy as np
@@ -624,6 +630,12 @@ class _CandidateSearch:
         logger.debug("rigid start %s refined: score %.4g -> %.4g", entry[1], entry[0], score)
         return score, entry[1], icp
 
+    def _tie(self, best: float, other: float) -> bool:
+        """Whether a score ``other`` is a near tie with the best score ``best``: within
+        :data:`AMBIGUITY_RATIO`, or apart by rounding only (two exact fits score ~1e-17 of the
+        diagonal, whose ratio means nothing)."""
+        return other < AMBIGUITY_RATIO * best + 1e-9 * self.diagonal
+
     def _distinct(self, a: np.ndarray, b: np.ndarray) -> bool:
         pa, pb = apply_transformation(a, self.vs), apply_transformation(b, self.vs)
         rms = float(np.sqrt(((pa - pb) ** 2).sum(axis=1).mean()))
@@ -649,16 +661,21 @@ class _CandidateSearch:
             scored.append((score, name, icp))
         order = sorted(range(len(scored)), key=lambda k: (scored[k][0], k))
         best = scored[order[0]]
-        runner = next(
-            (
-                scored[k]
-                for k in order[1:]
-                if self._distinct(
-                    np.asarray(best[2].transformation), np.asarray(scored[k][2].transformation)
-                )
-            ),
-            None,
-        )
+        others = [
+            scored[k]
+            for k in order[1:]
+            if self._distinct(
+                np.asarray(best[2].transformation), np.asarray(scored[k][2].transformation)
+            )
+        ]
+        # The runner-up is the best distinct pose. Where the winner is far from the input pose
+        # and several distinct poses tie with it (a shape with more than one symmetry: a box
+        # fits itself in four poses), it is the tied one nearest the input pose, so that the
+        # input pose can break the tie below.
+        runner = others[0] if others else None
+        tied = [o for o in others if self._tie(best[0], o[0])]
+        if tied and _rotation_angle(np.asarray(best[2].transformation)) >= INPUT_POSE_FAR:
+            runner = min(tied, key=lambda o: _rotation_angle(np.asarray(o[2].transformation)))
         finals = [self._refined(best, method, criteria)]
         if runner is not None:
             # A runner-up far behind keeps its search pose and score: no refinement brings it
@@ -674,7 +691,7 @@ class _CandidateSearch:
             if self._distinct(np.asarray(win.transformation), other):
                 runner_score, runner_t = finals[1][0], other
         warnings: list[str] = []
-        near_tie = runner_score is not None and runner_score < AMBIGUITY_RATIO * win_score
+        near_tie = runner_score is not None and self._tie(win_score, runner_score)
         if near_tie and runner_t is not None:
             turns = (_rotation_angle(np.asarray(win.transformation)), _rotation_angle(runner_t))
             if min(turns) <= INPUT_POSE_NEAR and max(turns) >= INPUT_POSE_FAR:
