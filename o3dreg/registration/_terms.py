@@ -208,6 +208,8 @@ class BarycentreTerm:
         self._last: np.ndarray | None = None
         self._moved = 0.0
         self._mark = np.zeros(0)
+        self._path = np.zeros(0)
+        self._path_mark = np.zeros(0)
         self._gap = np.zeros(0)
         self._nearest = np.zeros(0, dtype=np.int64)
 
@@ -215,11 +217,14 @@ class BarycentreTerm:
         """Nearest moved template point of every target point (exact), and its distance.
 
         Only the target points whose nearest template point may have changed are searched
-        again. A search returns the nearest and second-nearest distances ``e1 <= e2``; while no
-        template point has moved by more than ``D`` in total since, the nearest is still
-        nearer than any other if ``e1 + D < e2 - D`` (triangle inequality), so only points with
-        ``2 D >= e2 - e1`` are searched, ``D`` bounded by the sum of the largest moves of the
-        template between searches. The k-d tree search is bounded by a radius that held for
+        again. A search returns the nearest and second-nearest distances ``e1 <= e2``; while
+        the nearest template point has moved along a path of length ``d`` since and no template
+        point by more than ``D``, the nearest is still nearer than any other if
+        ``e1 + d < e2 - D`` (triangle inequality), so only points with ``d + D >= e2 - e1`` are
+        searched (exact ties included), ``d`` the nearest point's summed moves between
+        searches and ``D`` the sum of the template's largest moves (the nearest point's own
+        path instead of ``D`` searches 20-25% fewer points on the bunny's 4- and 8-cell
+        levels, the same assignments). The k-d tree search is bounded by a radius that held for
         nearly all points last time (it prunes more: measured 40% faster); the few points
         without a neighbour inside it are searched again unbounded.
         """
@@ -227,12 +232,19 @@ class BarycentreTerm:
         if self._last is None or self._last.shape != y.shape:
             search = np.ones(t.shape[0], dtype=bool)
             self._moved = 0.0
+            self._path = np.zeros(y.shape[0])
             self._mark = np.zeros(t.shape[0])
+            self._path_mark = np.zeros(t.shape[0])
             self._gap = np.zeros(t.shape[0])
             self._nearest = np.zeros(t.shape[0], dtype=np.int64)
         else:
-            self._moved += float(np.sqrt(((y - self._last) ** 2).sum(axis=1)).max())
-            search = 2.0 * (self._moved - self._mark) >= self._gap
+            step = np.sqrt(((y - self._last) ** 2).sum(axis=1))
+            self._moved += float(step.max())
+            self._path += step
+            # The nearest point has come at most its own path nearer or farther, any other at
+            # most the largest path nearer.
+            own = self._path[self._nearest] - self._path_mark
+            search = own + (self._moved - self._mark) >= self._gap
         self._last = y.copy()
         if search.any():
             tree = cKDTree(y, leafsize=32)
@@ -259,6 +271,7 @@ class BarycentreTerm:
             self._nearest[search] = first
             self._gap[search] = second - e[:, 0]
             self._mark[search] = self._moved
+            self._path_mark[search] = self._path[first]
         nearest = self._nearest.copy()
         distance = np.sqrt(((t - y[nearest]) ** 2).sum(axis=1))
         self._nn_bound = 2.0 * float(np.percentile(distance, 99)) if distance.size else np.inf
