@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -30,7 +30,7 @@ from ._robust import (
     support,
 )
 from ._solvers import solve
-from ._target import TARGET_VOXELS_PER_CELL, DistanceArrays, TargetSurface
+from ._target import TARGET_VOXELS_PER_CELL, TargetSurface
 from .deformation import LatticeDeformation, PartitionedDeformation
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
@@ -215,14 +215,32 @@ def registration_elastic(
 
     points = apply_transformation(rigid, vs)
     labels = template_parts(vs.shape[0], fs) if parts == "connected" else None
+    parts_fields: dict[str, Any] = {}
     if labels is not None and labels.max() > 0:
-        result, measured = _register_parts(
+        fit, parts_fields = _register_parts(
             vs, fs, surface, rigid, labels, levels_, estimation_method, criteria, padding, callback
         )
     else:
-        result, measured = _coarse_to_fine(
-            points, fs, rigid, surface, levels_, estimation_method, criteria, padding, callback
+        fit = _coarse_to_fine(
+            points, fs, surface, levels_, estimation_method, criteria, padding, callback
         )
+    measured = surface.distances(fit.moved, fs, forward=fit.forward)
+    success = not fit.failures
+    result = ElasticRegistrationResult(
+        transformation=rigid,
+        deformation=fit.deformation,
+        vertices=fit.moved,
+        faces=fs,
+        distances=measured.summary(),
+        history=fit.history,
+        min_jacobian_determinant=fit.det,
+        success=success,
+        message=fit.converged if success else "; ".join(fit.failures),
+        min_cell_jacobian_determinant=fit.cell_det,
+        flipped_triangles=flipped_triangles(points, fit.moved, fs),
+        supported=fit.supported,
+        **parts_fields,
+    )
     # The verdict from the distances just measured and the target's moments (as
     # assess_registration(result, (vs, fs), (vt, ft), rigid=rigid_start) would measure them).
     assessed = judge(
@@ -240,20 +258,35 @@ def registration_elastic(
     return with_rigid_start(assessed, RigidStart.from_rigid(rigid_start))
 
 
+class _Fit(NamedTuple):
+    """What the levels made of a template (or of each of its parts): the pieces of an
+    :class:`ElasticRegistrationResult` that do not need the target -> template distances."""
+
+    deformation: LatticeDeformation | PartitionedDeformation
+    moved: np.ndarray
+    history: tuple[LevelReport, ...]
+    failures: tuple[str, ...]
+    #: Distance of every moved vertex to the whole target (``None``: to be measured).
+    forward: np.ndarray | None
+    supported: np.ndarray
+    det: float
+    cell_det: float
+    converged: str = "all levels converged"
+
+
 def _coarse_to_fine(
     points: np.ndarray,
     fs: np.ndarray,
-    rigid: np.ndarray,
     surface: TargetSurface,
     levels_: list[ElasticLevel],
     estimation_method: DistanceEstimation,
     criteria: ElasticCriteria,
     padding: float,
     callback: Callable[[LevelReport], Any] | None,
-) -> tuple[ElasticRegistrationResult, DistanceArrays]:
+) -> _Fit:
     """The levels, coarse to fine, of one deformation of space: the template ``(points, fs)``
-    (rigidly aligned by ``rigid``) onto ``surface``. Inputs validated; no verdict yet (the
-    distances of the result, per vertex, are returned beside it for the verdict)."""
+    (rigidly aligned) onto ``surface``. Inputs validated; no distances back from the target and
+    no verdict yet (the caller measures them on the whole target)."""
     vt = surface.vertices
     query = surface.query
     origin, size = lattice_box([points, vt], padding)
@@ -372,29 +405,19 @@ def _coarse_to_fine(
             callback(report)
 
     moved = points + previous
-    # Once for the distances and the support; without the full target's tree when the levels
-    # only queried its levels of detail.
+    # Once for the forward distances and the support; without the full target's tree when the
+    # levels only queried its levels of detail.
     found = query.closest_few(moved)
-    measured = surface.distances(moved, fs, forward=found[0])
-    det = float(deformation.jacobian_determinant(points).min()) if deformation.levels else 1.0
-    supported = _supported(moved, fs, query, found, estimation_method, last_problem, orientation)
-    success = not failures
-    message = "all levels converged" if success else "; ".join(failures)
-    result = ElasticRegistrationResult(
-        transformation=rigid,
+    return _Fit(
         deformation=deformation,
-        vertices=moved,
-        faces=fs,
-        distances=measured.summary(),
+        moved=moved,
         history=tuple(history),
-        min_jacobian_determinant=det,
-        success=success,
-        message=message,
-        min_cell_jacobian_determinant=_min_cell_determinant(deformation, points),
-        flipped_triangles=flipped_triangles(points, moved, fs),
-        supported=supported,
+        failures=tuple(failures),
+        forward=found[0],
+        supported=_supported(moved, fs, query, found, estimation_method, last_problem, orientation),
+        det=float(deformation.jacobian_determinant(points).min()) if deformation.levels else 1.0,
+        cell_det=_min_cell_determinant(deformation, points),
     )
-    return result, measured
 
 
 def template_parts(number_of_vertices: int, faces: np.ndarray) -> np.ndarray:
@@ -419,9 +442,9 @@ def _register_parts(
     criteria: ElasticCriteria,
     padding: float,
     callback: Any,
-) -> tuple[ElasticRegistrationResult, DistanceArrays]:
-    """``parts='connected'``: one elastic registration per source component (with the
-    distances of the whole, per vertex)."""
+) -> tuple[_Fit, dict[str, Any]]:
+    """``parts='connected'``: the levels for each source component, and the result's part
+    fields."""
     vt, ft = surface.mesh
     points = apply_transformation(rigid, vs)
     _, nearest = cKDTree(points).query(vt, workers=-1)
@@ -449,47 +472,34 @@ def _register_parts(
         # The part's target in canonical order (a subset of a canonical mesh already is), without
         # the pieces the split left below ``min_target_component`` of the part's largest.
         part_surface = TargetSurface(vt[used], tmap[tf], method.min_target_component)
-        result, _ = _coarse_to_fine(
-            apply_transformation(rigid, vs[sel]),
-            pf,
-            rigid,
-            part_surface,
-            levels,
-            method,
-            criteria,
-            padding,
-            callback,
+        fit = _coarse_to_fine(
+            points[sel], pf, part_surface, levels, method, criteria, padding, callback
         )
-        moved[sel] = result.vertices
-        if result.supported is not None:
-            supported[sel] = result.supported
-        history.extend(result.history)
-        assert isinstance(result.deformation, LatticeDeformation)
-        deformations.append(result.deformation)
-        det = min(det, result.min_jacobian_determinant)
-        cell_det = min(cell_det, result.min_cell_jacobian_determinant)
-        if not result.success:
-            failures.append(f"part {part}: {result.message}")
-    success = not failures
-    measured = surface.distances(moved, fs)
-    result = ElasticRegistrationResult(
-        transformation=rigid,
+        moved[sel] = fit.moved
+        supported[sel] = fit.supported
+        history.extend(fit.history)
+        assert isinstance(fit.deformation, LatticeDeformation)
+        deformations.append(fit.deformation)
+        det = min(det, fit.det)
+        cell_det = min(cell_det, fit.cell_det)
+        if fit.failures:
+            failures.append(f"part {part}: " + "; ".join(fit.failures))
+    whole = _Fit(
         deformation=PartitionedDeformation(tuple(deformations), points, labels),
-        vertices=moved,
-        faces=fs,
-        distances=measured.summary(),
+        moved=moved,
         history=tuple(history),
-        min_jacobian_determinant=det,
-        success=success,
-        message=f"{count} parts: all levels converged" if success else "; ".join(failures),
-        min_cell_jacobian_determinant=cell_det,
-        flipped_triangles=flipped_triangles(points, moved, fs),
+        failures=tuple(failures),
+        forward=None,  # the parts measured theirs to their own targets
         supported=supported,
-        part_labels=labels,
-        part_deformations=tuple(deformations),
-        part_sites=points,
+        det=det,
+        cell_det=cell_det,
+        converged=f"{count} parts: all levels converged",
     )
-    return result, measured
+    return whole, {
+        "part_labels": labels,
+        "part_deformations": tuple(deformations),
+        "part_sites": points,
+    }
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
