@@ -188,13 +188,12 @@ class LevelProblem:
             self.regulariser.node_gram,
             cells=nodes[:, 0],
         )
-        self.W = self.assembly.W  # (n, m): the trilinear weights of the free nodes
-        self.surface = PointToSurfaceTerm(self.W, target, self.assembly)
+        self.surface = PointToSurfaceTerm(self.assembly, target)
         self.barycentre = (
             None
             if self.target_points is None
             else BarycentreTerm(
-                self.W, self.target_points, symmetric_weight, self.assembly, barycentre_offsets
+                self.assembly, self.target_points, symmetric_weight, barycentre_offsets
             )
         )
         self.terms: list[ResidualTerm] = [self.surface]
@@ -296,7 +295,7 @@ class LevelProblem:
 
     def moved(self, u: np.ndarray) -> np.ndarray:
         """Template points moved by the coarser levels and the increment ``u``."""
-        return self.base + self.W @ u.reshape(-1, 3)
+        return self.base + self.assembly.W @ u.reshape(-1, 3)
 
     def scatter(self, u: np.ndarray) -> TrilinearLattice:
         """The level's lattice with the free nodes displaced by ``u``."""

@@ -127,13 +127,10 @@ class PointToSurfaceTerm:
 
     name = "point-to-surface"
 
-    def __init__(
-        self, W: sp.csr_matrix, target: SurfaceDistanceQuery, assembly: NormalAssembly
-    ) -> None:
-        self.W = W
-        self.target = target
+    def __init__(self, assembly: NormalAssembly, target: SurfaceDistanceQuery) -> None:
         self.assembly = assembly
-        self.number_of_unknowns = 3 * W.shape[1]
+        self.target = target
+        self.number_of_unknowns = 3 * assembly.W.shape[1]
 
     def measure(
         self, y: np.ndarray, found: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -158,7 +155,7 @@ class PointToSurfaceTerm:
         )
 
     def _jacobian(self, rows: np.ndarray) -> sp.csr_matrix:
-        W = self.W
+        W = self.assembly.W
         n = rows.shape[0]
         return sp.csr_matrix(
             (
@@ -191,13 +188,11 @@ class BarycentreTerm:
 
     def __init__(
         self,
-        W: sp.csr_matrix,
+        assembly: NormalAssembly,
         target_points: np.ndarray,
         weight: float,
-        assembly: NormalAssembly,
         offsets: np.ndarray | None = None,
     ) -> None:
-        self.W = W
         self.assembly = assembly
         self.target_points = target_points
         self.sqrt_ws = float(np.sqrt(weight))
@@ -321,7 +316,7 @@ class BarycentreTerm:
         )
 
     def _jacobian(self, scale: np.ndarray) -> sp.csr_matrix:
-        Wx = sp.kron(self.W, sp.identity(3), format="csr")  # (3n, 3m)
+        Wx = sp.kron(self.assembly.W, sp.identity(3), format="csr")  # (3n, 3m)
         return sp.diags(np.repeat(scale, 3), format="csr") @ Wx
 
     def normal_share(self, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]:
