@@ -99,7 +99,8 @@ class TargetSurface:
 
     @cached_property
     def moments(self) -> Moments:
-        """Area and covariance of the target (for the verdict), computed once."""
+        """Area and size (the trace of the covariance) of the target, for the verdict; computed
+        once."""
         return moments(self.vertices, self.faces)
 
     def distances(

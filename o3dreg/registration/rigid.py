@@ -22,7 +22,6 @@ from scipy.spatial import cKDTree
 from .._geometry import apply_transformation
 from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive
-from ..io.mesh import to_open3d
 from .distance import SurfaceDistanceQuery
 from .sampling import spatial_subsample
 
@@ -751,14 +750,14 @@ def _cloud(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.PointCloud:
 
 def _simplified(vt: np.ndarray, ft: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
     """A copy of a large surface with about ``count`` vertices (vertex clustering)."""
-    mesh = to_open3d(vt, ft).simplify_vertex_clustering(
-        _voxel_for(vt, count), o3d.geometry.SimplificationContraction.Average
-    )
-    logger.debug(
-        "registration_rigid: target of %d vertices simplified to %d", len(vt), len(mesh.vertices)
-    )
-    mesh.remove_unreferenced_vertices()
-    return as_mesh_arrays(mesh, "target", drop_degenerate=True)
+    # The elastic step's own clustering (Open3D's, in NumPy: 3-4x faster on a million vertices,
+    # in an order independent of the input's). Imported here: _target imports the verdict,
+    # which imports this module.
+    from ._target import cluster_vertices
+
+    v, f = cluster_vertices(vt, ft, _voxel_for(vt, count))
+    logger.debug("registration_rigid: target of %d vertices simplified to %d", len(vt), len(v))
+    return as_mesh_arrays((v, f), "target", drop_degenerate=True)
 
 
 def _voxel_for(points: np.ndarray, count: int) -> float:
