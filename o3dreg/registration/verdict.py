@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .._geometry import apply_transformation
+from .._geometry import apply_transformation, face_doubled_areas
 from .._validation import as_mesh_arrays
 from .distance import SurfaceDistanceQuery
 from .result import RigidStart
@@ -172,9 +172,7 @@ def moments(vertices: np.ndarray, faces: np.ndarray) -> Moments:
     for start in range(0, faces.shape[0], MOMENTS_BLOCK):
         block = faces[start : start + MOMENTS_BLOCK]
         a, b, c = ([col[block[:, k]] for col in cols] for k in range(3))
-        e, g = [b[i] - a[i] for i in range(3)], [c[i] - a[i] for i in range(3)]
-        cross = [e[1] * g[2] - e[2] * g[1], e[2] * g[0] - e[0] * g[2], e[0] * g[1] - e[1] * g[0]]
-        areas = 0.5 * np.sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2])
+        areas = 0.5 * face_doubled_areas(vertices, block)
         area += float(areas.sum())
         for i in range(3):
             s = a[i] + b[i] + c[i]
