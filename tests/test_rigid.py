@@ -378,3 +378,26 @@ def test_a_box_keeps_the_input_pose_among_its_symmetric_fits(dims, subdivisions,
     result = registration_rigid(box, moved(box, truth))
     np.testing.assert_allclose(result.transformation, truth, atol=1e-6)
     assert not result.ambiguous
+
+
+def test_the_threaded_candidate_search_gives_the_one_thread_pose(monkeypatch):
+    # The ICP starts run side by side (each on one thread, independent); the poses, scores and
+    # the runner-up must be those of running them one after the other, bit for bit. A cube has
+    # equal principal values (sampled rotations are searched) and near ties (both finalists are
+    # refined, side by side).
+    from o3dreg.registration import rigid
+
+    cube = synthetic_form("cube", 600)
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("zx", [45.0, 30.0], degrees=True).as_matrix()
+    target = moved(synthetic_form("cube", 3000), turn)
+    results = {}
+    for threads in (1, 4):
+        monkeypatch.setattr(rigid, "_threads", lambda threads=threads: threads)
+        results[threads] = registration_rigid(cube, target)
+    one, many = results[1], results[4]
+    assert one.candidates == many.candidates > 8
+    np.testing.assert_array_equal(many.transformation, one.transformation)
+    np.testing.assert_array_equal(many.runner_up_transformation, one.runner_up_transformation)
+    assert (many.score, many.runner_up_score) == (one.score, one.runner_up_score)
+    assert (many.fitness, many.inlier_rmse) == (one.fitness, one.inlier_rmse)
