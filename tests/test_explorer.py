@@ -22,7 +22,7 @@ from o3dreg.app.explorer import write_model_explorer, write_registration_explore
 from o3dreg.app.model_folder import build_model_folder
 from o3dreg.cli import main
 from o3dreg.io.mesh import read_triangle_mesh
-from o3dreg.registration.options import ElasticLevel
+from o3dreg.registration.options import ElasticCriteria, ElasticLevel
 from o3dreg.shape.model import ShapeModel
 
 BROWSER = next((shutil.which(b) for b in ("chromium", "chromium-browser") if shutil.which(b)), None)
@@ -44,7 +44,11 @@ def folder(tmp_path_factory):
         write_triangle_mesh(root / f"p{i}.ply", t)
         paths.append(str(root / f"p{i}.ply"))
     template = read_triangle_mesh(root / "template.ply")
-    build_model_folder(template, paths, str(root / "model"), levels=[ElasticLevel(2)])
+    # One 2-cell level (fast). It converges slowly on this population (patient 2 takes 14
+    # steps), and a change in the last bits once left a patient at the default 20-step limit:
+    # the page tests below do not test the solver, so the limit is set well clear of that.
+    level = ElasticLevel(2, criteria=ElasticCriteria(max_iteration=50))
+    build_model_folder(template, paths, str(root / "model"), levels=[level])
     return root / "model"
 
 
