@@ -317,6 +317,45 @@ def test_the_elastic_registration_builds_the_targets_tree_once(monkeypatch):
     assert sizes.count(len(target.vertices)) == 1
 
 
+def test_a_similarity_start_prepares_the_target_once(monkeypatch):
+    # Before: RegistrationSettings(start='similarity') ran registration_rigid on the raw target
+    # (validated, its AABB tree built) and then registration_elastic prepared it again.
+    from o3dreg import ElasticLevel, RegistrationSettings
+    from o3dreg.registration.distance import SurfaceDistanceQuery
+
+    source, target = synthetic_form("sphere", 300), synthetic_form("sphere", 2000)
+    shrink = np.diag([0.6, 0.6, 0.6, 1.0])
+    sizes = []
+    init = SurfaceDistanceQuery.__init__
+
+    def counted(self, vertices, faces):
+        sizes.append(len(vertices))
+        init(self, vertices, faces)
+
+    monkeypatch.setattr(SurfaceDistanceQuery, "__init__", counted)
+    settings = RegistrationSettings(levels=[ElasticLevel(2)], start="similarity")
+    result = settings.register(source, moved(target, shrink))
+    assert sizes.count(len(target.vertices)) == 1
+    # The start is a similarity: it found the 0.6 scale, and the result carries it.
+    assert result.rigid_start is not None
+    scale = np.cbrt(np.linalg.det(result.transformation[:3, :3]))
+    assert abs(scale - 0.6) < 0.01
+    assert (
+        result.distances.source_to_target_mean
+        < 0.01 * 0.6 * np.ptp(np.asarray(target.vertices), axis=0).max()
+    )
+    # registration_elastic's own option, refused where it means nothing.
+    from o3dreg import registration_elastic
+
+    with pytest.raises(TypeError, match="`with_scaling` must be a bool, got str"):
+        registration_elastic(source, target, with_scaling="yes")
+    with pytest.raises(ValueError, match="`with_scaling` applies to the start computed without"):
+        registration_elastic(source, target, init=np.eye(4), with_scaling=True)
+    # With a start given (landmarks), a similarity setting starts from it, no search.
+    given = settings.register(source, moved(target, shrink), init=shrink)
+    np.testing.assert_array_equal(given.transformation, shrink)
+
+
 def test_the_shared_tree_gives_the_same_pose(bunny_template, bunny_target):
     from o3dreg.registration.distance import SurfaceDistanceQuery
     from o3dreg.registration.rigid import default_start

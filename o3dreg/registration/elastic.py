@@ -107,6 +107,7 @@ def registration_elastic(
     padding: float = 0.1,
     callback: Callable[[LevelReport], Any] | None = None,
     parts: str = "joint",
+    with_scaling: bool = False,
 ) -> ElasticRegistrationResult:
     """Register a low-density template onto a high-density surface, elastically.
 
@@ -147,6 +148,11 @@ def registration_elastic(
         ``deformation`` is then a :class:`~o3dreg.PartitionedDeformation`: it maps each point
         with the deformation of its nearest (rigidly aligned) source vertex's component, and
         saves and loads as one file; ``part_labels`` and ``part_deformations`` hold the parts.
+    with_scaling : bool, optional
+        Without ``init``: the computed start is a similarity, as
+        ``registration_rigid(..., with_scaling=True)`` finds it (a template of another size or in
+        other units), found on the target as prepared here (validated once, islands dropped).
+        Default ``False``: a rigid start. Only with ``init=None``.
 
     Returns
     -------
@@ -205,10 +211,17 @@ def registration_elastic(
         raise TypeError(f"`callback` must be callable, got {type(callback).__name__}")
     if parts not in ("joint", "connected"):
         raise ValueError(f"`parts` must be 'joint' or 'connected', got {parts!r}")
+    if not isinstance(with_scaling, bool):
+        raise TypeError(f"`with_scaling` must be a bool, got {type(with_scaling).__name__}")
+    if with_scaling and init is not None:
+        raise ValueError(
+            "`with_scaling` applies to the start computed without `init`; with `init` given "
+            "there is no rigid step (got with_scaling=True and an init)"
+        )
 
     rigid_start = None
     if init is None:
-        rigid_start = default_start(vs, fs, surface.query)
+        rigid_start = default_start(vs, fs, surface.query, with_scaling=with_scaling)
         rigid = np.array(rigid_start.transformation)
     else:
         rigid = as_transformation(init, "init")

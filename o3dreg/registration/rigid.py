@@ -410,13 +410,16 @@ def registration_rigid(
 
 
 def default_start(
-    vs: np.ndarray, fs: np.ndarray, target: SurfaceDistanceQuery
+    vs: np.ndarray, fs: np.ndarray, target: SurfaceDistanceQuery, *, with_scaling: bool = False
 ) -> RigidRegistrationResult:
-    """``registration_rigid((vs, fs), (target.vertices, target.faces))`` with its defaults, for
-    a target already validated and given with its distance query (``registration_elastic``'s):
-    the AABB tree of a large target is not built a second time."""
+    """``registration_rigid((vs, fs), (target.vertices, target.faces),
+    with_scaling=with_scaling)`` with its other defaults, for a target already validated and
+    given with its distance query (``registration_elastic``'s): the AABB tree of a large target
+    is not built a second time."""
     vs, fs = as_mesh_arrays((vs, fs), "source", drop_degenerate=True)
-    return _registration_rigid(vs, fs, target.vertices, target.faces, target)
+    return _registration_rigid(
+        vs, fs, target.vertices, target.faces, target, with_scaling=with_scaling
+    )
 
 
 def _registration_rigid(

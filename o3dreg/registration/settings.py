@@ -17,9 +17,6 @@ import numpy as np
 from .elastic import registration_elastic
 from .landmarks import registration_landmarks
 from .options import DistanceEstimation, ElasticCriteria, ElasticLevel
-from .result import RigidStart
-from .rigid import registration_rigid
-from .verdict import with_rigid_start
 
 __all__ = ["STARTS", "RegistrationSettings"]
 
@@ -151,19 +148,19 @@ class RegistrationSettings:
             With its verdict (``status``, ``warnings``); a similarity start's scores
             (``rigid_start``) and ambiguity warning are carried into it.
         """
-        rigid = None
         if init is None and self.start == "identity":
             init = np.eye(4)
-        elif init is None and self.start == "similarity":
-            rigid = registration_rigid(source, target, with_scaling=True)
-            init = np.asarray(rigid.transformation)
-        result = registration_elastic(
-            source, target, init=init, callback=callback, **self.elastic_options()
+        # A similarity start is the elastic step's own start with a scale: found on the target
+        # as that step prepares it (validated once, islands dropped, one AABB tree), its scores
+        # and warnings carried into the result as the rigid start's are.
+        return registration_elastic(
+            source,
+            target,
+            init=init,
+            callback=callback,
+            with_scaling=init is None and self.start == "similarity",
+            **self.elastic_options(),
         )
-        if rigid is not None:
-            # registration_elastic assessed it already (from ``init``, without a start).
-            result = with_rigid_start(result, RigidStart.from_rigid(rigid))
-        return result
 
     def __repr__(self) -> str:
         levels = "default" if self.levels is None else [lev.resolution for lev in self.levels]
