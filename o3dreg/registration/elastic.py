@@ -149,10 +149,9 @@ def registration_elastic(
         with the deformation of its nearest (rigidly aligned) source vertex's component, and
         saves and loads as one file; ``part_labels`` and ``part_deformations`` hold the parts.
     with_scaling : bool, optional
-        Without ``init``: the computed start is a similarity, as
-        ``registration_rigid(..., with_scaling=True)`` finds it (a template of another size or in
-        other units), found on the target as prepared here (validated once, islands dropped).
-        Default ``False``: a rigid start. Only with ``init=None``.
+        Make the start computed without ``init`` a similarity (``registration_rigid(...,
+        with_scaling=True)``, on the target as prepared here): for a template of another size or
+        in other units. Default ``False``: a rigid start. Refused with an ``init``.
 
     Returns
     -------
