@@ -14,10 +14,10 @@ thread-safe: nested or concurrent calls restore it once, when the last one leave
 from __future__ import annotations
 
 import importlib
-import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any
+
+from ._held import HeldSetting
 
 
 def _switch() -> Callable[[bool], bool] | None:
@@ -35,27 +35,21 @@ _set_madvise_hugepage = _switch()
 
 __all__ = ["small_pages"]
 
-_lock = threading.Lock()
-_depth = 0
-_saved: Any = None
+
+def _held_advice() -> HeldSetting | None:
+    switch = _set_madvise_hugepage
+    return None if switch is None else HeldSetting(lambda: switch(False), switch)
+
+
+_advice = _held_advice()
 
 
 @contextmanager
 def small_pages() -> Iterator[None]:
     """Switch NumPy's huge-page advice off inside the block (a no-op where NumPy has no switch);
     usable as a decorator."""
-    global _depth, _saved
-    if _set_madvise_hugepage is None:  # pragma: no cover
+    if _advice is None:  # pragma: no cover
         yield
         return
-    with _lock:
-        if _depth == 0:
-            _saved = _set_madvise_hugepage(False)
-        _depth += 1
-    try:
+    with _advice.held():
         yield
-    finally:
-        with _lock:
-            _depth -= 1
-            if _depth == 0:
-                _set_madvise_hugepage(_saved)

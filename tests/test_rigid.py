@@ -440,3 +440,41 @@ def test_the_threaded_candidate_search_gives_the_one_thread_pose(monkeypatch):
     np.testing.assert_array_equal(many.runner_up_transformation, one.runner_up_transformation)
     assert (many.score, many.runner_up_score) == (one.score, one.runner_up_score)
     assert (many.fitness, many.inlier_rmse) == (one.fitness, one.inlier_rmse)
+
+
+def test_overlapping_rigid_steps_keep_open3d_on_one_thread():
+    # Open3D's thread count is process-wide. Two rigid steps in two threads: the first to leave
+    # must not restore the caller's count under the other's ICPs (which would then sum in no
+    # fixed order); the last to leave restores it.
+    import threading
+
+    from o3dreg.registration.rigid import _single_thread
+
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(2)
+    try:
+        inside = threading.Barrier(3)
+        first_left = threading.Event()
+        seen = []
+
+        def first():
+            with _single_thread():
+                inside.wait()
+            first_left.set()
+
+        def second():
+            with _single_thread():
+                inside.wait()
+                first_left.wait()
+                seen.append(o3d.utility.get_max_threads())
+
+        threads = [threading.Thread(target=first), threading.Thread(target=second)]
+        for t in threads:
+            t.start()
+        inside.wait()
+        for t in threads:
+            t.join()
+        assert seen == [1]
+        assert o3d.utility.get_max_threads() == 2
+    finally:
+        o3d.utility.set_max_threads(before)

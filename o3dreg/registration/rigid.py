@@ -22,6 +22,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from .._geometry import apply_transformation
+from .._held import HeldSetting
 from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive
 from .distance import SurfaceDistanceQuery
@@ -508,17 +509,25 @@ def _check_sizes(covs: np.ndarray, covt: np.ndarray) -> None:
         )
 
 
+def _one_open3d_thread() -> int:
+    previous = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    return int(previous)
+
+
+#: Open3D's thread count (process-wide) held at 1 while any rigid step runs: an overlapping
+#: registration in another thread must not restore it under this one's ICPs.
+_OPEN3D_THREADS = HeldSetting(_one_open3d_thread, o3d.utility.set_max_threads)
+
+
 @contextlib.contextmanager
 def _single_thread() -> Iterator[None]:
     """Run Open3D on one thread: its ICP sums over threads in no fixed order, so two runs on the
     same input could differ in the last bits and, through the candidate ranking, pick different
-    poses. On one thread the same input gives a bit-identical result."""
-    previous = o3d.utility.get_max_threads()
-    o3d.utility.set_max_threads(1)
-    try:
+    poses. On one thread the same input gives a bit-identical result. Re-entrant and
+    thread-safe: the caller's setting comes back when the last overlapping call leaves."""
+    with _OPEN3D_THREADS.held():
         yield
-    finally:
-        o3d.utility.set_max_threads(previous)
 
 
 class _CandidateSearch:
