@@ -55,10 +55,16 @@ def face_cross(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out
 
 
-def face_doubled_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def face_doubled_areas(
+    vertices: np.ndarray, faces: np.ndarray, columns: list[np.ndarray] | None = None
+) -> np.ndarray:
     """``|(b - a) x (c - a)|`` of every triangle, ``(m,)``: twice its area. The same numbers as
-    ``row_norms(face_cross(vertices, faces))``, without the ``(m, 3)`` intermediate."""
-    cols = [np.ascontiguousarray(vertices[:, i]) for i in range(3)]
+    ``row_norms(face_cross(vertices, faces))``, without the ``(m, 3)`` intermediate.
+    ``columns``: the vertices' coordinates as three contiguous columns, when the caller has them
+    (a caller going through blocks of triangles copies them once, not once per block)."""
+    cols = (
+        columns if columns is not None else [np.ascontiguousarray(vertices[:, i]) for i in range(3)]
+    )
     out = np.empty(faces.shape[0])
     for start in range(0, faces.shape[0], BLOCK):
         out[start : start + BLOCK] = row_norms(_cross_block(cols, faces[start : start + BLOCK]))

@@ -32,4 +32,9 @@ def test_blocks_change_nothing(monkeypatch):
         monkeypatch.setattr(_geometry, "BLOCK", block)
         np.testing.assert_array_equal(face_cross(v, f), cross)
         np.testing.assert_array_equal(face_doubled_areas(v, f), np.linalg.norm(cross, axis=1))
+        # The caller's own contiguous columns (a caller going through blocks of triangles).
+        columns = [np.ascontiguousarray(v[:, i]) for i in range(3)]
+        np.testing.assert_array_equal(
+            face_doubled_areas(v, f, columns=columns), np.linalg.norm(cross, axis=1)
+        )
     assert face_doubled_areas(v, f[:0]).shape == (0,)

@@ -112,6 +112,12 @@ def _cell(problem: LevelProblem) -> float:
     return float(problem.lattice.cell_size.min())
 
 
+def _folds_further(new: float, current: float, threshold: float | None) -> bool:
+    """The folding guard's rule: a point whose smallest ``det(dT/dx)`` is below the threshold
+    and below the current point's is refused."""
+    return threshold is not None and new < threshold and new < current
+
+
 def _extrapolation(step: np.ndarray, previous: np.ndarray | None) -> np.ndarray | None:
     """Where the steps ``previous, step`` lead if they go on as a geometric series, or ``None``.
 
@@ -198,7 +204,7 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
                 # Folding guard: a step that brings det(dT/dx) below the threshold (and below
                 # its current value) is rejected like a step that increases the cost.
                 trial_det = problem.min_determinant(u + delta)
-                if trial_det < threshold and trial_det < det:  # type: ignore[operator]
+                if _folds_further(trial_det, det, threshold):
                     rho = -1.0
                     folds_rejected += 1
             if rho > 0:
@@ -245,7 +251,7 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
             far = problem.evaluate(u + jump, weights_of=ev, reassign=True)
             evaluations += 1
             far_det = problem.min_determinant(u + jump) if guard else det
-            unfolded = not guard or not (far_det < threshold and far_det < det)  # type: ignore[operator]
+            unfolded = not guard or not _folds_further(far_det, det, threshold)
             if np.isfinite(far.cost) and far.cost < ev.cost and unfolded:
                 u = u + jump
                 ev = problem.reweighted(far)

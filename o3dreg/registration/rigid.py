@@ -701,21 +701,15 @@ class _CandidateSearch:
             scored.append((score, name, icp))
         order = sorted(range(len(scored)), key=lambda k: (scored[k][0], k))
         best = scored[order[0]]
-        others = [
-            scored[k]
-            for k in order[1:]
-            if self._distinct(
-                np.asarray(best[2].transformation), np.asarray(scored[k][2].transformation)
-            )
-        ]
+        others = [scored[k] for k in order[1:] if self._distinct(_pose(best), _pose(scored[k]))]
         # The runner-up is the best distinct pose. Where the winner is far from the input pose
         # and several distinct poses tie with it (a shape with more than one symmetry: a box
         # fits itself in four poses), it is the tied one nearest the input pose, so that the
         # input pose can break the tie below.
         runner = others[0] if others else None
         tied = [o for o in others if self._tie(best[0], o[0])]
-        if tied and _rotation_angle(np.asarray(best[2].transformation)) >= INPUT_POSE_FAR:
-            runner = min(tied, key=lambda o: _rotation_angle(np.asarray(o[2].transformation)))
+        if tied and _rotation_angle(_pose(best)) >= INPUT_POSE_FAR:
+            runner = min(tied, key=lambda o: _rotation_angle(_pose(o)))
         winner_job = pool.submit(self.refine, _pose(best), method, criteria)
         # A runner-up likely to need refining (by the search scores) is refined beside the
         # winner; the rule below, on the winner's refined score, decides.
@@ -742,13 +736,13 @@ class _CandidateSearch:
         runner_score: float | None = None
         runner_t: np.ndarray | None = None
         if len(finals) > 1:
-            other = np.asarray(finals[1][2].transformation)
-            if self._distinct(np.asarray(win.transformation), other):
+            other = _pose(finals[1])
+            if self._distinct(_pose(finals[0]), other):
                 runner_score, runner_t = finals[1][0], other
         warnings: list[str] = []
         near_tie = runner_score is not None and self._tie(win_score, runner_score)
         if near_tie and runner_t is not None:
-            turns = (_rotation_angle(np.asarray(win.transformation)), _rotation_angle(runner_t))
+            turns = (_rotation_angle(_pose(finals[0])), _rotation_angle(runner_t))
             if min(turns) <= INPUT_POSE_NEAR and max(turns) >= INPUT_POSE_FAR:
                 if turns[1] < turns[0]:  # the runner-up agrees with the input pose: it wins
                     previous = win
