@@ -21,6 +21,9 @@ def test_compactness_is_cumulative_variance(data):
     curve = compactness(model)
     np.testing.assert_allclose(curve.values, model.cumulative_variance_ratio)
     assert "cumulative %" in curve.table()
+    # A deterministic measure: no spread column of zeros that would read as "not measured".
+    assert "sd" not in curve.table().splitlines()[1]
+    assert all(len(line.split()) == 2 for line in curve.table().splitlines()[2:])
 
 
 def test_generalization_of_a_three_mode_population(data):

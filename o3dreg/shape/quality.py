@@ -55,13 +55,14 @@ class QualityCurve:
         return f"QualityCurve({self.name}, modes 1..{len(self.modes)}: [{vals}])"
 
     def table(self) -> str:
-        """Text table: modes, value, spread."""
-        label = "cumulative %" if self.name == "compactness" else f"mean ({self.unit})"
-        lines = [f"{self.name}", f"{'modes':>6}{label:>16}{'sd':>12}"]
+        """Text table: modes, value, spread (compactness has none: no spread column)."""
+        if self.name == "compactness":
+            lines = [f"{self.name}", f"{'modes':>6}{'cumulative %':>16}"]
+            lines += [f"{int(m):>6d}{100 * v:>16.4g}" for m, v in zip(self.modes, self.values)]
+            return "\n".join(lines)
+        lines = [f"{self.name}", f"{'modes':>6}{f'mean ({self.unit})':>16}{'sd':>12}"]
         for m, v, e in zip(self.modes, self.values, self.errors):
-            value = 100 * v if self.name == "compactness" else v
-            spread = 100 * e if self.name == "compactness" else e
-            lines.append(f"{int(m):>6d}{value:>16.4g}{spread:>12.3g}")
+            lines.append(f"{int(m):>6d}{v:>16.4g}{e:>12.3g}")
         return "\n".join(lines)
 
     def as_dict(self) -> dict[str, Any]:
