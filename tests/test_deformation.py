@@ -124,3 +124,79 @@ def test_points_are_validated():
         hierarchy().transform(np.zeros((4, 2)))
     with pytest.raises(ValueError, match="finite"):
         hierarchy().transform(np.array([[np.nan, 0.0, 0.0]]))
+
+
+def a_frame(seed=5):
+    """A rigid transformation: a rotation about an oblique axis, and a shift."""
+    from scipy.spatial.transform import Rotation
+
+    frame = np.eye(4)
+    frame[:3, :3] = Rotation.from_rotvec(np.array([0.3, -0.5, 0.8]) * 0.9).as_matrix()
+    frame[:3, 3] = np.random.default_rng(seed).normal(scale=5.0, size=3)
+    return frame
+
+
+def test_a_framed_deformation_is_the_axis_one_conjugated_by_its_frame():
+    # T(y) = F(T0(F^-1 y)) for the rigid frame F and the same lattices along the axes, T0.
+    d, frame = hierarchy(scale=0.5), a_frame()
+    framed = d.in_frame(frame)
+    pts = sample()
+    inverse = np.linalg.inv(frame)
+    local = pts @ inverse[:3, :3].T + inverse[:3, 3]
+    expected = d.transform(local) @ frame[:3, :3].T + frame[:3, 3]
+    np.testing.assert_allclose(framed.transform(pts), expected, atol=1e-12)
+    np.testing.assert_array_equal(framed.frame, frame)
+    assert d.frame is None and framed.in_frame(None).frame is None
+    assert LatticeDeformation(d.levels, np.eye(4)).frame is None  # the identity is no frame
+    # The determinant does not depend on the frame; refining and adding levels keep it.
+    assert framed.min_jacobian_determinant() == d.min_jacobian_determinant()
+    np.testing.assert_array_equal(framed.refined().frame, frame)
+    np.testing.assert_allclose(framed.refined().transform(pts), framed.transform(pts), atol=1e-12)
+    np.testing.assert_array_equal(framed.with_level(d.levels[0]).frame, frame)
+
+
+def test_a_framed_jacobian_matches_finite_differences():
+    framed = hierarchy(scale=0.5).in_frame(a_frame())
+    # Points well inside the box in lattice coordinates (away from the clamped outside).
+    local = sample(lo=-8.0, hi=8.0)
+    frame = framed.frame
+    pts = local @ frame[:3, :3].T + frame[:3, 3]
+    h = 1e-6
+    fd = np.stack(
+        [
+            (framed.transform(pts + h * e) - framed.transform(pts - h * e)) / (2 * h)
+            for e in np.eye(3)
+        ],
+        axis=2,
+    )
+    np.testing.assert_allclose(framed.jacobian(pts), fd, atol=1e-6)
+
+
+def test_the_frame_is_saved_and_old_files_have_none(tmp_path):
+    framed = hierarchy().in_frame(a_frame())
+    path = tmp_path / "framed.npz"
+    framed.save(path)
+    back = LatticeDeformation.load(path)
+    np.testing.assert_array_equal(back.frame, framed.frame)
+    pts = sample()
+    np.testing.assert_array_equal(back.transform(pts), framed.transform(pts))
+    # A version 1 file (before frames): lattices along the axes.
+    with np.load(path) as data:
+        old = {k: data[k] for k in data.files if k != "frame"}
+    old["version"] = np.array(1)
+    np.savez(tmp_path / "old.npz", **old)
+    back = LatticeDeformation.load(tmp_path / "old.npz")
+    assert back.frame is None
+    np.testing.assert_array_equal(back.transform(pts), hierarchy().transform(pts))
+
+
+def test_a_frame_must_be_rigid():
+    d = hierarchy()
+    with pytest.raises(ValueError, match=r"`frame` must be a finite \(4, 4\)"):
+        d.in_frame(np.eye(3))
+    scaled = np.diag([2.0, 2.0, 2.0, 1.0])
+    with pytest.raises(ValueError, match="`frame` must be a rigid transformation"):
+        d.in_frame(scaled)
+    mirrored = np.diag([-1.0, 1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="`frame` must be a rigid transformation"):
+        d.in_frame(mirrored)

@@ -298,18 +298,24 @@ def test_a_near_tie_refines_both_poses(monkeypatch):
 
 
 def count_distance_queries(monkeypatch):
-    """A list that gets the vertex count of every surface a distance query (and so, when
-    queried, an AABB tree) is made for."""
-    from o3dreg.registration.distance import SurfaceDistanceQuery
+    """A list that gets the vertex count of every surface an AABB tree is built for."""
+    import igl
 
     sizes = []
-    init = SurfaceDistanceQuery.__init__
+    real = igl.AABB
 
-    def counted(self, vertices, faces):
-        sizes.append(len(vertices))
-        init(self, vertices, faces)
+    class Counted:
+        def __init__(self):
+            self.tree = real()
 
-    monkeypatch.setattr(SurfaceDistanceQuery, "__init__", counted)
+        def init(self, vertices, faces):
+            sizes.append(len(vertices))
+            return self.tree.init(vertices, faces)
+
+        def squared_distance(self, *args):
+            return self.tree.squared_distance(*args)
+
+    monkeypatch.setattr(igl, "AABB", Counted)
     return sizes
 
 

@@ -6,6 +6,7 @@ import open3d as o3d
 import pytest
 from _helpers import FAST
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from o3dreg import (
     DistanceEstimation,
@@ -380,16 +381,22 @@ def test_max_distance_factor_keeps_the_correspondences_it_should():
     assert result.distances.source_to_target_mean < 1.05 * plain.distances.source_to_target_mean
 
 
-def test_a_multi_part_deformation_is_one_map_that_saves_and_reproduces(tmp_path):
+@pytest.mark.parametrize("turned", [False, True])
+def test_a_multi_part_deformation_is_one_map_that_saves_and_reproduces(tmp_path, turned):
     tv, tf, _ = two_plates(4.0)
     dv, df, dsplit = two_plates(2.0)
     dv[:dsplit, 0] -= 3.0
     dv[dsplit:, 0] += 3.0
+    start = np.eye(4)
+    if turned:  # the patient turned, started with the turn: the parts' lattices lie along it
+        start[:3, :3] = Rotation.from_rotvec([0.4, -0.3, 0.6]).as_matrix()
+        start[:3, 3] = (5.0, -2.0, 1.0)
+        dv = dv @ start[:3, :3].T + start[:3, 3]
     levels = [ElasticLevel(2), ElasticLevel(4)]
-    result = registration_elastic(
-        (tv, tf), (dv, df), init=np.eye(4), levels=levels, parts="connected"
-    )
+    result = registration_elastic((tv, tf), (dv, df), init=start, levels=levels, parts="connected")
     assert isinstance(result.deformation, PartitionedDeformation)
+    for part in result.part_deformations:
+        assert (part.frame is not None) == turned
     # The registered vertices are the map applied to the template (both parts, not only the
     # largest one: saving only that one put the other plate 12 mm off).
     np.testing.assert_allclose(result.transform(tv), result.vertices, atol=1e-9)
@@ -397,14 +404,22 @@ def test_a_multi_part_deformation_is_one_map_that_saves_and_reproduces(tmp_path)
     result.deformation.save(path)
     back = load_deformation(path)
     assert isinstance(back, PartitionedDeformation)
-    probe = np.vstack([tv, tv + np.random.default_rng(0).normal(scale=2.0, size=tv.shape)])
-    np.testing.assert_array_equal(back.transform(probe), result.transform(probe))
-    np.testing.assert_array_equal(PartitionedDeformation.load(path).transform(tv), result.vertices)
+    # The saved map applies after the start (the rigidly moved points).
+    moved = tv @ start[:3, :3].T + start[:3, 3]
+    probe = np.vstack([moved, moved + np.random.default_rng(0).normal(scale=2.0, size=tv.shape)])
+    np.testing.assert_array_equal(back.transform(probe), result.deformation.transform(probe))
+    np.testing.assert_array_equal(
+        PartitionedDeformation.load(path).transform(moved), result.vertices
+    )
     with pytest.raises(ValueError, match="PartitionedDeformation"):
         LatticeDeformation.load(path)
-    # evaluate_elastic with the (reloaded) map measures exactly what the registration reported.
+    # evaluate_elastic with the (reloaded) map measures what the registration reported: exactly
+    # along the axes; in a frame, the levels measured in its coordinates (rounding apart).
     again = evaluate_elastic((tv, tf), (dv, df), result.transformation, back)
-    assert again == result.distances
+    if not turned:
+        assert again == result.distances
+    for name, value in vars(result.distances).items():
+        assert getattr(again, name) == pytest.approx(value, rel=1e-9, abs=1e-12), name
 
 
 def test_the_cli_writes_the_map_of_every_part(tmp_path):

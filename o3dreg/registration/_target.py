@@ -17,7 +17,7 @@ from functools import cached_property
 import numpy as np
 
 from ..volume.cleaning import mesh_components
-from .distance import SurfaceDistanceQuery
+from .distance import FramedQuery, SurfaceDistanceQuery
 from .result import SurfaceDistances
 from .sampling import lexicographic_order, morton_order, spatial_subsample
 from .verdict import Moments, moments
@@ -38,22 +38,40 @@ class TargetSurface:
         A validated mesh (``as_mesh_arrays``); not modified.
     min_component : float, optional
         See :attr:`~o3dreg.DistanceEstimation.min_target_component`.
+    query : SurfaceDistanceQuery, optional
+        The distance query of ``(vertices, faces)`` when they are prepared already (canonical
+        order, debris dropped): they are then used as they are (see :meth:`in_frame`).
     """
 
     def __init__(
-        self, vertices: np.ndarray, faces: np.ndarray, min_component: float | None = None
+        self,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        min_component: float | None = None,
+        *,
+        query: SurfaceDistanceQuery | None = None,
     ) -> None:
-        v, f = canonical_mesh(vertices, faces)
-        if min_component is not None:
-            v, f = drop_small_components(v, f, min_component)
-        self.vertices, self.faces = v, f
-        self.query = SurfaceDistanceQuery(v, f)
+        if query is None:
+            v, f = canonical_mesh(vertices, faces)
+            if min_component is not None:
+                v, f = drop_small_components(v, f, min_component)
+            query = SurfaceDistanceQuery(v, f)
+        self.vertices, self.faces = query.vertices, query.faces
+        self.query = query
         self._details: dict[float, SurfaceDistanceQuery] = {}
         self._subsamples: dict[int, np.ndarray] = {}
 
     @property
     def mesh(self) -> tuple[np.ndarray, np.ndarray]:
         return self.vertices, self.faces
+
+    def in_frame(self, frame: np.ndarray) -> TargetSurface:
+        """This target in the coordinates of ``frame``, a rigid transformation from them to the
+        target's: the same vertices (in the same order) and triangles moved there, answered by
+        this target's distance query (one AABB tree), with its own levels of detail and
+        subsamples (made there, so that they do not depend on how the target lies)."""
+        framed = FramedQuery(self.query, frame)
+        return TargetSurface(framed.vertices, framed.faces, query=framed)
 
     def build_levels_of_detail(self, voxels: Iterable[float]) -> None:
         """Simplified copies of the target for the voxel sizes ``voxels``.

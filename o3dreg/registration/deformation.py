@@ -25,9 +25,10 @@ from .lattice import TrilinearLattice
 __all__ = ["LatticeDeformation", "PartitionedDeformation", "load_deformation"]
 
 _FORMAT = "o3dreg.LatticeDeformation"
-_VERSION = 1
+#: Version 2 added the lattice frame (version 1 files: lattices aligned with the world axes).
+_VERSION = 2
 _PARTITIONED_FORMAT = "o3dreg.PartitionedDeformation"
-_PARTITIONED_VERSION = 1
+_PARTITIONED_VERSION = 2
 
 
 def _lcm(a: int, b: int) -> int:
@@ -42,6 +43,13 @@ class LatticeDeformation:
     ----------
     levels : tuple of TrilinearLattice
         Coarse to fine; all share the same box. An empty tuple is the identity.
+    frame : (4, 4) ndarray or None
+        Where the lattices lie: the rigid transformation from lattice coordinates to the
+        coordinates the map applies to (``None``: the same coordinates, lattices aligned with
+        the axes). :func:`~o3dreg.registration_elastic` lays its lattices along the template's
+        own axes, through its start's rotation, so that a patient turned in the scanner gets
+        the same deformation, turned with it. Then ``T(y) = y + R u(R^T (y - t))``, with ``u``
+        the lattices' displacement in their own coordinates.
 
     Notes
     -----
@@ -50,6 +58,7 @@ class LatticeDeformation:
     """
 
     levels: tuple[TrilinearLattice, ...] = ()
+    frame: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         levels = tuple(self.levels)
@@ -61,6 +70,7 @@ class LatticeDeformation:
             if not lat.same_box(levels[0]):
                 raise ValueError("`levels` must all cover the same box (origin and size)")
         object.__setattr__(self, "levels", levels)
+        object.__setattr__(self, "frame", _checked_frame(self.frame))
 
     def __repr__(self) -> str:
         shapes = [lat.shape[0] if len(set(lat.shape)) == 1 else lat.shape for lat in self.levels]
@@ -73,16 +83,26 @@ class LatticeDeformation:
 
     def with_level(self, lattice: TrilinearLattice) -> LatticeDeformation:
         """A new deformation with ``lattice`` appended as its finest level."""
-        return LatticeDeformation((*self.levels, lattice))
+        return LatticeDeformation((*self.levels, lattice), self.frame)
+
+    def in_frame(self, frame: Any) -> LatticeDeformation:
+        """The same lattices laid in ``frame`` (see :attr:`frame`; ``None``: the axes)."""
+        return LatticeDeformation(self.levels, frame)
+
+    def _local(self, pts: np.ndarray) -> np.ndarray:
+        """Points in lattice coordinates."""
+        if self.frame is None:
+            return pts
+        return (pts - self.frame[:3, 3]) @ self.frame[:3, :3]
 
     # -- the map --------------------------------------------------------------------------------
     def displacement(self, points: Any) -> np.ndarray:
         """``T(x) - x`` at ``points (n, 3)``."""
-        pts = as_points(points, "points", allow_empty=True)
+        pts = self._local(as_points(points, "points", allow_empty=True))
         out = np.zeros_like(pts)
         for lat in self.levels:
             out += lat.displacement(pts)
-        return out
+        return out if self.frame is None else out @ self.frame[:3, :3].T
 
     def transform(self, points: Any) -> np.ndarray:
         """Apply the map: ``T(points)`` as a new ``(n, 3)`` array (the input is not modified)."""
@@ -91,11 +111,14 @@ class LatticeDeformation:
 
     def jacobian(self, points: Any) -> np.ndarray:
         """Jacobian matrices ``dT/dx`` at ``points``, ``(n, 3, 3)`` (row: output, column: input)."""
-        pts = as_points(points, "points", allow_empty=True)
+        pts = self._local(as_points(points, "points", allow_empty=True))
         jac = np.broadcast_to(np.eye(3), (pts.shape[0], 3, 3)).copy()
         for lat in self.levels:
             jac += lat.displacement_gradient(pts)
-        return jac
+        if self.frame is None:
+            return jac
+        rotation = self.frame[:3, :3]
+        return rotation @ jac @ rotation.T
 
     def jacobian_determinant(self, points: Any) -> np.ndarray:
         """``det(dT/dx)`` at ``points``: positive where the map preserves orientation."""
@@ -110,6 +133,8 @@ class LatticeDeformation:
         """
         if not self.levels:
             return 1.0
+        if self.frame is not None:  # the same determinants, sampled in lattice coordinates
+            return self.in_frame(None).min_jacobian_determinant(samples_per_cell)
         finest = self.common_shape()
         origin, size = self.levels[0].origin, self.levels[0].size
         n = max(int(samples_per_cell), 2)
@@ -161,7 +186,7 @@ class LatticeDeformation:
         values = np.zeros_like(nodes)
         for lat in self.levels:
             values += lat.displacement(nodes)
-        return LatticeDeformation((total.with_displacements(values),))
+        return LatticeDeformation((total.with_displacements(values),), self.frame)
 
     # -- persistence ----------------------------------------------------------------------------
     def save(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> str:
@@ -185,8 +210,33 @@ class LatticeDeformation:
         return _lattice_from(data, "", path)
 
 
+def _checked_frame(frame: Any) -> np.ndarray | None:
+    """``frame`` as a read-only (4, 4) rigid transformation, ``None`` for none or the identity."""
+    if frame is None:
+        return None
+    m = np.array(frame, dtype=np.float64)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise ValueError(f"`frame` must be a finite (4, 4) matrix, got shape {m.shape}")
+    rotation = m[:3, :3]
+    rigid = (
+        np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-9)
+        and np.linalg.det(rotation) > 0
+        and np.array_equal(m[3], [0.0, 0.0, 0.0, 1.0])
+    )
+    if not rigid:
+        raise ValueError(
+            "`frame` must be a rigid transformation (a rotation, a translation, last row "
+            f"0 0 0 1), got {m.tolist()}"
+        )
+    if np.array_equal(m, np.eye(4)):
+        return None
+    m.flags.writeable = False
+    return m
+
+
 def _lattice_arrays(deformation: LatticeDeformation, prefix: str) -> dict[str, Any]:
     arrays: dict[str, Any] = {f"{prefix}number_of_levels": np.array(len(deformation.levels))}
+    arrays[f"{prefix}frame"] = np.eye(4) if deformation.frame is None else deformation.frame
     for k, lat in enumerate(deformation.levels):
         arrays[f"{prefix}level{k}_origin"] = lat.origin
         arrays[f"{prefix}level{k}_size"] = lat.size
@@ -213,9 +263,11 @@ def _lattice_from(data: dict[str, np.ndarray], prefix: str, path: Any) -> Lattic
                     data[f"{prefix}level{k}_displacements"].astype(np.float64),
                 )
             )
+        # Version 1 had no frame: its lattices are aligned with the axes.
+        frame = data.get(f"{prefix}frame")
+        return LatticeDeformation(tuple(levels), None if frame is None else frame)
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"`path`: {os.fspath(path)!r} is not a valid deformation: {exc}") from exc
-    return LatticeDeformation(tuple(levels))
 
 
 def _holds(path: Any, kind: str) -> bool:

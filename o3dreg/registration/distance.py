@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from .._geometry import barycentric, face_cross, row_norms
 
-__all__ = ["SurfaceDistanceQuery"]
+__all__ = ["FramedQuery", "SurfaceDistanceQuery"]
 
 #: Below this many triangles, :meth:`SurfaceDistanceQuery.closest_few` builds the full tree
 #: (a fraction of a second).
@@ -273,3 +273,50 @@ class SurfaceDistanceQuery:
         n = self.face_normal(face)
         tangent = diff - (diff * n).sum(axis=1, keepdims=True) * n
         return hit & (np.linalg.norm(tangent, axis=1) > 0.5 * edge)
+
+
+class FramedQuery(SurfaceDistanceQuery):
+    """The distance query of a surface, asked in other coordinates.
+
+    ``frame`` is the rigid transformation from these coordinates to the surface's. The surface's
+    own query answers (its AABB tree, built once, is shared: distances do not depend on the
+    coordinates); closest points come back in these coordinates, and so do the triangle
+    normals, computed from the vertices moved here.
+
+    Parameters
+    ----------
+    query : SurfaceDistanceQuery
+        The surface in its own coordinates.
+    frame : (4, 4) ndarray
+        A rigid transformation (rotation and translation) from these coordinates to the
+        surface's.
+    """
+
+    def __init__(self, query: SurfaceDistanceQuery, frame: np.ndarray) -> None:
+        self._surface = query
+        self._rotation = np.ascontiguousarray(frame[:3, :3], dtype=np.float64)
+        self._translation = np.asarray(frame[:3, 3], dtype=np.float64)
+        super().__init__((query.vertices - self._translation) @ self._rotation, query.faces)
+        # What a rigid motion leaves as it is, computed once (a registration needs both): the
+        # open edges and the edge lengths.
+        query.has_boundary, query.mean_edge  # noqa: B018
+        for name in ("_boundary_cache", "_edges", "_touches_boundary"):
+            if name in query.__dict__:
+                self.__dict__[name] = query.__dict__[name]
+
+    @property
+    def has_tree(self) -> bool:
+        return self._surface.has_tree
+
+    def _there(self, points: np.ndarray) -> np.ndarray:
+        return np.asarray(points, dtype=np.float64) @ self._rotation.T + self._translation
+
+    def _here(self, found: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Any:
+        dist, face, closest = found
+        return dist, face, (closest - self._translation) @ self._rotation
+
+    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self._here(self._surface.closest(self._there(points)))  # type: ignore[no-any-return]
+
+    def closest_few(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self._here(self._surface.closest_few(self._there(points)))  # type: ignore[no-any-return]

@@ -226,16 +226,34 @@ def registration_elastic(
         rigid = as_transformation(init, "init")
 
     points = apply_transformation(rigid, vs)
+    # The levels work along the template's own axes (the start's rotation): the lattices, the
+    # bending energy, the target's levels of detail and subsamples then do not depend on how
+    # the patient lies in the scanner.
+    frame = lattice_frame(rigid)
+    local, local_points = surface, points
+    if frame is not None:
+        local = surface.in_frame(frame)
+        local_points = (points - frame[:3, 3]) @ frame[:3, :3]
     labels = template_parts(vs.shape[0], fs) if parts == "connected" else None
     parts_fields: dict[str, Any] = {}
     if labels is not None and labels.max() > 0:
         fit, parts_fields = _register_parts(
-            vs, fs, surface, rigid, labels, levels_, estimation_method, criteria, padding, callback
+            local_points,
+            fs,
+            local,
+            labels,
+            levels_,
+            estimation_method,
+            criteria,
+            padding,
+            callback,
         )
     else:
         fit = _coarse_to_fine(
-            points, fs, surface, levels_, estimation_method, criteria, padding, callback
+            local_points, fs, local, levels_, estimation_method, criteria, padding, callback
         )
+    if frame is not None:
+        fit, parts_fields = _laid_in(frame, fit, parts_fields, points)
     measured = surface.distances(fit.moved, fs, forward=fit.forward)
     success = not fit.failures
     result = ElasticRegistrationResult(
@@ -432,6 +450,41 @@ def _coarse_to_fine(
     )
 
 
+def lattice_frame(transformation: np.ndarray) -> np.ndarray | None:
+    """Where the lattices of a registration started at ``transformation`` lie: its rotation (the
+    nearest rotation, for a similarity or affine start) and translation, so that the lattices
+    follow the template's own axes; ``None`` for the identity (the axes)."""
+    if np.array_equal(transformation, np.eye(4)):
+        return None
+    u, _, vt = np.linalg.svd(transformation[:3, :3])
+    if np.linalg.det(u @ vt) < 0:  # a mirroring start: the nearest proper rotation
+        u = u * np.array([1.0, 1.0, -1.0])
+    frame = np.eye(4)
+    frame[:3, :3] = u @ vt
+    frame[:3, 3] = transformation[:3, 3]
+    return frame
+
+
+def _laid_in(
+    frame: np.ndarray, fit: _Fit, parts_fields: dict[str, Any], points: np.ndarray
+) -> tuple[_Fit, dict[str, Any]]:
+    """A fit made in the coordinates of ``frame`` back in the target's: the deformation with its
+    lattices laid in ``frame`` and the moved vertices it gives (``points``: the rigidly aligned
+    source, the sites of a partitioned map)."""
+    if isinstance(fit.deformation, PartitionedDeformation):
+        pieces = tuple(part.in_frame(frame) for part in fit.deformation.parts)
+        deformation: LatticeDeformation | PartitionedDeformation = PartitionedDeformation(
+            pieces, points, fit.deformation.labels
+        )
+        parts_fields = {**parts_fields, "part_deformations": pieces, "part_sites": points}
+    else:
+        deformation = fit.deformation.in_frame(frame)
+    # The result's vertices are its map applied to the aligned source (what `transform` and a
+    # saved map give); the same as the fit's, moved by the frame, to rounding.
+    moved = deformation.transform(points)
+    return fit._replace(deformation=deformation, moved=moved), parts_fields
+
+
 def template_parts(number_of_vertices: int, faces: np.ndarray) -> np.ndarray:
     """The part of every template vertex for ``parts='connected'``: its component through shared
     triangle edges, numbered by first vertex; isolated vertices get their own labels. (Vertex
@@ -444,10 +497,9 @@ def template_parts(number_of_vertices: int, faces: np.ndarray) -> np.ndarray:
 
 
 def _register_parts(
-    vs: np.ndarray,
+    points: np.ndarray,
     fs: np.ndarray,
     surface: TargetSurface,
-    rigid: np.ndarray,
     labels: np.ndarray,
     levels: list[ElasticLevel],
     method: DistanceEstimation,
@@ -455,15 +507,14 @@ def _register_parts(
     padding: float,
     callback: Any,
 ) -> tuple[_Fit, dict[str, Any]]:
-    """``parts='connected'``: the levels for each source component, and the result's part
-    fields."""
+    """``parts='connected'``: the levels for each source component (``points``: the source
+    rigidly aligned), and the result's part fields."""
     vt, ft = surface.mesh
-    points = apply_transformation(rigid, vs)
     _, nearest = cKDTree(points).query(vt, workers=-1)
     target_labels = labels[nearest]
     face_labels = target_labels[ft]
     moved = points.copy()
-    supported = np.zeros(vs.shape[0], dtype=bool)
+    supported = np.zeros(points.shape[0], dtype=bool)
     history: list[LevelReport] = []
     deformations: list[LatticeDeformation] = []
     failures: list[str] = []
@@ -471,7 +522,7 @@ def _register_parts(
     count = int(labels.max()) + 1
     for part in range(count):
         sel = np.flatnonzero(labels == part)
-        remap = np.full(vs.shape[0], -1, dtype=np.int64)
+        remap = np.full(points.shape[0], -1, dtype=np.int64)
         remap[sel] = np.arange(sel.size)
         pf = remap[fs[np.all(labels[fs] == part, axis=1)]]
         tf = ft[np.all(face_labels == part, axis=1)]
