@@ -221,16 +221,28 @@ def _folds(result: Any) -> list[tuple[str, str]]:
                 "it is not one-to-one there",
             )
         )
+    # Without a fold the map keeps the surface's orientation: the vertices slid along it.
+    slid = "" if det <= 0.0 else SLID
     if flipped > FLIPPED_FAILED_FRACTION * triangles:
         out.append(
             (
                 "failed",
-                f"{flipped} of {triangles} template triangles are turned inside out",
+                f"{flipped} of {triangles} template triangles are turned inside out{slid}",
             )
         )
     elif flipped > max(1.0, FLIPPED_SUSPECT_FRACTION * triangles):
-        out.append(("suspect", f"{flipped} template triangles turned inside out"))
+        out.append(("suspect", f"{flipped} template triangles turned inside out{slid}"))
     return out
+
+
+#: What flipped triangles mean where the map does not fold, and the cure. A template coarse for
+#: the target's sharp edges and corners slides around them under the barycentre term (a
+#: 400-vertex cube onto a cube: 7.2 mm, 44 flips; with the single distance 0.07 mm, 1 flip).
+SLID = (
+    " while the map does not fold: its vertices slid along the target, as a template coarse "
+    "for sharp edges and corners does under the symmetric distance (the single distance, "
+    "DistanceEstimation(symmetric=False), or a denser template avoids it)"
+)
 
 
 def _distances(
