@@ -58,6 +58,12 @@ def assert_untouched(mesh: o3d.geometry.TriangleMesh, snap: tuple[np.ndarray, np
     np.testing.assert_array_equal(np.asarray(mesh.triangles), snap[1])
 
 
+def point_jacobian(f: Any, points: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """Central differences of a map ``f`` of ``(n, 3)`` points: ``(n, 3, 3)``, row = output,
+    column = input (the layout of ``LatticeDeformation.jacobian``)."""
+    return np.stack([(f(points + h * e) - f(points - h * e)) / (2 * h) for e in np.eye(3)], axis=2)
+
+
 def similarity_transform(angle_deg: float, axis: Any, shift: Any, scale: float = 1.0) -> np.ndarray:
     """The 4x4 map ``x -> scale * R x + shift``, ``R`` a rotation by ``angle_deg`` about ``axis``."""
     t = np.eye(4)
