@@ -371,3 +371,17 @@ def test_sizes_are_checked_before_allocation():
         registration_elastic(sphere, sphere, init=np.eye(4), levels=[ElasticLevel(2)] * 17)
     with pytest.raises(ValueError, match=r"`shape` must have at most .* nodes"):
         TrilinearLattice.zeros(np.zeros(3), np.ones(3), (1000, 1000, 1000))
+
+
+def test_the_lattice_frame_of_a_start_is_its_rotation_and_shift():
+    from o3dreg.registration.elastic import _lattice_frame
+
+    assert _lattice_frame(np.eye(4)) is None  # init=identity: the axes, as before
+    similarity = TURN.copy()
+    similarity[:3, :3] *= 1.7
+    np.testing.assert_allclose(_lattice_frame(similarity), TURN, atol=1e-12)
+    mirror = TURN @ np.diag([-1.0, 1.0, 1.0, 1.0])
+    frame = _lattice_frame(mirror)
+    rotation = frame[:3, :3]
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(rotation) > 0 and np.array_equal(frame[:3, 3], TURN[:3, 3])

@@ -299,7 +299,7 @@ class FramedQuery(SurfaceDistanceQuery):
         super().__init__((query.vertices - self._translation) @ self._rotation, query.faces)
         # What a rigid motion leaves as it is, computed once (a registration needs both): the
         # open edges and the edge lengths.
-        query.has_boundary, query.mean_edge  # noqa: B018
+        _ = query.has_boundary, query.mean_edge
         for name in ("_boundary_cache", "_edges", "_touches_boundary"):
             if name in query.__dict__:
                 self.__dict__[name] = query.__dict__[name]

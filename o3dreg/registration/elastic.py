@@ -229,7 +229,7 @@ def registration_elastic(
     # The levels work along the template's own axes (the start's rotation): the lattices, the
     # bending energy, the target's levels of detail and subsamples then do not depend on how
     # the patient lies in the scanner.
-    frame = lattice_frame(rigid)
+    frame = _lattice_frame(rigid)
     local, local_points = surface, points
     if frame is not None:
         local = surface.in_frame(frame)
@@ -450,7 +450,7 @@ def _coarse_to_fine(
     )
 
 
-def lattice_frame(transformation: np.ndarray) -> np.ndarray | None:
+def _lattice_frame(transformation: np.ndarray) -> np.ndarray | None:
     """Where the lattices of a registration started at ``transformation`` lie: its rotation (the
     nearest rotation, for a similarity or affine start) and translation, so that the lattices
     follow the template's own axes; ``None`` for the identity (the axes)."""
