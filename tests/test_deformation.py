@@ -144,6 +144,8 @@ def test_a_framed_deformation_is_the_axis_one_conjugated_by_its_frame():
     expected = d.transform(local) @ frame[:3, :3].T + frame[:3, 3]
     np.testing.assert_allclose(framed.transform(pts), expected, atol=1e-12)
     np.testing.assert_array_equal(framed.frame, frame)
+    assert repr(framed).endswith("frame=turned 51 deg)")  # |rotation vector| 0.891 rad
+    assert "frame" not in repr(d)
     assert d.frame is None and framed.in_frame(None).frame is None
     assert LatticeDeformation(d.levels, np.eye(4)).frame is None  # the identity is no frame
     # The determinant does not depend on the frame; refining and adding levels keep it.

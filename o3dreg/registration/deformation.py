@@ -74,7 +74,14 @@ class LatticeDeformation:
 
     def __repr__(self) -> str:
         shapes = [lat.shape[0] if len(set(lat.shape)) == 1 else lat.shape for lat in self.levels]
-        return f"LatticeDeformation(levels={shapes}, max_displacement={self.max_displacement:.4g})"
+        frame = ""
+        if self.frame is not None:  # how far the lattices are turned from the axes
+            cos = (np.trace(self.frame[:3, :3]) - 1.0) / 2.0
+            frame = f", frame=turned {np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))):.3g} deg"
+        return (
+            f"LatticeDeformation(levels={shapes}, max_displacement={self.max_displacement:.4g}"
+            f"{frame})"
+        )
 
     @property
     def max_displacement(self) -> float:
