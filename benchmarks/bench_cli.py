@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 #: Profile groups of ``o3dreg register``: (label, substring of "file:function" in cProfile's keys).
 STAGES = [
     ("read the two meshes (io.mesh.read_triangle_mesh)", "mesh.py:read_triangle_mesh"),
-    ("target preparation (TargetSurface)", "_target.py:__init__"),
+    ("target preparation (TargetSurface.from_mesh)", "_target.py:from_mesh"),
     # Below 200k target vertices, the rigid step's first score builds the target's AABB tree,
     # which the elastic levels use afterwards.
     ("rigid step (rigid.default_start)", "rigid.py:default_start"),

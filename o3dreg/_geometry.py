@@ -10,6 +10,20 @@ def apply_transformation(transformation: np.ndarray, points: np.ndarray) -> np.n
     return points @ transformation[:3, :3].T + transformation[:3, 3]
 
 
+def into_frame(frame: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``(n, 3)`` points in the coordinates of a rigid ``frame`` (the transformation from them to
+    the points' coordinates): the inverse of ``apply_transformation(frame, ...)``, without
+    inverting the matrix."""
+    return (points - frame[:3, 3]) @ frame[:3, :3]
+
+
+def rotation_angle(transformation: np.ndarray) -> float:
+    """Rotation angle (degrees) of a rigid or similarity transformation."""
+    m = transformation[:3, :3]
+    r = m / max(float(np.cbrt(abs(np.linalg.det(m)))), 1e-300)
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+
+
 def barycentric(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Barycentric coordinates ``(k, 3)`` of ``points (k, 3)`` in triangles ``corners (k, 3, 3)``.
 

@@ -37,7 +37,7 @@ def test_the_tree_is_built_on_first_use(sphere):
     assert not query.has_tree
     query.closest(np.zeros((1, 3)))
     assert query.has_tree
-    assert not TargetSurface(*sphere).query.has_tree
+    assert not TargetSurface.from_mesh(*sphere).query.has_tree
 
 
 def test_few_queries_without_the_tree_find_the_same_points(sphere, monkeypatch):

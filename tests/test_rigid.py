@@ -297,7 +297,7 @@ def test_a_near_tie_refines_both_poses(monkeypatch):
     assert len(refinements) == 2
 
 
-def count_distance_queries(monkeypatch):
+def count_aabb_trees(monkeypatch):
     """A list that gets the vertex count of every surface an AABB tree is built for."""
     import igl
 
@@ -325,7 +325,7 @@ def test_the_elastic_registration_builds_the_targets_tree_once(monkeypatch):
     from o3dreg import ElasticLevel, registration_elastic
 
     source, target = synthetic_form("sphere", 300), synthetic_form("sphere", 2000)
-    sizes = count_distance_queries(monkeypatch)
+    sizes = count_aabb_trees(monkeypatch)
     result = registration_elastic(source, target, levels=[ElasticLevel(2)])
     assert result.rigid_start is not None
     assert sizes.count(len(target.vertices)) == 1
@@ -338,7 +338,7 @@ def test_a_similarity_start_prepares_the_target_once(monkeypatch):
 
     source, target = synthetic_form("sphere", 300), synthetic_form("sphere", 2000)
     shrink = np.diag([0.6, 0.6, 0.6, 1.0])
-    sizes = count_distance_queries(monkeypatch)
+    sizes = count_aabb_trees(monkeypatch)
     settings = RegistrationSettings(levels=[ElasticLevel(2)], start="similarity")
     result = settings.register(source, moved(target, shrink))
     assert sizes.count(len(target.vertices)) == 1

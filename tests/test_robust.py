@@ -509,7 +509,7 @@ def test_the_relative_orientation_from_a_subsample_and_a_level_of_detail(bunny_w
     (tv, tf), (v, f), _ = bunny_warped
     assert tv.shape[0] > ORIENTATION_POINTS
     for faces, sign in ((f, 1.0), (f[:, ::-1], -1.0)):
-        surface = TargetSurface(v, faces)
+        surface = TargetSurface.from_mesh(v, faces)
         surface.build_levels_of_detail([4.0 * surface.query.mean_edge])
         assert surface.finest_detail() is not surface.query
         assert _relative_orientation(tv, tf, surface.finest_detail()) == sign

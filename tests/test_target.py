@@ -17,19 +17,19 @@ def test_the_target_is_canonical_and_loses_its_debris():
     v = np.concatenate([debris[0], big[0]])
     f = np.concatenate([debris[1], big[1] + len(debris[0])])
     before = v.copy(), f.copy()
-    kept = TargetSurface(v, f, min_component=0.05)
+    kept = TargetSurface.from_mesh(v, f, min_component=0.05)
     # Exactly the big sphere, in the order canonical_mesh gives it alone.
     expected = canonical_mesh(*big)
     np.testing.assert_array_equal(kept.vertices, expected[0])
     np.testing.assert_array_equal(kept.faces, expected[1])
-    everything = TargetSurface(v, f)
+    everything = TargetSurface.from_mesh(v, f)
     assert everything.vertices.shape[0] == v.shape[0]
     np.testing.assert_array_equal(v, before[0])  # inputs are not modified
     np.testing.assert_array_equal(f, before[1])
 
 
 def test_subsamples_are_nested_and_drawn_once():
-    target = TargetSurface(*sphere(10.0, 60))
+    target = TargetSurface.from_mesh(*sphere(10.0, 60))
     large = target.subsample(2000)
     small = target.subsample(500)
     assert small.shape[0] < large.shape[0] < target.vertices.shape[0]
@@ -40,7 +40,7 @@ def test_subsamples_are_nested_and_drawn_once():
 
 
 def test_levels_of_detail_only_where_coarser_than_the_target():
-    target = TargetSurface(*sphere(10.0, 60))
+    target = TargetSurface.from_mesh(*sphere(10.0, 60))
     edge = target.query.mean_edge
     coarse, fine = 4.0 * edge, 1.0 * edge
     target.build_levels_of_detail([coarse, fine])

@@ -29,37 +29,33 @@ TARGET_VOXELS_PER_CELL = 16.0
 
 
 class TargetSurface:
-    """The target in canonical order, without components smaller than ``min_component`` of the
-    largest (``None``: all kept), with its distance query, levels of detail and subsamples.
+    """The target in canonical order, without small components, with its distance query,
+    levels of detail and subsamples.
 
     Parameters
     ----------
-    vertices, faces : ndarray
-        A validated mesh (``as_mesh_arrays``); not modified.
-    min_component : float, optional
-        See :attr:`~o3dreg.DistanceEstimation.min_target_component`.
-    query : SurfaceDistanceQuery, optional
-        The distance query of ``(vertices, faces)`` when they are prepared already (canonical
-        order, debris dropped): they are then used as they are (see :meth:`in_frame`).
+    query : SurfaceDistanceQuery
+        The distance query of the prepared target (its vertices and faces are the target's);
+        :meth:`from_mesh` prepares one from a mesh.
     """
 
-    def __init__(
-        self,
-        vertices: np.ndarray,
-        faces: np.ndarray,
-        min_component: float | None = None,
-        *,
-        query: SurfaceDistanceQuery | None = None,
-    ) -> None:
-        if query is None:
-            v, f = canonical_mesh(vertices, faces)
-            if min_component is not None:
-                v, f = drop_small_components(v, f, min_component)
-            query = SurfaceDistanceQuery(v, f)
-        self.vertices, self.faces = query.vertices, query.faces
+    def __init__(self, query: SurfaceDistanceQuery) -> None:
         self.query = query
+        self.vertices, self.faces = query.vertices, query.faces
         self._details: dict[float, SurfaceDistanceQuery] = {}
         self._subsamples: dict[int, np.ndarray] = {}
+
+    @classmethod
+    def from_mesh(
+        cls, vertices: np.ndarray, faces: np.ndarray, min_component: float | None = None
+    ) -> TargetSurface:
+        """The target of a validated mesh (``as_mesh_arrays``; not modified): in canonical order,
+        without components smaller than ``min_component`` of the largest (``None``: all kept;
+        see :attr:`~o3dreg.DistanceEstimation.min_target_component`)."""
+        v, f = canonical_mesh(vertices, faces)
+        if min_component is not None:
+            v, f = drop_small_components(v, f, min_component)
+        return cls(SurfaceDistanceQuery(v, f))
 
     @property
     def mesh(self) -> tuple[np.ndarray, np.ndarray]:
@@ -70,8 +66,7 @@ class TargetSurface:
         target's: the same vertices (in the same order) and triangles moved there, answered by
         this target's distance query (one AABB tree), with its own levels of detail and
         subsamples (made there, so that they do not depend on how the target lies)."""
-        framed = FramedQuery(self.query, frame)
-        return TargetSurface(framed.vertices, framed.faces, query=framed)
+        return TargetSurface(FramedQuery(self.query, frame))
 
     def build_levels_of_detail(self, voxels: Iterable[float]) -> None:
         """Simplified copies of the target for the voxel sizes ``voxels``.

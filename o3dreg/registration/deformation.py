@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .._geometry import into_frame, rotation_angle
 from .._validation import as_points
 from ..io.archive import read_archive, write_archive
 from .lattice import TrilinearLattice
@@ -76,8 +77,7 @@ class LatticeDeformation:
         shapes = [lat.shape[0] if len(set(lat.shape)) == 1 else lat.shape for lat in self.levels]
         frame = ""
         if self.frame is not None:  # how far the lattices are turned from the axes
-            cos = (np.trace(self.frame[:3, :3]) - 1.0) / 2.0
-            frame = f", frame=turned {np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))):.3g} deg"
+            frame = f", frame=turned {rotation_angle(self.frame):.3g} deg"
         return (
             f"LatticeDeformation(levels={shapes}, max_displacement={self.max_displacement:.4g}"
             f"{frame})"
@@ -98,9 +98,7 @@ class LatticeDeformation:
 
     def _local(self, pts: np.ndarray) -> np.ndarray:
         """Points in lattice coordinates."""
-        if self.frame is None:
-            return pts
-        return (pts - self.frame[:3, 3]) @ self.frame[:3, :3]
+        return pts if self.frame is None else into_frame(self.frame, pts)
 
     # -- the map --------------------------------------------------------------------------------
     def displacement(self, points: Any) -> np.ndarray:

@@ -9,7 +9,7 @@ import igl
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._geometry import barycentric, face_cross, row_norms
+from .._geometry import apply_transformation, barycentric, face_cross, into_frame, row_norms
 
 __all__ = ["FramedQuery", "SurfaceDistanceQuery"]
 
@@ -107,7 +107,7 @@ class SurfaceDistanceQuery:
         pts = np.ascontiguousarray(points, dtype=np.float64)
         if self.has_tree or pts.shape[0] == 0 or self.faces.shape[0] < CLOSEST_FEW_MIN_FACES:
             return self.closest(pts)
-        _, reach = self._edges
+        _, reach = self.edge_measures
         used = np.flatnonzero(reach > 0)  # the corners of triangles: the others bound nothing
         sites = self.vertices[used]
         tree = cKDTree(sites, balanced_tree=False, compact_nodes=False)
@@ -157,12 +157,10 @@ class SurfaceDistanceQuery:
         return dist, closest, grad
 
     # -- open boundaries (partial targets) ------------------------------------------------------
-    def _boundary(self) -> tuple[np.ndarray, np.ndarray, float]:
+    @cached_property
+    def open_edges(self) -> tuple[np.ndarray, np.ndarray]:
         """Per face, which edge is open (``(m, 3)`` bool, edge ``k`` opposite corner ``k``); per
-        vertex whether it lies on an open edge; the mean edge length. Computed once, lazily."""
-        cached = getattr(self, "_boundary_cache", None)
-        if cached is not None:
-            return cached
+        vertex whether it lies on an open edge. Computed once, lazily."""
         f = self.faces
         n = np.int64(self.vertices.shape[0])
         # Edge k of a face joins corners (k+1, k+2): it is opposite corner k. One int64 key per
@@ -191,17 +189,15 @@ class SurfaceDistanceQuery:
         on_boundary = np.zeros(self.vertices.shape[0], dtype=bool)
         on_boundary[open_keys // n] = True
         on_boundary[open_keys % n] = True
-        cached = (open_edge, on_boundary, self.mean_edge)
-        self._boundary_cache = cached
-        return cached
+        return open_edge, on_boundary
 
     @property
     def mean_edge(self) -> float:
         """Mean length of the triangles' edges (each interior edge counted twice)."""
-        return self._edges[0]
+        return self.edge_measures[0]
 
     @cached_property
-    def _edges(self) -> tuple[float, np.ndarray]:
+    def edge_measures(self) -> tuple[float, np.ndarray]:
         """The mean edge length, and per vertex its reach: the longest edge of the triangles
         around it over ``sqrt(3)`` (0 for a vertex of no triangle; see :meth:`closest_few`)."""
         v, f = self.vertices, self.faces
@@ -224,7 +220,7 @@ class SurfaceDistanceQuery:
     @property
     def has_boundary(self) -> bool:
         """Whether the surface has open edges (edges of exactly one triangle)."""
-        return bool(self._boundary()[1].any())
+        return bool(self.open_edges[1].any())
 
     def beyond_boundary(
         self, points: np.ndarray, face: np.ndarray, closest: np.ndarray
@@ -242,7 +238,7 @@ class SurfaceDistanceQuery:
         -------
         (k,) bool ndarray
         """
-        on_boundary = self._boundary()[1]
+        on_boundary = self.open_edges[1]
         beyond = np.zeros(points.shape[0], dtype=bool)
         if points.shape[0] == 0 or not on_boundary.any():
             return beyond
@@ -255,11 +251,11 @@ class SurfaceDistanceQuery:
     @cached_property
     def _touches_boundary(self) -> np.ndarray:
         """Per triangle: whether an edge or a corner of it lies on the open boundary."""
-        open_edge, on_boundary, _ = self._boundary()
+        open_edge, on_boundary = self.open_edges
         return np.asarray(open_edge.any(axis=1) | on_boundary[self.faces].any(axis=1))
 
     def _beyond(self, points: np.ndarray, face: np.ndarray, closest: np.ndarray) -> np.ndarray:
-        open_edge, on_boundary, edge = self._boundary()
+        open_edge, on_boundary = self.open_edges
         corners = self.faces[face]
         bary = barycentric(self.vertices[corners], closest)
         tiny = bary <= 1e-9
@@ -272,7 +268,7 @@ class SurfaceDistanceQuery:
         diff = points - closest
         n = self.face_normal(face)
         tangent = diff - (diff * n).sum(axis=1, keepdims=True) * n
-        return hit & (np.linalg.norm(tangent, axis=1) > 0.5 * edge)
+        return hit & (np.linalg.norm(tangent, axis=1) > 0.5 * self.mean_edge)
 
 
 class FramedQuery(SurfaceDistanceQuery):
@@ -280,8 +276,9 @@ class FramedQuery(SurfaceDistanceQuery):
 
     ``frame`` is the rigid transformation from these coordinates to the surface's. The surface's
     own query answers (its AABB tree, built once, is shared: distances do not depend on the
-    coordinates); closest points come back in these coordinates, and so do the triangle
-    normals, computed from the vertices moved here.
+    coordinates), and so do its open edges and edge lengths, which a rigid motion leaves as they
+    are; closest points come back in these coordinates, and so do the triangle normals, computed
+    from the vertices moved here.
 
     Parameters
     ----------
@@ -294,26 +291,27 @@ class FramedQuery(SurfaceDistanceQuery):
 
     def __init__(self, query: SurfaceDistanceQuery, frame: np.ndarray) -> None:
         self._surface = query
-        self._rotation = np.ascontiguousarray(frame[:3, :3], dtype=np.float64)
-        self._translation = np.asarray(frame[:3, 3], dtype=np.float64)
-        super().__init__((query.vertices - self._translation) @ self._rotation, query.faces)
-        # What a rigid motion leaves as it is, computed once (a registration needs both): the
-        # open edges and the edge lengths.
-        _ = query.has_boundary, query.mean_edge
-        for name in ("_boundary_cache", "_edges", "_touches_boundary"):
-            if name in query.__dict__:
-                self.__dict__[name] = query.__dict__[name]
+        self._frame = np.asarray(frame, dtype=np.float64)
+        super().__init__(into_frame(self._frame, query.vertices), query.faces)
 
     @property
     def has_tree(self) -> bool:
         return self._surface.has_tree
 
+    @property  # type: ignore[override]
+    def open_edges(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._surface.open_edges
+
+    @property  # type: ignore[override]
+    def edge_measures(self) -> tuple[float, np.ndarray]:
+        return self._surface.edge_measures
+
     def _there(self, points: np.ndarray) -> np.ndarray:
-        return np.asarray(points, dtype=np.float64) @ self._rotation.T + self._translation
+        return apply_transformation(self._frame, np.asarray(points, dtype=np.float64))
 
     def _here(self, found: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Any:
         dist, face, closest = found
-        return dist, face, (closest - self._translation) @ self._rotation
+        return dist, face, into_frame(self._frame, closest)
 
     def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return self._here(self._surface.closest(self._there(points)))  # type: ignore[no-any-return]

@@ -18,7 +18,7 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from .._geometry import apply_transformation
+from .._geometry import apply_transformation, into_frame
 from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive
 from ._cost import LevelProblem, Robustness
@@ -199,7 +199,7 @@ def registration_elastic(
             "`estimation_method` must be a DistanceEstimation, "
             f"got {type(estimation_method).__name__}"
         )
-    surface = TargetSurface(*target_arrays, estimation_method.min_target_component)
+    surface = TargetSurface.from_mesh(*target_arrays, estimation_method.min_target_component)
     vt, ft = surface.mesh
     if criteria is None:
         criteria = ElasticCriteria()
@@ -233,7 +233,7 @@ def registration_elastic(
     local, local_points = surface, points
     if frame is not None:
         local = surface.in_frame(frame)
-        local_points = (points - frame[:3, 3]) @ frame[:3, :3]
+        local_points = into_frame(frame, points)
     labels = template_parts(vs.shape[0], fs) if parts == "connected" else None
     parts_fields: dict[str, Any] = {}
     if labels is not None and labels.max() > 0:
@@ -534,7 +534,7 @@ def _register_parts(
         tmap[used] = np.arange(used.size)
         # The part's target in canonical order (a subset of a canonical mesh already is), without
         # the pieces the split left below ``min_target_component`` of the part's largest.
-        part_surface = TargetSurface(vt[used], tmap[tf], method.min_target_component)
+        part_surface = TargetSurface.from_mesh(vt[used], tmap[tf], method.min_target_component)
         fit = _coarse_to_fine(
             points[sel], pf, part_surface, levels, method, criteria, padding, callback
         )
@@ -739,7 +739,7 @@ def evaluate_elastic(
         the target vertices to the moved source surface.
     """
     vs, fs = as_mesh_arrays(source, "source")
-    surface = TargetSurface(*as_mesh_arrays(target, "target", drop_degenerate=True))
+    surface = TargetSurface.from_mesh(*as_mesh_arrays(target, "target", drop_degenerate=True))
     t = np.eye(4) if transformation is None else as_transformation(transformation, "transformation")
     if deformation is not None and not isinstance(
         deformation, (LatticeDeformation, PartitionedDeformation)

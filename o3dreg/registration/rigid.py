@@ -10,10 +10,8 @@ pose are both reported; a near tie is an ambiguity and comes with a warning.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
-from collections.abc import Iterator
 from concurrent.futures import Executor, ThreadPoolExecutor
 from typing import Any
 
@@ -21,7 +19,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from .._geometry import apply_transformation
+from .._geometry import apply_transformation, rotation_angle
 from .._held import HeldSetting
 from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive
@@ -515,19 +513,13 @@ def _one_open3d_thread() -> int:
     return int(previous)
 
 
-#: Open3D's thread count (process-wide) held at 1 while any rigid step runs: an overlapping
-#: registration in another thread must not restore it under this one's ICPs.
+#: Open3D on one thread while any rigid step runs (``with _single_thread():``): its ICP sums over
+#: threads in no fixed order, so two runs on the same input could differ in the last bits and,
+#: through the candidate ranking, pick different poses. The thread count is process-wide, so it
+#: is held (re-entrant, thread-safe): an overlapping registration in another thread does not
+#: restore it under this one's ICPs; the caller's count comes back when the last one leaves.
 _OPEN3D_THREADS = HeldSetting(_one_open3d_thread, o3d.utility.set_max_threads)
-
-
-@contextlib.contextmanager
-def _single_thread() -> Iterator[None]:
-    """Run Open3D on one thread: its ICP sums over threads in no fixed order, so two runs on the
-    same input could differ in the last bits and, through the candidate ranking, pick different
-    poses. On one thread the same input gives a bit-identical result. Re-entrant and
-    thread-safe: the caller's setting comes back when the last overlapping call leaves."""
-    with _OPEN3D_THREADS.held():
-        yield
+_single_thread = _OPEN3D_THREADS.held
 
 
 class _CandidateSearch:
@@ -708,8 +700,8 @@ class _CandidateSearch:
         # input pose can break the tie below.
         runner = others[0] if others else None
         tied = [o for o in others if self._tie(best[0], o[0])]
-        if tied and _rotation_angle(_pose(best)) >= INPUT_POSE_FAR:
-            runner = min(tied, key=lambda o: _rotation_angle(_pose(o)))
+        if tied and rotation_angle(_pose(best)) >= INPUT_POSE_FAR:
+            runner = min(tied, key=lambda o: rotation_angle(_pose(o)))
         winner_job = pool.submit(self.refine, _pose(best), method, criteria)
         # A runner-up likely to need refining (by the search scores) is refined beside the
         # winner; the rule below, on the winner's refined score, decides.
@@ -742,7 +734,7 @@ class _CandidateSearch:
         warnings: list[str] = []
         near_tie = runner_score is not None and self._tie(win_score, runner_score)
         if near_tie and runner_t is not None:
-            turns = (_rotation_angle(_pose(finals[0])), _rotation_angle(runner_t))
+            turns = (rotation_angle(_pose(finals[0])), rotation_angle(runner_t))
             if min(turns) <= INPUT_POSE_NEAR and max(turns) >= INPUT_POSE_FAR:
                 if turns[1] < turns[0]:  # the runner-up agrees with the input pose: it wins
                     previous = win
@@ -790,13 +782,6 @@ def _threads() -> int:
     """Threads of the candidate search: :data:`SEARCH_THREADS`, at most the usable cores."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return max(1, min(SEARCH_THREADS, cores or 1))
-
-
-def _rotation_angle(transformation: np.ndarray) -> float:
-    """Rotation angle (degrees) of a rigid or similarity transformation."""
-    m = transformation[:3, :3]
-    r = m / max(float(np.cbrt(abs(np.linalg.det(m)))), 1e-300)
-    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def _cloud(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.PointCloud:
