@@ -4,7 +4,10 @@ of detail and its nested subsamples."""
 import numpy as np
 import open3d as o3d
 
+from o3dreg._edges import SortedEdges
 from o3dreg.registration._target import TargetSurface, canonical_mesh
+from o3dreg.registration.distance import SurfaceDistanceQuery
+from o3dreg.volume.cleaning import mesh_components
 
 
 def sphere(radius: float, resolution: int, centre=(0.0, 0.0, 0.0)):
@@ -124,3 +127,49 @@ def test_vertex_clustering_is_open3ds():
         # Canonical: the triangles sorted, every vertex used.
         np.testing.assert_array_equal(cf, cf[np.lexsort(cf.T[::-1])])
         assert np.unique(cf).size == cv.shape[0]
+
+
+def _open_edges_by_counting(n_vertices, faces):
+    """Open edges by counting each undirected edge in a dictionary (the definition)."""
+    count: dict[tuple[int, int], int] = {}
+    for tri in faces.tolist():
+        for k in range(3):
+            a, b = tri[(k + 1) % 3], tri[(k + 2) % 3]
+            edge = (min(a, b), max(a, b))
+            count[edge] = count.get(edge, 0) + 1
+
+    def key(t, k):
+        a, b = t[(k + 1) % 3], t[(k + 2) % 3]
+        return (min(a, b), max(a, b))
+
+    open_edge = np.array([[count[key(t, k)] == 1 for k in range(3)] for t in faces.tolist()])
+    on_boundary = np.zeros(n_vertices, dtype=bool)
+    for (a, b), c in count.items():
+        if c == 1:
+            on_boundary[[a, b]] = True
+    return open_edge, on_boundary
+
+
+def test_one_edge_sort_answers_components_and_open_edges():
+    # An open sphere (5% of its triangles removed), a separate triangle and a fin on one of the
+    # sphere's edges (an edge of three triangles: not open).
+    rng = np.random.default_rng(0)
+    v, f = sphere(10.0, 12)
+    f = f[rng.random(len(f)) > 0.05]
+    n = len(v)
+    v = np.concatenate([v, v[:3] + 50.0, [[0.0, 0.0, 30.0]]])
+    f = np.concatenate([f, [[n, n + 1, n + 2]], [[f[0, 0], f[0, 1], n + 3]]]).astype(np.int64)
+    edges = SortedEdges(len(v), f)
+    open_edge, on_boundary = edges.open_edges()
+    expected = _open_edges_by_counting(len(v), f)
+    np.testing.assert_array_equal(open_edge, expected[0])
+    np.testing.assert_array_equal(on_boundary, expected[1])
+    # The components from the shared sort are those of a fresh one.
+    shared, fresh = mesh_components(v, f, edges), mesh_components(v, f)
+    np.testing.assert_array_equal(shared.labels, fresh.labels)
+    assert shared.vertex_counts.tolist()[-1] == 3  # the lone triangle
+    # The prepared target's open edges (given by from_mesh) are the lazily computed ones.
+    target = TargetSurface.from_mesh(v, f, min_component=0.0)
+    lazy = SurfaceDistanceQuery(target.vertices, target.faces).open_edges
+    for given, computed in zip(target.query.open_edges, lazy):
+        np.testing.assert_array_equal(given, computed)

@@ -16,6 +16,7 @@ from functools import cached_property
 
 import numpy as np
 
+from .._edges import SortedEdges
 from ..volume.cleaning import mesh_components
 from .distance import FramedQuery, SurfaceDistanceQuery
 from .result import SurfaceDistances
@@ -53,9 +54,15 @@ class TargetSurface:
         without components smaller than ``min_component`` of the largest (``None``: all kept;
         see :attr:`~o3dreg.DistanceEstimation.min_target_component`)."""
         v, f = canonical_mesh(vertices, faces)
-        if min_component is not None:
-            v, f = drop_small_components(v, f, min_component)
-        return cls(SurfaceDistanceQuery(v, f))
+        if min_component is None:
+            return cls(SurfaceDistanceQuery(v, f))
+        # One sort of the edges answers both the components and the open edges (a million
+        # triangles: 0.4 s each time).
+        edges = SortedEdges(v.shape[0], f)
+        kept_v, kept_f = drop_small_components(v, f, min_component, edges)
+        if kept_f is not f:
+            return cls(SurfaceDistanceQuery(kept_v, kept_f))
+        return cls(SurfaceDistanceQuery(v, f, open_edges=edges.open_edges()))
 
     @property
     def mesh(self) -> tuple[np.ndarray, np.ndarray]:
@@ -240,10 +247,11 @@ def _drop_unused(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def drop_small_components(
-    vertices: np.ndarray, faces: np.ndarray, fraction: float
+    vertices: np.ndarray, faces: np.ndarray, fraction: float, edges: SortedEdges | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The mesh without its connected components smaller than ``fraction`` of the largest."""
-    components = mesh_components(vertices, faces)
+    """The mesh without its connected components smaller than ``fraction`` of the largest (the
+    arrays themselves when none is; ``edges``: the faces' sorted edges, where known)."""
+    components = mesh_components(vertices, faces, edges)
     big = components.vertex_counts >= fraction * components.vertex_counts[0]
     keep = big[components.labels]
     if keep.all():

@@ -9,6 +9,7 @@ import igl
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .._edges import SortedEdges
 from .._geometry import apply_transformation, barycentric, face_cross, into_frame, row_norms
 
 __all__ = ["FramedQuery", "SurfaceDistanceQuery"]
@@ -31,11 +32,21 @@ class SurfaceDistanceQuery:
     vertices : (n, 3) ndarray
     faces : (m, 3) int ndarray
         A valid triangle mesh (see :func:`o3dreg._validation.as_mesh_arrays`).
+    open_edges : tuple of ndarray, optional
+        :attr:`open_edges` of this mesh, where the caller has them (computed from
+        :class:`~o3dreg._edges.SortedEdges` of the same faces).
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+    def __init__(
+        self,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        open_edges: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> None:
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         self.faces = np.ascontiguousarray(faces, dtype=np.int64)
+        if open_edges is not None:
+            self.__dict__["open_edges"] = open_edges  # the cached property, known already
 
     @cached_property
     def _tree(self) -> Any:
@@ -160,36 +171,9 @@ class SurfaceDistanceQuery:
     @cached_property
     def open_edges(self) -> tuple[np.ndarray, np.ndarray]:
         """Per face, which edge is open (``(m, 3)`` bool, edge ``k`` opposite corner ``k``); per
-        vertex whether it lies on an open edge. Computed once, lazily."""
-        f = self.faces
-        n = np.int64(self.vertices.shape[0])
-        # Edge k of a face joins corners (k+1, k+2): it is opposite corner k. One int64 key per
-        # undirected edge; an open edge is a key that occurs once. Sorting the keys (no argsort,
-        # no inverse) finds the few open ones; only they are then looked up per face. One edge
-        # slot at a time, so a million-triangle mesh needs no (m, 3) temporaries beyond `key`.
-        key = np.empty(f.shape, dtype=np.int64)
-        for k in range(3):
-            a, b = f[:, (k + 1) % 3], f[:, (k + 2) % 3]
-            key[:, k] = np.minimum(a, b) * n + np.maximum(a, b)
-        # Stable (timsort): the triangles come in canonical order, so the keys are in long
-        # sorted runs, which it merges 2-3x faster than the default introsort (1M vertices).
-        s = np.sort(key, axis=None, kind="stable")
-        single = np.ones(s.size, dtype=bool)
-        same = s[1:] == s[:-1]
-        single[1:] &= ~same
-        single[:-1] &= ~same
-        del same
-        open_keys = s[single]
-        del s, single
-        open_edge = np.zeros(key.shape, dtype=bool)
-        if open_keys.size:
-            for k in range(3):
-                pos = np.minimum(np.searchsorted(open_keys, key[:, k]), open_keys.size - 1)
-                open_edge[:, k] = open_keys[pos] == key[:, k]
-        on_boundary = np.zeros(self.vertices.shape[0], dtype=bool)
-        on_boundary[open_keys // n] = True
-        on_boundary[open_keys % n] = True
-        return open_edge, on_boundary
+        vertex whether it lies on an open edge. Computed once, lazily (or given to the
+        constructor by a caller that sorted the edges already)."""
+        return SortedEdges(self.vertices.shape[0], self.faces).open_edges()
 
     @property
     def mean_edge(self) -> float:
