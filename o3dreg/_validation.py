@@ -209,7 +209,13 @@ def _degenerate_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def as_transformation(value: Any, name: str = "init") -> np.ndarray:
-    """Return a ``(4, 4) float64`` affine transformation with last row ``[0, 0, 0, 1]``."""
+    """Return a ``(4, 4) float64`` affine transformation with last row ``[0, 0, 0, 1]`` that does
+    not mirror (its 3x3 block has a positive determinant).
+
+    A mirroring start turns the registered template inside out (its triangles face inwards) and
+    swaps left and right, which no later step undoes and no distance measure sees on a symmetric
+    bone; it is refused, with how to register a mirrored shape instead.
+    """
     if not isinstance(value, (np.ndarray, list, tuple)):
         raise TypeError(f"`{name}` must be a (4, 4) array, got {_describe(value)}")
     arr = np.array(value, dtype=np.float64, copy=True)
@@ -219,8 +225,16 @@ def as_transformation(value: Any, name: str = "init") -> np.ndarray:
         raise ValueError(f"`{name}` must hold finite values, got NaN or inf")
     if not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
         raise ValueError(f"`{name}` must have last row [0, 0, 0, 1], got {arr[3].tolist()}")
-    if abs(np.linalg.det(arr[:3, :3])) < 1e-12:
+    det = float(np.linalg.det(arr[:3, :3]))
+    if abs(det) < 1e-12:
         raise ValueError(f"`{name}` must be invertible, got a singular 3x3 block")
+    if det < 0:
+        raise ValueError(
+            f"`{name}` must not mirror (its 3x3 block must have a positive determinant), got "
+            f"determinant {det:.4g}: a mirrored start turns the registered template inside out. "
+            "To register a mirror image (a left bone onto a right template), mirror the target "
+            "mesh itself first: negate one coordinate and reverse its triangles' orientation"
+        )
     return arr
 
 

@@ -324,6 +324,9 @@ def test_bad_input():
         registration_elastic((v.astype(str), f), sphere)
     with pytest.raises(ValueError, match=r"`init` must have shape \(4, 4\), got \(3, 3\)"):
         registration_elastic(sphere, sphere, init=np.eye(3))
+    # A mirroring start would turn the result inside out (left and right swapped): refused.
+    with pytest.raises(ValueError, match="`init` must not mirror .* got determinant -1"):
+        registration_elastic(sphere, sphere, init=np.diag([-1.0, 1.0, 1.0, 1.0]))
     with pytest.raises(TypeError, match=r"`levels\[1\]` must be an ElasticLevel"):
         registration_elastic(sphere, sphere, init=np.eye(4), levels=[ElasticLevel(2), 4])
     with pytest.raises(TypeError, match="estimation_method"):

@@ -77,6 +77,8 @@ def test_init_skips_the_moment_guess(bunny_template, bunny_target):
 def test_bad_input(bunny_template):
     with pytest.raises(ValueError, match=r"`init` must have shape \(4, 4\), got \(3, 3\)"):
         registration_rigid(bunny_template, bunny_template, init=np.eye(3))
+    with pytest.raises(ValueError, match="`init` must not mirror"):
+        registration_rigid(bunny_template, bunny_template, init=np.diag([1.0, -2.0, 2.0, 1.0]))
     with pytest.raises(TypeError, match="`target` must be an open3d.geometry.TriangleMesh"):
         registration_rigid(bunny_template, "mesh.ply")
     with pytest.raises(ValueError, match="max_correspondence_distance"):
