@@ -173,6 +173,26 @@ def as_mesh_arrays(
     return vertices, faces
 
 
+def check_referenced(vertices: np.ndarray, faces: np.ndarray, name: str) -> None:
+    """Refuse vertices that no triangle uses.
+
+    A template's vertices are the semilandmarks registered onto the patient's surface; a vertex
+    off every triangle is no point of that surface, yet it widens the lattices' box (coarser
+    cells) and its distance enters the verdict (measured: one stray vertex moved a mandible's
+    registration by 2 mm on average, verdict ``ok``).
+    """
+    used = np.zeros(vertices.shape[0], dtype=bool)
+    used[faces.ravel()] = True
+    if not used.all():
+        unused = np.flatnonzero(~used)
+        shown = ", ".join(str(i) for i in unused[:5]) + (", ..." if unused.size > 5 else "")
+        raise ValueError(
+            f"`{name}` must have every vertex on a triangle (its vertices are the semilandmarks), "
+            f"got {unused.size} vertex(es) of no triangle (index {shown}); remove them first, "
+            "e.g. open3d's mesh.remove_unreferenced_vertices()"
+        )
+
+
 def as_faces(faces: Any, number_of_vertices: int, name: str) -> np.ndarray:
     """Return ``faces`` as a new ``(m, 3) int64`` array of indices in ``[0, number_of_vertices)``.
 

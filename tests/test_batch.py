@@ -137,3 +137,9 @@ def test_batch_bad_input(small, tmp_path):
         register_batch(template, targets, tmp_path, level=[])
     with pytest.raises(ValueError, match="init"):
         register_batch(template, targets, tmp_path, init=np.zeros((2, 4, 4)))
+    # Refused before any patient is registered (each would fail the same way), nothing written.
+    tv, tf = template
+    stray = (np.vstack([tv, tv[:1] + 100.0]), tf)
+    with pytest.raises(ValueError, match="`template` must have every vertex on a triangle"):
+        register_batch(stray, targets, tmp_path / "stray")
+    assert not (tmp_path / "stray").exists()

@@ -324,6 +324,10 @@ def test_bad_input():
         registration_elastic((v.astype(str), f), sphere)
     with pytest.raises(ValueError, match=r"`init` must have shape \(4, 4\), got \(3, 3\)"):
         registration_elastic(sphere, sphere, init=np.eye(3))
+    # A vertex of no triangle is no semilandmark (it widened the lattices' box): refused.
+    stray = np.vstack([v, [[0.0, 0.0, 50.0]]])
+    with pytest.raises(ValueError, match=r"`source` must have every vertex on a triangle.*1 "):
+        registration_elastic((stray, f), sphere)
     # A mirroring start would turn the result inside out (left and right swapped): refused.
     with pytest.raises(ValueError, match="`init` must not mirror .* got determinant -1"):
         registration_elastic(sphere, sphere, init=np.diag([-1.0, 1.0, 1.0, 1.0]))

@@ -135,9 +135,10 @@ def test_one_triangle_meshes():
 def test_duplicate_template_vertices_and_disconnected_pieces():
     sphere = synthetic_form("sphere", 300)
     v, f = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
-    # Two copies of the sphere sharing no vertex, the second with every vertex duplicated.
+    # Two copies of the sphere sharing no vertex, the second with every vertex duplicated (two
+    # coincident surfaces: a vertex of no triangle is refused, see test_elastic's bad input).
     v2 = np.vstack([v, v + 200.0, v + 200.0])
-    f2 = np.vstack([f, f + v.shape[0]])
+    f2 = np.vstack([f, f + v.shape[0], f + 2 * v.shape[0]])
     target = (np.vstack([v * 1.05, (v + 200.0) * 1.0]), np.vstack([f, f + v.shape[0]]))
     result = registration_elastic((v2, f2), target, init=np.eye(4), levels=LEVELS)
     assert np.all(np.isfinite(result.vertices))

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from .._validation import as_mesh_arrays, as_transformation
+from .._validation import as_mesh_arrays, as_transformation, check_referenced
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 from .options import DistanceEstimation, ElasticCriteria, default_levels
 from .settings import RegistrationSettings, resolve_settings
@@ -469,6 +469,7 @@ def register_batch(
         which every finished patient is on disk.
     """
     tv, tf = as_mesh_arrays(template, "template")
+    check_referenced(tv, tf, "template")
     if isinstance(targets, (str, os.PathLike)) or not isinstance(targets, Sequence):
         raise TypeError(
             f"`targets` must be a sequence of paths or meshes, got {type(targets).__name__}"

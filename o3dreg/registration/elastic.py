@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from .._geometry import apply_transformation, into_frame
 from .._pages import small_pages
-from .._validation import as_mesh_arrays, as_transformation, check_positive
+from .._validation import as_mesh_arrays, as_transformation, check_positive, check_referenced
 from ._cost import LevelProblem, Robustness
 from ._robust import (
     BoundaryChecker,
@@ -190,6 +190,7 @@ def registration_elastic(
     True
     """
     vs, fs = as_mesh_arrays(source, "source")
+    check_referenced(vs, fs, "source")
     target_arrays = as_mesh_arrays(target, "target", drop_degenerate=True)
     levels_ = _check_levels(levels)
     if estimation_method is None:
