@@ -293,3 +293,41 @@ def test_arrays_written_as_vtk(tmp_path):
         # Binary, float64 points: exact.
         np.testing.assert_array_equal(np.asarray(back.vertices), SQUARE[:4])
         np.testing.assert_array_equal(np.asarray(back.triangles), [[0, 1, 2], [0, 2, 3]])
+
+
+@pytest.mark.parametrize("ascii", [False, True])
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".off", ".vtk", ".vtp"])
+def test_semilandmark_formats_keep_the_vertex_order(sphere, tmp_path, suffix, ascii):
+    # The vertex index is the correspondence between patients: written and read back, every
+    # vertex and triangle is where it was (float32 formats: within 1e-5 of the 10 mm radius).
+    path = write_triangle_mesh(tmp_path / f"m{suffix}", sphere, write_ascii=ascii)
+    back = read_triangle_mesh(path)
+    np.testing.assert_allclose(np.asarray(back.vertices), np.asarray(sphere.vertices), atol=1e-4)
+    np.testing.assert_array_equal(np.asarray(back.triangles), np.asarray(sphere.triangles))
+
+
+def test_obj_of_another_writer_keeps_its_order_and_its_polygons(tmp_path, caplog):
+    # Texture and normal indices, a quad, a negative (relative) index, a vertex with a colour,
+    # comments and groups: the vertices in the file's order, the quad as a fan of 2 triangles.
+    path = tmp_path / "other.obj"
+    path.write_text(
+        "# another writer\no thing\nv 0 0 0\nv 1 0 0\nv 1 1 0 0.5 0.5 0.5\nv 0 1 0\n"
+        "vt 0 0\nvn 0 0 1\ng faces\nf 1/1/1 2/1/1 3/1/1 4/1/1\nv 2 0 0\nf 2//1 5//1 -3//1\n"
+    )
+    with caplog.at_level(logging.WARNING, logger="o3dreg"):
+        mesh = read_triangle_mesh(path)
+    np.testing.assert_array_equal(
+        np.asarray(mesh.vertices), [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0]]
+    )
+    np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3], [1, 4, 2]])
+    assert "triangle fans" in caplog.text
+    # The same file of triangles only takes the vectorised path: the same numbers.
+    plain = tmp_path / "plain.obj"
+    plain.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 1//7 3//7 4//7\n")
+    np.testing.assert_array_equal(
+        np.asarray(read_triangle_mesh(plain).triangles), [[0, 1, 2], [0, 2, 3]]
+    )
+    bad = tmp_path / "bad.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nf 1 2 x\n")
+    with pytest.raises(OSError, match="malformed face"):
+        read_triangle_mesh(bad)

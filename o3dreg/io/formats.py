@@ -12,6 +12,9 @@ numpy only:
   ``appended`` (raw or base64) data, uncompressed or zlib-compressed, 32- or 64-bit headers,
   either byte order. Legacy files are written in version 4.2 (read by every VTK and ITK since
   2005, statismo and scalismo included), XML files as version 1.0 with inline base64 data.
+* **OBJ** (reading): Open3D renumbers the vertices in the order the faces use them and drops
+  faces that are not triangles; here the vertices keep the file's order (a semilandmark mesh
+  keeps its correspondence) and polygons are split into triangle fans.
 * **GLB**: Open3D 0.18-0.19 writes ``.glb`` files whose buffer view lies outside the buffer, so
   neither Open3D nor other readers can open them; o3dreg writes GLB 2.0 itself (positions are
   float32, as glTF requires) and Open3D reads it.
@@ -38,6 +41,7 @@ import open3d as o3d
 
 __all__ = [
     "merge_identical_vertices",
+    "read_obj",
     "read_vtk",
     "read_vtp",
     "write_glb",
@@ -481,6 +485,73 @@ def write_vtp(path: str, vertices: np.ndarray, faces: np.ndarray, *, ascii: bool
 
 
 # ---------------------------------------------------------------------------------------------
+# Wavefront OBJ (read)
+# ---------------------------------------------------------------------------------------------
+
+
+#: The texture and normal indices of an OBJ face corner (``i/t/n``, ``i//n``, ``i/t``).
+_OBJ_SUFFIX = re.compile(rb"/\S*")
+
+
+def read_obj(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of an OBJ file, the vertices in the file's order.
+
+    Open3D's OBJ reader numbers the vertices in the order the faces first use them (and splits
+    a vertex per texture or normal index), so a semilandmark mesh read back lost its
+    correspondence, and it drops every face that is not a triangle. Here the ``v`` lines are
+    the vertices, in order (a ``w`` or colour after ``x y z`` is ignored); the ``f`` lines are
+    the faces, ``i``, ``i/t``, ``i//n`` or ``i/t/n`` (negative ``i`` counting back from the
+    last vertex read), polygons split into triangle fans with a warning. Other lines (texture
+    coordinates, normals, groups, materials, lines, points) are ignored.
+    """
+    with open(path, "rb") as fh:
+        lines = fh.read().splitlines()
+    vertex_lines = [line[2:] for line in lines if line[:2] in (b"v ", b"v\t")]
+    face_lines = [line[2:] for line in lines if line[:2] in (b"f ", b"f\t")]
+    # The common file (x y z vertices, triangles of positive indices) in a few NumPy calls; any
+    # other (colours, polygons, negative indices, a malformed line) line by line.
+    try:
+        vertices = np.array(b" ".join(vertex_lines).split(), dtype=np.float64)
+        corners = np.array(_OBJ_SUFFIX.sub(b"", b" ".join(face_lines)).split(), dtype=np.int64)
+    except ValueError:
+        vertices, corners = np.zeros(0), np.zeros(0, dtype=np.int64)
+    if (
+        vertices.size == 3 * len(vertex_lines)
+        and corners.size == 3 * len(face_lines)
+        and (corners.size == 0 or corners.min() > 0)
+    ):
+        return _check_mesh(vertices.reshape(-1, 3), corners.reshape(-1, 3) - 1, path)
+    coordinates: list[bytes] = []
+    offsets = [0]
+    connectivity: list[int] = []
+    for number, line in enumerate(lines, start=1):
+        head = line[:2]
+        if head in (b"v ", b"v\t"):
+            xyz = line.split()[1:4]
+            if len(xyz) < 3:
+                raise OSError(f"{path!r}: line {number}: a vertex needs x, y, z, got {line!r}")
+            coordinates.extend(xyz)
+        elif head in (b"f ", b"f\t"):
+            seen = len(coordinates) // 3
+            try:
+                face = [int(token.split(b"/", 1)[0]) for token in line.split()[1:]]
+            except ValueError:
+                raise OSError(f"{path!r}: line {number}: malformed face {line!r}") from None
+            if len(face) < 3 or 0 in face:
+                raise OSError(f"{path!r}: line {number}: malformed face {line!r}")
+            connectivity.extend(c - 1 if c > 0 else seen + c for c in face)
+            offsets.append(len(connectivity))
+    try:
+        vertices = np.array(coordinates, dtype=np.float64).reshape(-1, 3)
+    except ValueError:
+        raise OSError(f"{path!r}: a vertex coordinate is not a number") from None
+    faces = _cells_to_triangles(
+        np.array(offsets), np.array(connectivity, dtype=np.int64), strips=False, path=path
+    )
+    return _check_mesh(vertices, faces, path)
+
+
+# ---------------------------------------------------------------------------------------------
 # STL
 # ---------------------------------------------------------------------------------------------
 
@@ -586,6 +657,8 @@ def read_mesh(path: str, suffix: str) -> Any:
         return to_open3d(*read_vtk(path))
     if suffix == ".vtp":
         return to_open3d(*read_vtp(path))
+    if suffix == ".obj":
+        return to_open3d(*read_obj(path))
     mesh = o3d.io.read_triangle_mesh(path)  # type: ignore[arg-type]  # stubs say PathLike only
     if suffix == ".stl" and len(mesh.triangles):
         vertices, faces = merge_identical_vertices(
