@@ -1,5 +1,7 @@
 """Mesh IO: clear errors, atomic writes, nothing overwritten by accident."""
 
+from pathlib import Path
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -65,6 +67,34 @@ def test_read_errors(tmp_path):
         read_triangle_mesh(points_only)
     with pytest.raises(TypeError, match="must be a path"):
         read_triangle_mesh(3)
+
+
+def test_malformed_ply_faces_are_an_error_not_a_smaller_or_garbled_mesh(tmp_path):
+    # Open3D runs on past a face record with a wrong corner count: garbage triangles (ASCII),
+    # dropped ones, or a crash of the process (binary). Found by a CLI audit: exit 0 with half
+    # the template's triangles, and exit 139 with no message.
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=10.0, resolution=12)
+    m = len(sphere.triangles)
+    ascii_path = Path(write_triangle_mesh(tmp_path / "a.ply", sphere, write_ascii=True))
+    lines = ascii_path.read_text().split("\n")
+    first = next(k for k, line in enumerate(lines) if line.startswith("3 "))
+    lines[first + 5] = "3 1 2"
+    edited = tmp_path / "edited.ply"
+    edited.write_text("\n".join(lines))
+    with pytest.raises(OSError, match=r"malformed: face 5 is '3 1 2'"):
+        read_triangle_mesh(edited)
+    binary_path = Path(write_triangle_mesh(tmp_path / "b.ply", sphere))
+    data = binary_path.read_bytes()
+    record = 1 + 3 * 4  # uchar count, three uint indices
+    for face, count in ((0, 1), (m - 1, 255)):
+        broken = bytearray(data)
+        broken[len(data) - (m - face) * record] = count
+        path = tmp_path / f"count{count}.ply"
+        path.write_bytes(bytes(broken))
+        with pytest.raises(OSError, match=f"1 of its {m} triangle records .*face {face}: {count}"):
+            read_triangle_mesh(path)
+    assert len(read_triangle_mesh(binary_path).triangles) == m  # the intact files still read
+    assert len(read_triangle_mesh(ascii_path).triangles) == m
 
 
 def test_write_errors(tmp_path):

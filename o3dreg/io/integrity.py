@@ -12,6 +12,8 @@ from __future__ import annotations
 import os
 import re
 
+import numpy as np
+
 __all__ = ["check_obj_complete", "check_ply_complete"]
 
 _PLY_TYPE_SIZES = {
@@ -25,18 +27,23 @@ _PLY_TYPE_SIZES = {
 _MAX_PLY_HEADER = 1 << 16
 
 
-def check_ply_complete(path: str, name: str = "path") -> None:
-    """``OSError`` when the PLY file at ``path`` is shorter than its header's elements need."""
+def check_ply_complete(path: str, name: str = "path") -> dict[str, int]:
+    """``OSError`` when the PLY file at ``path`` is shorter than its header's elements need.
+
+    Returns the element counts the header declares (``{'vertex': n, 'face': m, ...}``; empty
+    for a header not understood), for the caller to compare with what a reader returns.
+    """
     with open(path, "rb") as fh:
         head = fh.read(_MAX_PLY_HEADER)
     end = head.find(b"end_header")
     if not head.startswith(b"ply") or end < 0:
-        return  # not a PLY header we understand: the reader reports it
+        return {}  # not a PLY header we understand: the reader reports it
     body_start = head.find(b"\n", end)
     body_start = len(head) if body_start < 0 else body_start + 1
     text = head[:end].decode("ascii", errors="replace").splitlines()
     fmt = ""
     elements: list[tuple[str, int, list[int]]] = []  # name, count, minimal bytes per property
+    properties: dict[int, list[list[str]]] = {}  # per element, its property lines' words
     for line in text:
         words = line.split()
         if not words:
@@ -52,6 +59,7 @@ def check_ply_complete(path: str, name: str = "path") -> None:
                 raise OSError(f"`{name}`: {path!r} has a negative element count {line!r}")
             elements.append((words[1], count, []))
         elif words[0] == "property" and elements and len(words) >= 3:
+            properties.setdefault(len(elements) - 1, []).append(words[1:])
             if words[1] == "list" and len(words) >= 5:
                 # The count of the list, and for faces at least three corners.
                 corners = 3 if elements[-1][0] == "face" else 0
@@ -61,6 +69,7 @@ def check_ply_complete(path: str, name: str = "path") -> None:
             else:
                 elements[-1][2].append(_PLY_TYPE_SIZES.get(words[1], 1))
     claims = ", ".join(f"{count} {element}" for element, count, _ in elements)
+    declared = {element: count for element, count, _ in elements}
     if not fmt.startswith("binary"):
         # ASCII: one line per element.
         total = sum(count for _, count, _ in elements)
@@ -70,13 +79,79 @@ def check_ply_complete(path: str, name: str = "path") -> None:
                 f"`{name}`: {path!r} is truncated or its header is wrong: the header declares "
                 f"{claims} ({total} lines), the file holds {lines}"
             )
-        return
+        _check_triangle_records(path, name, fmt, body_start, elements, properties)
+        return declared
     needed = sum(count * sum(sizes) for _, count, sizes in elements)
     held = os.path.getsize(path) - body_start
     if held < needed:
         raise OSError(
             f"`{name}`: {path!r} is truncated or its header is wrong: the header declares "
             f"{claims} (at least {needed} bytes of data), the file holds {held}"
+        )
+    _check_triangle_records(path, name, fmt, body_start, elements, properties)
+    return declared
+
+
+_PLY_NUMPY = {
+    "char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1",
+    "short": "i2", "ushort": "u2", "int16": "i2", "uint16": "u2",
+    "int": "i4", "uint": "u4", "int32": "i4", "uint32": "u4",
+}  # fmt: skip
+
+
+def _check_triangle_records(
+    path: str,
+    name: str,
+    fmt: str,
+    body_start: int,
+    elements: list[tuple[str, int, list[int]]],
+    properties: dict[int, list[list[str]]],
+) -> None:
+    """``OSError`` when the faces of a triangle PLY are not all 3-corner records.
+
+    Open3D reads a face record whose corner count is wrong (an edited ASCII line ``3 1 2``, a
+    flipped count byte) by running on into the next records: triangles of garbage, a log line,
+    and in the binary case a crash of the process. The common layout is checked here: vertices
+    first (fixed-size properties), then faces with the one list property. ASCII: every face line
+    holds its count plus that many indices. Binary: when the faces fill the rest of the file
+    exactly as triangles would, every count is 3. Other layouts are left to the reader.
+    """
+    if len(elements) < 2 or elements[0][0] != "vertex" or elements[1][0] != "face":
+        return
+    face_properties = properties.get(1, [])
+    if len(face_properties) != 1 or face_properties[0][0] != "list":
+        return
+    vertices, faces = elements[0][1], elements[1][1]
+    if not fmt.startswith("binary"):
+        with open(path, "rb") as fh:
+            fh.seek(body_start)
+            lines = [line for line in fh.read().splitlines() if line.strip()]
+        for number, line in enumerate(lines[vertices : vertices + faces]):
+            words = line.split()
+            if not words[0].isdigit() or len(words) != int(words[0]) + 1:
+                raise OSError(
+                    f"`{name}`: {path!r} is malformed: face {number} is {line.decode(errors='replace')!r} "
+                    "(a corner count followed by that many vertex indices expected)"
+                )
+        return
+    if any(p[0] == "list" for p in properties.get(0, [])):
+        return
+    count_type = _PLY_NUMPY.get(face_properties[0][1])
+    index_type = _PLY_NUMPY.get(face_properties[0][2])
+    if count_type is None or index_type is None:
+        return
+    order = "<" if fmt == "binary_little_endian" else ">"
+    record = np.dtype([("n", order + count_type), ("i", order + index_type, 3)])
+    offset = body_start + vertices * sum(elements[0][2])
+    if os.path.getsize(path) - offset != faces * record.itemsize:
+        return  # polygons, or elements after the faces: not the triangle layout
+    counts = np.fromfile(path, dtype=record, count=faces, offset=offset)["n"]
+    wrong = np.flatnonzero(counts != 3)
+    if wrong.size:
+        raise OSError(
+            f"`{name}`: {path!r} is malformed: {wrong.size} of its {faces} triangle records "
+            f"do not start with the corner count 3 (face {int(wrong[0])}: "
+            f"{int(counts[wrong[0]])})"
         )
 
 

@@ -86,8 +86,9 @@ def read_triangle_mesh(
         raise OSError(f"`{name}`: no such file {path!r}")
     if not os.access(path, os.R_OK):
         raise OSError(f"`{name}`: file {path!r} is not readable")
+    declared: dict[str, int] = {}
     if suffix == ".ply":
-        check_ply_complete(path, name)
+        declared = check_ply_complete(path, name)
     elif suffix == ".obj":
         check_obj_complete(path, name)
     mesh = formats.read_mesh(path, suffix)
@@ -95,6 +96,18 @@ def read_triangle_mesh(
         raise OSError(
             f"`{name}`: {path!r} could not be read as a triangle mesh "
             f"(got {len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles)"
+        )
+    # Open3D stops at a malformed line or record of a PLY body, logs it, and returns what it
+    # read so far: fewer faces (or vertices) than the header declares is a broken file, not a
+    # smaller mesh. (Polygons split into triangles give more triangles than faces.)
+    vertices, faces = declared.get("vertex"), declared.get("face")
+    if (vertices is not None and len(mesh.vertices) != vertices) or (
+        faces is not None and len(mesh.triangles) < faces
+    ):
+        raise OSError(
+            f"`{name}`: {path!r} is malformed: its header declares {vertices} vertices and "
+            f"{faces} faces, {len(mesh.vertices)} vertices and {len(mesh.triangles)} triangles "
+            "could be read"
         )
     return mesh
 
