@@ -184,3 +184,22 @@ def test_build_model_on_a_dask_scheduler_address(files, tmp_path, capsys):
     assert code == 0
     report = json.loads((tmp_path / "model" / "report.json").read_text())
     assert len(report["registered"]) == 3
+
+
+def test_inputs_the_model_folder_would_write_over_are_refused(files, tmp_path, capsys):
+    # Before: `build-model w/template.ply w/p0.ply ... -o w` rewrote the user's w/template.ply
+    # with the copy the folder keeps (exit 0); a patient named template.ply there was replaced
+    # by the template, then registered as a patient.
+    work = tmp_path / "w"
+    work.mkdir()
+    for name in ("template.ply", "p0.ply", "p1.ply"):
+        (work / name).write_bytes((files / name).read_bytes())
+    before = {p.name: p.read_bytes() for p in work.iterdir()}
+    patients = [str(work / "p0.ply"), str(work / "p1.ply")]
+    code = main(["build-model", str(work / "template.ply"), *patients, "-o", str(work)])
+    assert code == 2
+    assert "`TEMPLATE`" in capsys.readouterr().err
+    code = build_model(files, [str(work / "template.ply"), *patients], work)
+    assert code == 2
+    assert "is a file the model folder" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in work.iterdir()} == before  # nothing written

@@ -99,6 +99,27 @@ def existing_model_files(folder: str | os.PathLike[str]) -> list[str]:
     return found
 
 
+def check_inputs_outside(
+    folder: str | os.PathLike[str], inputs: Sequence[Any], name: str = "targets"
+) -> None:
+    """Refuse input files that the model folder ``folder`` would write over: its
+    ``template.ply``, the :data:`MODEL_FILES` and anything in ``registrations/``, ``modes/`` or
+    ``quality/`` (inputs that are not paths are skipped). Before any work."""
+    out = os.path.realpath(folder)
+    written = {os.path.join(out, n) for n in ("template.ply", *MODEL_FILES)}
+    trees = [os.path.join(out, n) for n in ("registrations", "modes", "quality")]
+    for item in inputs:
+        if not isinstance(item, (str, os.PathLike)):
+            continue
+        path = os.path.realpath(item)
+        if path in written or any(path.startswith(t + os.sep) for t in trees):
+            raise ValueError(
+                f"`{name}`: {os.fspath(item)!r} is a file the model folder "
+                f"{os.fspath(folder)!r} writes; it would be replaced. Move it out of the folder "
+                "or choose another output folder"
+            )
+
+
 #: Suffixes tried, in order, for a patient's landmark file beside its mesh.
 LANDMARK_SUFFIXES = (".mrk.json", ".csv")
 
@@ -236,6 +257,9 @@ def build_model_folder(
             "overwrite=True to rebuild it (finished registrations are reused) or choose another "
             "folder"
         )
+    check_inputs_outside(output, targets)
+    if landmarks is not None:
+        check_inputs_outside(output, [landmarks], "landmarks")
     _check_distinct_patients(targets)
     inits = None
     if landmarks is not None:

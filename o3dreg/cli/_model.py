@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from ..app.explorer import write_model_explorer
-from ..app.model_folder import build_model_folder, existing_model_files
+from ..app.model_folder import build_model_folder, check_inputs_outside, existing_model_files
 from ..io.mesh import read_triangle_mesh
 from ..shape.landmarks import (
     landmark_errors,
@@ -149,6 +149,8 @@ def _executor(args: argparse.Namespace) -> Iterator[Any]:
 
 def run_build(args: argparse.Namespace) -> int:
     _check_model_folder(args.output, args.overwrite)
+    # model.py writes OUT/template.ply: a template file there would be replaced by its copy.
+    check_inputs_outside(args.output, [args.template], "TEMPLATE")
     template = read_triangle_mesh(args.template, name="TEMPLATE")
     with _executor(args) as executor:
         folder = build_model_folder(
