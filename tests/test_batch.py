@@ -46,6 +46,18 @@ def test_batch_writes_each_patient_and_reports_failures(small, tmp_path):
         assert start["runner_up_score"] is None or start["runner_up_score"] >= start["score"]
     assert result.records[1].rigid_start is None  # a failure has none
     assert json.loads((out / "broken.json").read_text())["status"] == "failed"
+
+    # Strict JSON everywhere (a failure's measures were written as NaN, which JavaScript's
+    # JSON.parse rejects): what could not be measured is null, and a rerun reads it back.
+    def no_constant(constant):
+        raise AssertionError(f"{constant} is not JSON")
+
+    for path in out.glob("*.json"):
+        json.loads(path.read_text(), parse_constant=no_constant)
+    assert json.loads((out / "broken.json").read_text())["min_jacobian_determinant"] is None
+    again = register_batch(template, [str(good), str(bad), targets[1]], out, levels=FAST)
+    assert [r.status for r in again.records] == ["registered", "failed", "registered"]
+    assert "broken" in again.table()
     assert not [p for p in os.listdir(out) if ".part" in p]  # nothing half-written
     table = result.table()
     assert "broken" in table and "error:" in table and "s->t mean" in table

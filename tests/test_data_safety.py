@@ -246,6 +246,15 @@ def test_register_outputs_checked_before_any_work(meshes, capsys):
     code, err = run_main(capsys, "register", str(meshes / "t.ply"), p, "-o", p, "--overwrite")
     assert code == 2 and "an output never replaces an input" in err
     assert (meshes / "p.ply").read_bytes() == before
+    # Nor may a report replace a landmark file (.mrk.json passes the .json rule).
+    marks = meshes / "p.mrk.json"
+    marks.write_text("{}")
+    code, err = run_main(
+        capsys, "register", missing, p, "-o", out, "--landmarks", str(marks), str(marks),
+        "--report", str(marks), "--overwrite",
+    )  # fmt: skip
+    assert code == 2 and "is the input --landmarks SOURCE_LANDMARKS" in err
+    assert marks.read_text() == "{}"
     # All checks pass: now the missing input is reported.
     code, err = run_main(capsys, "register", missing, p, "-o", out, "--report", out + ".json")
     assert code == 2 and "SOURCE" in err

@@ -103,6 +103,15 @@ def test_model_explore_cli_rewrites_the_page(folder, tmp_path, capsys):
     assert rotation[1] @ [0, 1, 0] == pytest.approx(np.cos(np.radians(20.0)))
     assert main(["model", "explore", str(folder), "-o", str(out)]) == 2  # exists: refused
     assert "--overwrite" in capsys.readouterr().err
+    # Not a page, or the model itself: refused even with --overwrite (an HTML page was written
+    # over model.npz, exit 0, and the model was lost).
+    npz = (folder / "model.npz").read_bytes()
+    for target, message in (("model.npz", "must end with .html"), ("page.txt", ".html")):
+        code = main(["model", "explore", str(folder), "-o", str(folder / target), "--overwrite"])
+        assert code == 2
+        assert message in capsys.readouterr().err
+    assert (folder / "model.npz").read_bytes() == npz
+    assert not (folder / "page.txt").exists()
     # Without -o it rewrites MODEL/explorer.html.
     before = (folder / "explorer.html").stat().st_mtime_ns
     assert main(["model", "explore", str(folder)]) == 0

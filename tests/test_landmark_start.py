@@ -68,6 +68,19 @@ def test_bad_pairs_are_refused():
         registration_landmarks(POINTS[:4], np.zeros((4, 3)))
     with pytest.raises(TypeError, match="with_scaling"):
         registration_landmarks(POINTS, POINTS, with_scaling=1)
+    # Coordinates whose products overflow: refused (LAPACK's SVD spun without end on them,
+    # deaf to SIGTERM: found by a CLI audit with a landmark file of 1e308s).
+    with pytest.raises(ValueError, match="landmark coordinates must be finite numbers of a"):
+        registration_landmarks(POINTS * 1e306, POINTS)
+
+
+def test_a_landmark_file_with_nan_names_the_file(tmp_path):
+    path = tmp_path / "bad.csv"
+    path.write_text("label,x,y,z\nA,nan,0,0\nB,1,0,0\nC,0,1,0\n")
+    good = (["A", "B", "C"], POINTS[:3])
+    with pytest.warns(UserWarning, match="coordinate system not stated"):
+        with pytest.raises(ValueError, match=r"`source landmarks '.*bad.csv'` must hold finite"):
+            registration_landmarks(str(path), good)
 
 
 @pytest.fixture(scope="module")

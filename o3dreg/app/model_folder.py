@@ -11,7 +11,6 @@ A model folder holds ``template.ply`` (the template the model is defined on), ``
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import os
 from collections.abc import Sequence
@@ -22,6 +21,7 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
+from .. import _json as json_text
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 from ..registration.batch import BatchResult, register_batch
 from ..registration.options import ElasticLevel
@@ -341,7 +341,7 @@ def build_model_folder(
         else {"iterations": slid.iterations, "message": slid.message},
     }
     atomic_write_text(
-        os.path.join(out, "report.json"), json.dumps(report, indent=2) + "\n", overwrite=True
+        os.path.join(out, "report.json"), json_text.dumps(report, indent=2) + "\n", overwrite=True
     )
     write_model_explorer(os.path.join(out, "explorer.html"), model, registrations=batch)
     return ModelFolder(out, batch, model, curves, slid, report)

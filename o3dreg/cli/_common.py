@@ -6,7 +6,6 @@ import argparse
 import concurrent.futures as cf
 import contextlib
 import ctypes
-import json
 import math
 import os
 import signal
@@ -14,6 +13,7 @@ import sys
 from collections.abc import Iterator, Sequence
 from typing import Any
 
+from .. import _json as json_text
 from ..io.mesh import atomic_write_text
 
 
@@ -97,7 +97,7 @@ def check_outputs(
 
 def write_json(path: str, data: Any, *, overwrite: bool) -> str:
     return atomic_write_text(
-        path, json.dumps(data, indent=2) + "\n", overwrite=overwrite, name="report"
+        path, json_text.dumps(data, indent=2) + "\n", overwrite=overwrite, name="report"
     )
 
 
@@ -108,7 +108,7 @@ def emit(text: str, args: argparse.Namespace) -> None:
 
 
 def emit_json(data: Any) -> None:
-    json.dump(data, sys.stdout, indent=2)
+    sys.stdout.write(json_text.dumps(data, indent=2))
     sys.stdout.write("\n")
 
 

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import logging
 import os
 import sys
 from collections.abc import Iterator
 from typing import Any
 
+from .. import _json as json_text
 from ..app.explorer import write_model_explorer
 from ..app.model_folder import build_model_folder, check_inputs_outside, existing_model_files
 from ..io.mesh import read_triangle_mesh
@@ -177,7 +177,7 @@ def run_build(args: argparse.Namespace) -> int:
         )
         return 1
     if args.json:
-        print(json.dumps(folder.report, indent=2))
+        print(json_text.dumps(folder.report, indent=2))
     else:
         emit(str(model), args)
         emit(model.variance_table(), args)
@@ -235,7 +235,7 @@ def run_info(args: argparse.Namespace) -> int:
     model = _load(args.model_dir)
     if args.json:
         print(
-            json.dumps(
+            json_text.dumps(
                 {
                     "points": model.number_of_points,
                     "triangles": int(model.faces.shape[0]),
@@ -270,7 +270,7 @@ def run_modes(args: argparse.Namespace) -> int:
         folder, modes=range(count), standard_deviations=sds, overwrite=args.overwrite
     )
     if args.json:
-        print(json.dumps({"written": written}, indent=2))
+        print(json_text.dumps({"written": written}, indent=2))
     else:
         for path in written:
             print(path)
@@ -326,7 +326,7 @@ def run_fit(args: argparse.Namespace) -> int:
         if errors is not None:
             out["errors"] = dict(zip(prediction.labels, errors.tolist()))
             out["mean_error"] = float(errors.mean())
-        print(json.dumps(out, indent=2))
+        print(json_text.dumps(out, indent=2))
     else:
         print(fit)
         head = f"{'landmark':<16}{'x':>10}{'y':>10}{'z':>10}" + (
@@ -376,7 +376,9 @@ def run_explore(args: argparse.Namespace) -> int:
     model = _load(args.model_dir)
     output = args.output or os.path.join(args.model_dir, "explorer.html")
     if args.output is not None:
-        check_outputs({"--output": args.output}, args.overwrite)
+        # A page: never one of the model's own files (an HTML page written over model.npz
+        # destroyed the model).
+        check_outputs({"--output": args.output}, args.overwrite, suffixes={"--output": (".html",)})
     folder = os.path.join(args.model_dir, "registrations")
     written = write_model_explorer(
         output,

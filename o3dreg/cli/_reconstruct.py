@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import sys
@@ -12,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import _json as json_text
 from .._validation import check_positive
 from ..io.mesh import MESH_SUFFIXES, write_triangle_mesh
 from ..volume.cleaning import (
@@ -144,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
         "seconds": round(time.perf_counter() - start, 3),
     }
     if args.json:
-        json.dump(summary, sys.stdout)
+        sys.stdout.write(json_text.dumps(summary))
         sys.stdout.write("\n")
     else:
         extent = " x ".join(f"{e:.1f}" for e in summary["extent_mm"])

@@ -115,7 +115,13 @@ def run(args: argparse.Namespace) -> int:
             "--html": args.html,
         },
         args.overwrite,
-        inputs={"SOURCE": args.source, "TARGET": args.target},
+        inputs={
+            "SOURCE": args.source,
+            "TARGET": args.target,
+            # A report named like a landmark file (.mrk.json) must not replace it.
+            "--landmarks SOURCE_LANDMARKS": args.landmarks[0] if args.landmarks else None,
+            "--landmarks TARGET_LANDMARKS": args.landmarks[1] if args.landmarks else None,
+        },
         suffixes={
             "--output": MESH_SUFFIXES,
             "--deformation": (".npz",),

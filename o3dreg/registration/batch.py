@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
+from .. import _json as json_text
 from .._validation import as_mesh_arrays, as_transformation, check_referenced
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 from .options import DistanceEstimation, ElasticCriteria, default_levels
@@ -341,6 +342,14 @@ def _read_record(path: str, name: str, key: str) -> PatientRecord | None:
         stored_key = data.pop("resume_key", None)
         data["transformation"] = tuple(data.get("transformation", ()))
         data["warnings"] = tuple(data.get("warnings", ()))
+        # A measure that could not be taken is written as null (JSON has no NaN).
+        for field in ("seconds", "min_jacobian_determinant"):
+            if field in data and data[field] is None:
+                data[field] = float("nan")
+        if isinstance(data.get("distances"), dict):
+            data["distances"] = {
+                k: float("nan") if v is None else v for k, v in data["distances"].items()
+            }
         record = PatientRecord(**data, skipped=True)
     except FileNotFoundError:
         return None
@@ -363,7 +372,7 @@ def _read_record(path: str, name: str, key: str) -> PatientRecord | None:
 
 
 def _write_json(path: str, data: Any) -> None:
-    atomic_write_text(path, json.dumps(data, indent=2) + "\n", overwrite=True)
+    atomic_write_text(path, json_text.dumps(data, indent=2) + "\n", overwrite=True)
 
 
 def save_registered(

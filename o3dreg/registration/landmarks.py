@@ -64,9 +64,18 @@ def _umeyama(source: np.ndarray, target: np.ndarray, scaling: bool) -> np.ndarra
     """Least-squares rotation (no reflection), translation and optional scale of ``source``
     onto ``target`` (Umeyama 1991; the fit of ``shape.procrustes``, which sits above this
     stage)."""
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-    a, b = source - mu_s, target - mu_t
-    u, _, vt = np.linalg.svd(a.T @ b)
+    with np.errstate(over="ignore", invalid="ignore"):
+        mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+        a, b = source - mu_s, target - mu_t
+        cross, spread = a.T @ b, (a * a).sum()
+    if not (np.all(np.isfinite(cross)) and np.isfinite(spread)):
+        # LAPACK's SVD of inf/NaN spins without end (and ignores SIGTERM): refuse first.
+        size = max(float(np.abs(source).max()), float(np.abs(target).max()))
+        raise ValueError(
+            "landmark coordinates must be finite numbers of a plausible size, got values up to "
+            f"{size:.3g}: their products overflow"
+        )
+    u, _, vt = np.linalg.svd(cross)
     d = 1.0 if np.linalg.det(vt.T @ u.T) >= 0 else -1.0
     r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
     s = float(((a @ r.T) * b).sum() / (a * a).sum()) if scaling else 1.0
@@ -80,7 +89,7 @@ def _as_landmarks(value: Any, name: str) -> tuple[tuple[str, ...] | None, np.nda
     """Labels (or ``None``) and points from a file, a ``(labels, points)`` pair or points."""
     if isinstance(value, (str, os.PathLike)):
         labels, points = read_landmarks(value)
-        return tuple(labels), points
+        return tuple(labels), as_points(points, f"{name} landmarks {os.fspath(value)!r}")
     if (
         isinstance(value, tuple)
         and len(value) == 2
