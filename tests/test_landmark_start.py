@@ -70,7 +70,7 @@ def test_bad_pairs_are_refused():
         registration_landmarks(POINTS, POINTS, with_scaling=1)
     # Coordinates whose products overflow: refused (LAPACK's SVD spun without end on them,
     # deaf to SIGTERM: found by a CLI audit with a landmark file of 1e308s).
-    with pytest.raises(ValueError, match="landmark coordinates must be finite numbers of a"):
+    with pytest.raises(ValueError, match="`source` landmark coordinates must be finite numbers"):
         registration_landmarks(POINTS * 1e306, POINTS)
 
 

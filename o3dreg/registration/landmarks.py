@@ -64,17 +64,9 @@ def _umeyama(source: np.ndarray, target: np.ndarray, scaling: bool) -> np.ndarra
     """Least-squares rotation (no reflection), translation and optional scale of ``source``
     onto ``target`` (Umeyama 1991; the fit of ``shape.procrustes``, which sits above this
     stage)."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-        a, b = source - mu_s, target - mu_t
-        cross, spread = a.T @ b, (a * a).sum()
-    if not (np.all(np.isfinite(cross)) and np.isfinite(spread)):
-        # LAPACK's SVD of inf/NaN spins without end (and ignores SIGTERM): refuse first.
-        size = max(float(np.abs(source).max()), float(np.abs(target).max()))
-        raise ValueError(
-            "landmark coordinates must be finite numbers of a plausible size, got values up to "
-            f"{size:.3g}: their products overflow"
-        )
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+    a, b = source - mu_s, target - mu_t
+    cross = a.T @ b  # finite: the caller checked that the squares of a and b are
     u, _, vt = np.linalg.svd(cross)
     d = 1.0 if np.linalg.det(vt.T @ u.T) >= 0 else -1.0
     r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
@@ -191,7 +183,16 @@ def registration_landmarks(
             f"`source` and `target` must hold at least 3 landmark pairs, got {ps.shape[0]}"
         )
     for name, pts in (("source", ps), ("target", pt)):
-        singular = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)
+        with np.errstate(over="ignore", invalid="ignore"):
+            centred = pts - pts.mean(axis=0)
+            finite = np.isfinite((centred * centred).sum())
+        if not finite:
+            # LAPACK's SVD of inf/NaN spins without end (and ignores SIGTERM): refuse first.
+            raise ValueError(
+                f"`{name}` landmark coordinates must be finite numbers of a plausible size, got "
+                f"values up to {float(np.abs(pts).max()):.3g}: their squares overflow"
+            )
+        singular = np.linalg.svd(centred, compute_uv=False)
         if singular[0] <= 0.0 or singular[1] < COLLINEAR_TOLERANCE * singular[0]:
             raise ValueError(
                 f"`{name}` landmarks are degenerate (all on one line or in one point): the "
