@@ -32,9 +32,12 @@ class SortedEdges:
         # One edge slot at a time: a million-triangle mesh needs no (m, 3) temporaries of
         # strided arithmetic beyond the key itself.
         key = np.empty(faces.shape, dtype=np.int64)
+        forward = np.empty(faces.shape, dtype=bool)
         for k in range(3):
             a, b = faces[:, (k + 1) % 3], faces[:, (k + 2) % 3]
             key[:, k] = np.minimum(a, b) * n + np.maximum(a, b)
+            forward[:, k] = a < b
+        self._forward = forward.ravel()
         flat = key.ravel()
         # Stable (timsort): on a mesh in canonical order the keys come in long sorted runs,
         # which it merges 2-3x faster than the default introsort (1M vertices); ties keep the
@@ -65,3 +68,15 @@ class SortedEdges:
         on_boundary[self.faces[triangle, (slot + 1) % 3]] = True
         on_boundary[self.faces[triangle, (slot + 2) % 3]] = True
         return open_edge.reshape(m, 3), on_boundary
+
+    def inconsistent_edges(self) -> int:
+        """Edges of exactly two triangles that run along it the same way: where the triangles'
+        orientations disagree (0 on a consistently oriented mesh)."""
+        same = self.same
+        if same.size == 0:
+            return 0
+        alone = same.copy()  # pairs (i, i + 1) of one edge, not part of a longer run
+        alone[1:] &= ~same[:-1]
+        alone[:-1] &= ~same[1:]
+        forward = self._forward[self.order]
+        return int(np.count_nonzero(alone & (forward[1:] == forward[:-1])))

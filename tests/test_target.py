@@ -5,7 +5,7 @@ import numpy as np
 import open3d as o3d
 
 from o3dreg._edges import SortedEdges
-from o3dreg.registration._target import TargetSurface, canonical_mesh
+from o3dreg.registration._target import TargetSurface, canonical_mesh, oriented_faces
 from o3dreg.registration.distance import SurfaceDistanceQuery
 from o3dreg.volume.cleaning import mesh_components
 
@@ -173,3 +173,27 @@ def test_one_edge_sort_answers_components_and_open_edges():
     lazy = SurfaceDistanceQuery(target.vertices, target.faces).open_edges
     for given, computed in zip(target.query.open_edges, lazy):
         np.testing.assert_array_equal(given, computed)
+
+
+def test_patches_wound_the_other_way_are_turned_to_their_piece_majority():
+    # Two spheres; on the first a third of the triangles (one cap) wound backwards, the second
+    # wound backwards entirely (a whole piece is left as it is: its majority is itself).
+    v1, f1 = sphere(10.0, 20)
+    v2, f2 = sphere(5.0, 10, centre=(40.0, 0.0, 0.0))
+    cap = v1[f1].mean(axis=1)[:, 2] > 4.0
+    assert 0.1 < cap.mean() < 0.5
+    mixed = f1.copy()
+    mixed[cap] = mixed[cap][:, ::-1]
+    v = np.concatenate([v1, v2])
+    f = np.concatenate([mixed, f2[:, ::-1] + len(v1)]).astype(np.int64)
+    assert SortedEdges(len(v), f).inconsistent_edges() > 0
+    assert SortedEdges(len(v1), f1.astype(np.int64)).inconsistent_edges() == 0
+    oriented = oriented_faces(v, f)
+    assert SortedEdges(len(v), oriented).inconsistent_edges() == 0
+    expected = np.concatenate([f1, f2[:, ::-1] + len(v1)])
+    np.testing.assert_array_equal(oriented, expected)  # the cap turned back, nothing else
+    # The prepared target: consistent, and the same surface as from the well-wound input.
+    target = TargetSurface.from_mesh(v, f)
+    reference = TargetSurface.from_mesh(v, expected)
+    np.testing.assert_array_equal(target.faces, reference.faces)
+    np.testing.assert_array_equal(target.vertices, reference.vertices)

@@ -14,9 +14,11 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from functools import cached_property
 
+import igl
 import numpy as np
 
 from .._edges import SortedEdges
+from .._geometry import face_doubled_areas
 from ..volume.cleaning import mesh_components
 from .distance import FramedQuery, SurfaceDistanceQuery
 from .result import SurfaceDistances
@@ -54,14 +56,17 @@ class TargetSurface:
         without components smaller than ``min_component`` of the largest (``None``: all kept;
         see :attr:`~o3dreg.DistanceEstimation.min_target_component`)."""
         v, f = canonical_mesh(vertices, faces)
-        if min_component is None:
-            return cls(SurfaceDistanceQuery(v, f))
-        # One sort of the edges answers both the components and the open edges (a million
-        # triangles: 0.4 s each time).
+        # One sort of the edges answers the orientation, the components and the open edges (a
+        # million triangles: 0.4 s each time).
         edges = SortedEdges(v.shape[0], f)
-        kept_v, kept_f = drop_small_components(v, f, min_component, edges)
-        if kept_f is not f:
-            return cls(SurfaceDistanceQuery(kept_v, kept_f))
+        if edges.inconsistent_edges():
+            o = oriented_faces(v, f)
+            f = _sorted_triangles(o[:, 0], o[:, 1], o[:, 2], v.shape[0])
+            edges = SortedEdges(v.shape[0], f)
+        if min_component is not None:
+            kept_v, kept_f = drop_small_components(v, f, min_component, edges)
+            if kept_f is not f:
+                return cls(SurfaceDistanceQuery(kept_v, kept_f))
         return cls(SurfaceDistanceQuery(v, f, open_edges=edges.open_edges()))
 
     @property
@@ -178,6 +183,26 @@ def canonical_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     if f0.size == 0:
         return v, np.zeros((0, 3), dtype=np.int64)
     return _drop_unused(v, _sorted_triangles(f0, f1, f2, v.shape[0]))
+
+
+def oriented_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The triangles with each connected piece oriented one way: its majority's, by area.
+
+    Scans and meshes from other tools may hold patches wound the other way. The template's
+    normals are compared with the target's (``max_normal_angle``), so such a patch rejected
+    correct correspondences: half a mandible wound backwards left 45% of the template without
+    data, 2.5 mm off on average with verdict ``ok``. libigl's ``bfs_orient`` orients each piece
+    like its first triangle; a piece whose first triangle was the odd one out is turned back.
+    """
+    oriented, piece = igl.bfs_orient(np.ascontiguousarray(faces, dtype=np.int64))
+    oriented = np.asarray(oriented, dtype=np.int64)
+    piece = np.asarray(piece, dtype=np.int64).ravel()
+    turned = ~np.all(oriented == faces, axis=1)
+    area = face_doubled_areas(vertices, faces)
+    turned_area = np.bincount(piece, weights=area * turned)
+    back = (turned_area > 0.5 * np.bincount(piece, weights=area))[piece]
+    oriented[back] = oriented[back, ::-1]
+    return oriented
 
 
 def cluster_vertices(
