@@ -86,3 +86,33 @@ def test_a_patient_in_other_units_is_flagged_and_left_out(tmp_path, capsys):
     assert "p5 (failed" in capsys.readouterr().err
     report = json.loads((tmp_path / "cli" / "report.json").read_text())
     assert "p5" in report["in_model"] and report["keep_flagged"]
+
+
+def test_an_interrupted_model_leaves_no_model_files(tmp_path, monkeypatch):
+    # Ctrl-C while the model's files were written left model.npz, model.h5, mean.ply, ... and
+    # no report: a rerun was refused ("already holds a model") and `model info` read it. Now
+    # the model's files go together; the registrations stay, and the rerun builds the model.
+    import o3dreg.app.model_folder as model_folder
+
+    (tv, tf), targets, _, _, _ = population(3, seed=5)
+    write_triangle_mesh(tmp_path / "template.ply", (tv, tf))
+    template = read_triangle_mesh(tmp_path / "template.ply")
+    paths = []
+    for i, target in enumerate(targets):
+        write_triangle_mesh(tmp_path / f"p{i}.ply", target)
+        paths.append(str(tmp_path / f"p{i}.ply"))
+    out = tmp_path / "model"
+    levels = [ElasticLevel(2)]
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(model_folder, "write_model_explorer", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            build_model_folder(template, paths, str(out), levels=levels)
+    assert model_folder.existing_model_files(out) == []
+    assert sorted(p.name for p in out.iterdir()) == ["registrations", "template.ply"]
+    folder = build_model_folder(template, paths, str(out), levels=levels)
+    assert all(r.skipped for r in folder.batch.records)  # resumed, not registered again
+    assert (out / "report.json").is_file() and (out / "explorer.html").is_file()

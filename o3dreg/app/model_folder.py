@@ -10,9 +10,11 @@ A model folder holds ``template.ply`` (the template the model is defined on), ``
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
+import shutil
 from collections.abc import Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -97,6 +99,17 @@ def existing_model_files(folder: str | os.PathLike[str]) -> list[str]:
         if os.path.isfile(path) or (os.path.isdir(path) and os.listdir(path)):
             found.append(name)
     return found
+
+
+def _remove_model_files(folder: str | os.PathLike[str]) -> None:
+    """Remove the :data:`MODEL_FILES` of ``folder`` (not its registrations or template)."""
+    for name in MODEL_FILES:
+        path = os.path.join(folder, name)
+        if os.path.isdir(path):
+            shutil.rmtree(path, ignore_errors=True)
+        elif os.path.lexists(path):
+            with contextlib.suppress(OSError):
+                os.remove(path)
 
 
 def check_inputs_outside(
@@ -305,43 +318,52 @@ def build_model_folder(
             f"{exc}; no model written, the registrations in "
             f"{os.path.join(out, 'registrations')!r} are kept"
         ) from exc
-    model.save(os.path.join(out, "model.npz"), overwrite=True)
-    write_statismo(os.path.join(out, "model.h5"), model, overwrite=True)
-    os.makedirs(os.path.join(out, "modes"), exist_ok=True)
-    model.write_meshes(os.path.join(out, "modes"), overwrite=True)
-    write_triangle_mesh(os.path.join(out, "mean.ply"), model.mesh(), overwrite=True)
-    atomic_write_text(
-        os.path.join(out, "variance.txt"), model.variance_table() + "\n", overwrite=True
-    )
-    quality_dir = os.path.join(out, "quality")
-    os.makedirs(quality_dir, exist_ok=True)
-    curves = [compactness(model), specificity(model, shapes, number_of_samples=100, seed=0)]
-    if len(names) >= 3:
-        curves.append(generalization(shapes, faces, scaling=scaling))
-    for curve in curves:
-        curve.plot(os.path.join(quality_dir, f"{curve.name}.png"), overwrite=True)
+    # The model's files are written together or not at all: an interrupted run (Ctrl-C, an
+    # error) removes those it wrote, so the folder never holds a half-built model that a rerun
+    # would refuse and `model info` would read. The registrations stay for the rerun.
+    try:
+        model.save(os.path.join(out, "model.npz"), overwrite=True)
+        write_statismo(os.path.join(out, "model.h5"), model, overwrite=True)
+        os.makedirs(os.path.join(out, "modes"), exist_ok=True)
+        model.write_meshes(os.path.join(out, "modes"), overwrite=True)
+        write_triangle_mesh(os.path.join(out, "mean.ply"), model.mesh(), overwrite=True)
         atomic_write_text(
-            os.path.join(quality_dir, f"{curve.name}.txt"), curve.table() + "\n", overwrite=True
+            os.path.join(out, "variance.txt"), model.variance_table() + "\n", overwrite=True
         )
-    report = {
-        "model_dir": out,
-        "patients": batch.as_dicts(),
-        "settings": settings.as_dict(),
-        "in_model": list(names),
-        "registered": [r.name for r in batch.registered],
-        "failed": [r.name for r in batch.failed],
-        "flagged": {
-            r.name: {"verdict": r.verdict, "warnings": list(r.warnings)} for r in batch.flagged
-        },
-        "keep_flagged": keep_flagged,
-        "variances": model.variance_records(),
-        "quality": {c.name: c.as_dict() for c in curves},
-        "sliding": None
-        if slid is None
-        else {"iterations": slid.iterations, "message": slid.message},
-    }
-    atomic_write_text(
-        os.path.join(out, "report.json"), json_text.dumps(report, indent=2) + "\n", overwrite=True
-    )
-    write_model_explorer(os.path.join(out, "explorer.html"), model, registrations=batch)
+        quality_dir = os.path.join(out, "quality")
+        os.makedirs(quality_dir, exist_ok=True)
+        curves = [compactness(model), specificity(model, shapes, number_of_samples=100, seed=0)]
+        if len(names) >= 3:
+            curves.append(generalization(shapes, faces, scaling=scaling))
+        for curve in curves:
+            curve.plot(os.path.join(quality_dir, f"{curve.name}.png"), overwrite=True)
+            atomic_write_text(
+                os.path.join(quality_dir, f"{curve.name}.txt"), curve.table() + "\n", overwrite=True
+            )
+        report = {
+            "model_dir": out,
+            "patients": batch.as_dicts(),
+            "settings": settings.as_dict(),
+            "in_model": list(names),
+            "registered": [r.name for r in batch.registered],
+            "failed": [r.name for r in batch.failed],
+            "flagged": {
+                r.name: {"verdict": r.verdict, "warnings": list(r.warnings)} for r in batch.flagged
+            },
+            "keep_flagged": keep_flagged,
+            "variances": model.variance_records(),
+            "quality": {c.name: c.as_dict() for c in curves},
+            "sliding": None
+            if slid is None
+            else {"iterations": slid.iterations, "message": slid.message},
+        }
+        atomic_write_text(
+            os.path.join(out, "report.json"),
+            json_text.dumps(report, indent=2) + "\n",
+            overwrite=True,
+        )
+        write_model_explorer(os.path.join(out, "explorer.html"), model, registrations=batch)
+    except BaseException:
+        _remove_model_files(out)
+        raise
     return ModelFolder(out, batch, model, curves, slid, report)
