@@ -155,3 +155,17 @@ def test_batch_bad_input(small, tmp_path):
     with pytest.raises(ValueError, match="`template` must have every vertex on a triangle"):
         register_batch(stray, targets, tmp_path / "stray")
     assert not (tmp_path / "stray").exists()
+
+
+def test_patients_of_one_file_name_in_several_folders_get_distinct_names(small, tmp_path):
+    # The common layout patients/<id>/bone.ply was refused ("`names` must be unique", an API
+    # parameter the command line does not have). The fewest folders that tell them apart lead.
+    template, targets, _ = small
+    paths = []
+    for case, target in zip(("case01", "case02"), targets[:2]):
+        (tmp_path / case).mkdir()
+        write_triangle_mesh(tmp_path / case / "bone.ply", target)
+        paths.append(str(tmp_path / case / "bone.ply"))
+    result = register_batch(template, paths, tmp_path / "out", levels=FAST)
+    assert [r.name for r in result.records] == ["case01_bone", "case02_bone"]
+    assert (tmp_path / "out" / "case02_bone.ply").is_file()

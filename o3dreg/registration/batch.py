@@ -323,6 +323,31 @@ def _default_name(target: Any, index: int) -> str:
     return f"patient{index:03d}"
 
 
+def _default_names(targets: Sequence[Any]) -> list[str]:
+    """A distinct name per target: the file stem; where stems repeat, the fewest folders in
+    front that tell those files apart (``a/bone.ply``, ``b/bone.ply`` -> ``a_bone``,
+    ``b_bone``), else a number (``bone_1``, ``bone_2``). Names are made of ASCII letters,
+    digits, ``.``, ``_`` and ``-``."""
+    names = [_safe_name(_default_name(t, i)) for i, t in enumerate(targets)]
+    groups: dict[str, list[int]] = {}
+    for i, name in enumerate(names):
+        groups.setdefault(name, []).append(i)
+    for name, members in groups.items():
+        if len(members) == 1:
+            continue
+        renamed = [f"{name}_{k}" for k in range(1, len(members) + 1)]
+        if all(isinstance(targets[i], (str, os.PathLike)) for i in members):
+            parts = [os.path.abspath(os.fspath(targets[i])).split(os.sep)[:-1] for i in members]
+            for depth in range(1, min(len(p) for p in parts) + 1):
+                candidate = [_safe_name("_".join([*p[-depth:], name])) for p in parts]
+                if len(set(candidate)) == len(candidate):
+                    renamed = candidate
+                    break
+        for i, new in zip(members, renamed):
+            names[i] = new
+    return names
+
+
 def _register_one(
     template: tuple[np.ndarray, np.ndarray], target: Any, init: Any, settings: RegistrationSettings
 ) -> tuple[Any, float]:
@@ -445,7 +470,9 @@ def register_batch(
         Created if missing. Holds ``NAME.ply``, ``NAME.npz``, ``NAME.json`` per patient and
         ``summary.json``.
     names : sequence of str, optional
-        Patient names (file stems). Default: the target file stems, or ``patient000``, ...
+        Patient names (file stems). Default: the target file stems, or ``patient000``, ...;
+        where stems repeat (``case01/bone.ply``, ``case02/bone.ply``), the fewest folders
+        that tell the files apart lead (``case01_bone``, ``case02_bone``), else a number.
     executor : concurrent.futures.Executor, optional
         Runs the registrations, e.g. ``ProcessPoolExecutor(2)`` or a Dask client's
         ``client.get_executor()``. Workers receive arrays and paths and return the result; all
@@ -500,7 +527,7 @@ def register_batch(
         raise TypeError(f"`callback` must be callable, got {type(callback).__name__}")
     settings_ = resolve_settings(settings, {k: v for k, v in options.items() if k != "init"})
     if names is None:
-        names_ = [_default_name(t, i) for i, t in enumerate(targets)]
+        names_ = _default_names(targets)
     else:
         names_ = [str(n) for n in names]
         if len(names_) != len(targets):
