@@ -320,6 +320,11 @@ def test_model_modes_overwrite_rules_and_finite_sd(model_dir, tmp_path, capsys):
         code, err = run_main(capsys, "model", "modes", str(model_dir), "--sd", bad,
                              "-o", str(tmp_path / "m2"))  # fmt: skip
         assert code == 2 and "finite" in err
+    # 1e308 standard deviations wrote meshes of inf coordinates; --modes -1 only the mean.
+    for option, bad, expected in (("--sd", "1e308", "[-100, 100]"), ("--modes", "-1", ">= 1")):
+        code, err = run_main(capsys, "model", "modes", str(model_dir), option, bad,
+                             "-o", str(tmp_path / "m2"))  # fmt: skip
+        assert code == 2 and expected in err
     assert not (tmp_path / "m2").exists()
 
 

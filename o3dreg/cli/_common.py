@@ -49,6 +49,26 @@ def finite_float(text: str) -> float:
     return value
 
 
+def positive_int(text: str) -> int:
+    """An integer >= 1, for argparse ``type=``."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return value
+
+
+def standard_deviations(text: str) -> float:
+    """A multiple of a mode's standard deviation, at most 100 either way, for ``type=``
+    (``1e308`` wrote meshes of inf coordinates)."""
+    value = finite_float(text)
+    if abs(value) > 100.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [-100, 100], got {text!r}")
+    return value
+
+
 def check_outputs(
     outputs: dict[str, str | None],
     overwrite: bool,

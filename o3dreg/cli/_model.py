@@ -26,7 +26,7 @@ from ..shape.landmarks import (
     write_landmarks,
 )
 from ..shape.model import ShapeModel
-from ._common import check_outputs, emit, finite_float, process_pool
+from ._common import check_outputs, emit, positive_int, process_pool, standard_deviations
 from ._registration_options import add_registration_options, settings_from_args
 
 logger = logging.getLogger("o3dreg")
@@ -60,7 +60,9 @@ def add_parser(subparsers: Any) -> None:
     build.add_argument("template", help="template mesh (moves; ~1k-4k vertices)")
     build.add_argument("targets", nargs="+", help="patient meshes")
     build.add_argument("-o", "--output", required=True, help="model folder (created)")
-    build.add_argument("--jobs", type=int, default=1, help="parallel registrations (processes)")
+    build.add_argument(
+        "--jobs", type=positive_int, default=1, help="parallel registrations (processes)"
+    )
     build.add_argument("--scheduler", help="Dask scheduler ADDRESS (tcp://host:8786) to run on")
     build.add_argument("--force", action="store_true", help="register finished patients again")
     add_registration_options(build)
@@ -95,10 +97,10 @@ def add_parser(subparsers: Any) -> None:
     info.set_defaults(func=run_info)
     modes = sub.add_parser("modes", help="write mean and mode meshes (Figure 6)")
     modes.add_argument("model_dir")
-    modes.add_argument("--modes", type=int, default=2, help="number of modes (default 2)")
+    modes.add_argument("--modes", type=positive_int, default=2, help="number of modes (default 2)")
     modes.add_argument(
         "--sd",
-        type=finite_float,
+        type=standard_deviations,
         nargs="+",
         default=[-3.0, 3.0],
         help="multiples of the standard deviation",
@@ -118,7 +120,7 @@ def add_parser(subparsers: Any) -> None:
         "-o", "--output", help="write predicted landmarks (.mrk.json, .fcsv, .csv, .pp; LPS)"
     )
     fit.add_argument("--overwrite", action="store_true", help="replace an existing --output")
-    fit.add_argument("--modes", type=int, default=None, help="modes used (default all)")
+    fit.add_argument("--modes", type=positive_int, default=None, help="modes used (default all)")
     fit.add_argument("--regularization", type=float, default=None, help="noise variance (mm^2)")
     fit.add_argument("--json", action="store_true")
     fit.set_defaults(func=run_fit)
