@@ -87,6 +87,14 @@ def test_build_model_info_modes_fit(files, capsys):
     # A 4-mode model of 5 registered shapes: errors of a few mm at most on a 30 mm shape.
     assert result["mean_error"] < 3.0
     assert (files / "pred.csv").is_file()
+    # Every landmark format its help lists is written (.fcsv and .pp were refused).
+    for suffix in (".fcsv", ".pp"):
+        code = main(
+            ["model", "fit", str(out), str(files / "p5.ply"), "--landmarks",
+             str(files / "lm.mrk.json"), "-o", str(files / f"pred{suffix}"), "-q"]
+        )  # fmt: skip
+        assert code in (0, 1) and (files / f"pred{suffix}").is_file()
+    capsys.readouterr()
 
     # A second run resumes: every patient but the broken one is skipped. The folder holds a
     # model: rebuilding it needs --overwrite.

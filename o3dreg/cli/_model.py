@@ -17,6 +17,7 @@ from typing import Any
 from .. import _json as json_text
 from ..app.explorer import write_model_explorer
 from ..app.model_folder import build_model_folder, check_inputs_outside, existing_model_files
+from ..io.landmarks import LANDMARK_SUFFIXES
 from ..io.mesh import read_triangle_mesh
 from ..shape.landmarks import (
     landmark_errors,
@@ -284,7 +285,7 @@ def run_fit(args: argparse.Namespace) -> int:
         {"--output": args.output},
         args.overwrite,
         inputs={"--landmarks": args.landmarks, "--truth": args.truth, "PATIENT": args.patient},
-        suffixes={"--output": (".mrk.json", ".csv", ".json")},
+        suffixes={"--output": LANDMARK_SUFFIXES},
     )
     model = _load(args.model_dir)
     template_path = os.path.join(args.model_dir, "template.ply")
