@@ -294,5 +294,5 @@ def check_output_path(path: Any, name: str, *, overwrite: bool) -> str:
     if not os.path.isdir(folder):
         raise OSError(f"`{name}`: folder {folder!r} does not exist")
     if os.path.exists(path) and not overwrite:
-        raise OSError(f"`{name}`: {path!r} exists; pass overwrite=True to replace it")
+        raise OSError(f"`{name}`: {path!r} exists; pass overwrite=True (--overwrite) to replace it")
     return path

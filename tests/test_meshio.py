@@ -53,6 +53,9 @@ def test_failed_write_leaves_nothing(tmp_path):
 def test_read_errors(tmp_path):
     with pytest.raises(OSError, match="no such file"):
         read_triangle_mesh(tmp_path / "missing.ply")
+    (tmp_path / "folder.ply").mkdir()
+    with pytest.raises(OSError, match="is a folder, not a mesh file"):
+        read_triangle_mesh(tmp_path / "folder.ply")
     with pytest.raises(ValueError, match="must end with one of"):
         read_triangle_mesh(tmp_path / "mesh.xyz")
     empty = tmp_path / "empty.ply"

@@ -82,6 +82,8 @@ def read_triangle_mesh(
         raise TypeError(f"`{name}` must be a path, got {type(path).__name__}")
     path = os.fspath(path)
     suffix = check_mesh_suffix(path, name)
+    if os.path.isdir(path):
+        raise OSError(f"`{name}`: {path!r} is a folder, not a mesh file")
     if not os.path.isfile(path):
         raise OSError(f"`{name}`: no such file {path!r}")
     if not os.access(path, os.R_OK):
@@ -183,12 +185,14 @@ def _place_new(tmp: str, path: str, name: str) -> None:
         os.link(tmp, path)
     except FileExistsError:
         raise OSError(
-            f"`{name}`: {path!r} was created by another writer meanwhile; pass overwrite=True "
+            f"`{name}`: {path!r} was created by another writer meanwhile; pass overwrite=True (--overwrite) "
             "to replace it"
         ) from None
     except OSError:  # a file system without hard links: check, then rename
         if os.path.exists(path):
-            raise OSError(f"`{name}`: {path!r} exists; pass overwrite=True to replace it") from None
+            raise OSError(
+                f"`{name}`: {path!r} exists; pass overwrite=True (--overwrite) to replace it"
+            ) from None
         os.replace(tmp, path)
 
 
