@@ -19,7 +19,8 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from .._geometry import apply_transformation, rotation_angle
+from .._edges import SortedEdges
+from .._geometry import apply_transformation, face_doubled_areas, rotation_angle, row_norms
 from .._held import HeldSetting
 from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive
@@ -485,7 +486,37 @@ def _registration_rigid(
             return RigidRegistrationResult(
                 final, score=search.score(np.asarray(final.transformation)), candidates=1
             )
-        return search.run(candidates, estimation_method, criteria)
+        result = search.run(candidates, estimation_method, criteria)
+    if with_scaling:
+        cut = open_boundary_ratio(vt, ft)
+        if cut > PARTIAL_BOUNDARY:
+            scale = float(np.cbrt(np.linalg.det(np.asarray(result.transformation)[:3, :3])))
+            result.warnings += (
+                f"the scale ({scale:.3g}) was found on a target with a long open boundary "
+                f"(its length {cut:.2g} times the square root of its area: a partial scan?); "
+                "a part of a shape fits a smaller template, so the scale may be wrong: give the "
+                "target in the template's units and leave the scaling off",
+            )
+            logger.warning("registration_rigid: %s", result.warnings[-1])
+    return result
+
+
+#: A target whose open edges are longer than this times the square root of its area is
+#: taken as partial when a scale is estimated: the bunny with its holes 1.4, cut by 10-50% of
+#: its height 3.3-5.6, its front half 3.8; a bone surface from CT is closed (0).
+PARTIAL_BOUNDARY = 2.5
+
+
+def open_boundary_ratio(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Total length of a surface's open edges over the square root of its area (scale-free)."""
+    open_edge, _ = SortedEdges(vertices.shape[0], faces).open_edges()
+    length = 0.0
+    for k in range(3):
+        rows = np.flatnonzero(open_edge[:, k])
+        a, b = faces[rows, (k + 1) % 3], faces[rows, (k + 2) % 3]
+        length += float(row_norms(vertices[a] - vertices[b]).sum())
+    area = 0.5 * float(face_doubled_areas(vertices, faces).sum())
+    return length / np.sqrt(area) if area > 0 else 0.0
 
 
 def _check_target(ft: np.ndarray) -> None:
