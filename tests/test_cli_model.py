@@ -94,7 +94,10 @@ def test_build_model_info_modes_fit(files, capsys):
              str(files / "lm.mrk.json"), "-o", str(files / f"pred{suffix}"), "-q"]
         )  # fmt: skip
         assert code in (0, 1) and (files / f"pred{suffix}").is_file()
-    capsys.readouterr()
+    # -q: nothing on standard output, for every model action (they printed their tables).
+    assert main(["model", "info", str(out), "-q"]) == 0
+    assert main(["model", "modes", str(out), "-o", str(files / "mq"), "-q"]) == 0
+    assert capsys.readouterr().out == ""
 
     # A second run resumes: every patient but the broken one is skipped. The folder holds a
     # model: rebuilding it needs --overwrite.

@@ -251,8 +251,7 @@ def run_info(args: argparse.Namespace) -> int:
             )
         )
     else:
-        print(model)
-        print(model.variance_table())
+        emit(f"{model}\n{model.variance_table()}", args)
     return 0
 
 
@@ -275,8 +274,7 @@ def run_modes(args: argparse.Namespace) -> int:
     if args.json:
         print(json_text.dumps({"written": written}, indent=2))
     else:
-        for path in written:
-            print(path)
+        emit("\n".join(written), args)
     return 0
 
 
@@ -331,16 +329,17 @@ def run_fit(args: argparse.Namespace) -> int:
             out["mean_error"] = float(errors.mean())
         print(json_text.dumps(out, indent=2))
     else:
-        print(fit)
-        head = f"{'landmark':<16}{'x':>10}{'y':>10}{'z':>10}" + (
-            f"{'error':>10}" if errors is not None else ""
+        lines = [str(fit)]
+        lines.append(
+            f"{'landmark':<16}{'x':>10}{'y':>10}{'z':>10}"
+            + (f"{'error':>10}" if errors is not None else "")
         )
-        print(head)
         for k, (label, p) in enumerate(zip(prediction.labels, prediction.positions)):
             err = f"{errors[k]:>10.3g}" if errors is not None else ""
-            print(f"{label:<16}{p[0]:>10.2f}{p[1]:>10.2f}{p[2]:>10.2f}{err}")
+            lines.append(f"{label:<16}{p[0]:>10.2f}{p[1]:>10.2f}{p[2]:>10.2f}{err}")
         if errors is not None:
-            print(f"mean error {errors.mean():.3g} mm")
+            lines.append(f"mean error {errors.mean():.3g} mm")
+        emit("\n".join(lines), args)
     return 0 if fit.success else 1
 
 
@@ -390,5 +389,5 @@ def run_explore(args: argparse.Namespace) -> int:
         up=args.up,
         overwrite=args.overwrite or args.output is None,
     )
-    print(written)
+    emit(str(written), args)
     return 0
