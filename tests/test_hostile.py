@@ -129,6 +129,9 @@ def test_one_triangle_meshes():
     # The rigid start refuses a target too small to determine a pose, with a clear error.
     with pytest.raises(ValueError, match="`target` must be a surface of at least 4"):
         registration_rigid(tri, moved)
+    big = synthetic_form("sphere", 300)
+    with pytest.raises(ValueError, match="`source` must be a surface of at least 4 .* got 1"):
+        registration_rigid(tri, big)  # was: "58 times the size ... same units?"
     evaluate_elastic(tri, moved)
 
 

@@ -447,6 +447,13 @@ def _registration_rigid(
         candidates = [("init", as_transformation(init, "init"))]
     else:
         _check_target(ft)
+        if fs.shape[0] < MIN_TARGET_TRIANGLES:
+            # A triangle's moments say nothing of a shape's pose (its size check would blame
+            # the units).
+            raise ValueError(
+                f"`source` must be a surface of at least {MIN_TARGET_TRIANGLES} non-degenerate "
+                f"triangles for its pose to be searched, got {fs.shape[0]}: give `init`"
+            )
         # Each surface's moments once: they serve the size check and every start.
         moments_s, moments_t = surface_moments(vs, fs), surface_moments(vt, ft)
         if not with_scaling:
