@@ -42,6 +42,26 @@ def test_rigid_fit_and_residuals_show_a_misplaced_landmark():
     assert int(np.argmax(result.residuals)) == 3
     r = result.transformation[:3, :3]
     np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+    assert result.warnings == ()  # 8 mm off among landmarks ~80 mm apart: within reason
+
+
+def test_swapped_left_and_right_landmarks_are_reported(caplog):
+    # Left and right orbits swapped on the patient: no rigid motion fits (before, no word: the
+    # registration then started turned and its verdict blamed sliding).
+    truth = similarity()
+    target = POINTS @ truth[:3, :3].T + truth[:3, 3]
+    target[[1, 2]] = target[[2, 1]]
+    with caplog.at_level("WARNING", logger="o3dreg"):
+        result = registration_landmarks((LABELS, POINTS), (LABELS, target))
+    assert len(result.warnings) == 1 and "fit no rigid motion" in result.warnings[0]
+    assert "swapped (left and right?)" in result.warnings[0] and "rms" in caplog.text
+    # One landmark far off among good ones is named.
+    target = POINTS @ truth[:3, :3].T + truth[:3, 3]
+    target[4] += (0.0, 40.0, 0.0)
+    result = registration_landmarks((LABELS, target), (LABELS, target + 0.0))
+    assert result.warnings == ()
+    result = registration_landmarks((LABELS, POINTS), (LABELS, target))
+    assert len(result.warnings) == 1 and result.warnings[0].startswith("landmark 'vertex' lies 40")
 
 
 def test_files_are_read(tmp_path):
