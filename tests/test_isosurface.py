@@ -174,6 +174,13 @@ def test_isosurface_rejects_bad_input():
     bad[1, 2, 3] = np.nan
     with pytest.raises(ValueError, match=r"must hold finite values, got 1 NaN"):
         isosurface(Volume(bad, spacing=(1, 1, 1)), 0.5)
+    # A step larger than the object: the message names the step, not the level.
+    z, y, x = np.mgrid[:20, :20, :20]
+    ball = Volume(
+        (((x - 10) ** 2 + (y - 10) ** 2 + (z - 10) ** 2) < 36).astype(np.float32), (1, 1, 1)
+    )
+    with pytest.raises(RuntimeError, match="no surface found with step_size=30: .*smaller step"):
+        isosurface(ball, 0.5, step_size=30)
 
 
 # -- real scans ---------------------------------------------------------------------------------

@@ -133,6 +133,12 @@ def _isosurface(
             sub, level, step_size=step, allow_degenerate=False, method="lewiner"
         )
     except (ValueError, RuntimeError) as exc:
+        if step > 1 and step >= min(sub.shape) // 2:
+            # The step, not the level, leaves marching cubes too few samples.
+            raise RuntimeError(
+                f"no surface found with step_size={step}: the object spans {tuple(sub.shape)} "
+                "voxels, too few for that step; use a smaller step"
+            ) from exc
         raise RuntimeError(f"no surface found at level {level:g}: {exc}") from exc
     del sub
     index = verts.astype(np.float64) + offset
