@@ -841,3 +841,24 @@ def test_a_failing_later_output_removes_the_earlier_ones(meshes, capsys, monkeyp
                          "--report", str(meshes / "r.json"), "--levels", "2")  # fmt: skip
     assert code == 2 and "No space left" in err
     assert sorted(p.name for p in meshes.iterdir()) == ["p.ply", "t.ply"]
+
+
+def test_model_modes_on_a_full_disk_writes_no_mesh(model_dir, tmp_path):
+    # A full disk in the middle of `model modes` left mean.ply behind an exit status 2, and
+    # the message said only "writing ... failed".
+    done = on_full_disk(
+        tmp_path,
+        f"""
+        import os, sys
+        from o3dreg.cli import main
+        out = os.path.join(os.environ["FULL"], "modes")
+        code = main(["model", "modes", "{model_dir}", "--modes", "1", "--sd", "-3", "-2",
+                     "-1", "1", "2", "3", "-o", out])
+        print("LEFT", sorted(os.listdir(out)))
+        sys.exit(code)
+        """,
+        size="24k",
+    )
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "no space left" in done.stderr.lower(), done.stderr
+    assert "LEFT []" in done.stdout, done.stdout

@@ -27,7 +27,14 @@ from ..shape.landmarks import (
     write_landmarks,
 )
 from ..shape.model import ShapeModel
-from ._common import check_outputs, emit, positive_int, process_pool, standard_deviations
+from ._common import (
+    all_or_nothing,
+    check_outputs,
+    emit,
+    positive_int,
+    process_pool,
+    standard_deviations,
+)
 from ._registration_options import add_registration_options, settings_from_args
 
 logger = logging.getLogger("o3dreg")
@@ -268,9 +275,11 @@ def run_modes(args: argparse.Namespace) -> int:
             {f"--output {name}": os.path.join(folder, name) for name in names}, args.overwrite
         )
     os.makedirs(folder, exist_ok=True)
-    written = model.write_meshes(
-        folder, modes=range(count), standard_deviations=sds, overwrite=args.overwrite
-    )
+    # All the meshes or none (a full disk left mean.ply behind an exit status 2).
+    with all_or_nothing([os.path.join(folder, name) for name in names]):
+        written = model.write_meshes(
+            folder, modes=range(count), standard_deviations=sds, overwrite=args.overwrite
+        )
     if args.json:
         print(json_text.dumps({"written": written}, indent=2))
     else:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+import shutil
 import socket
 import tempfile
 from collections.abc import Callable
@@ -160,7 +161,10 @@ def atomic_write(
         except OSError as exc:  # the message would name the hidden temporary file
             raise OSError(f"`{name}`: writing {path!r} failed: {exc.strerror or exc}") from exc
         if ok is False or not os.path.exists(tmp) or os.path.getsize(tmp) == 0:
-            raise OSError(f"`{name}`: writing {path!r} failed")
+            # Open3D's writers say only False: name the likely cause when it is the disk.
+            free = shutil.disk_usage(folder).free
+            reason = f": no space left on the device ({free} bytes free)" if free < 1 << 20 else ""
+            raise OSError(f"`{name}`: writing {path!r} failed{reason}")
         _flush_to_disk(tmp, path, name)
         if verify is not None:
             verify(tmp)
