@@ -116,3 +116,28 @@ def test_an_interrupted_model_leaves_no_model_files(tmp_path, monkeypatch):
     folder = build_model_folder(template, paths, str(out), levels=levels)
     assert all(r.skipped for r in folder.batch.records)  # resumed, not registered again
     assert (out / "report.json").is_file() and (out / "explorer.html").is_file()
+
+
+def test_a_second_build_into_the_same_folder_is_refused_while_one_runs(tmp_path):
+    # Two `build-model` runs into one new folder both exited 0 and the last one's model won.
+    import fcntl
+
+    import o3dreg.app.model_folder as model_folder
+
+    (tv, tf), targets, _, _, _ = population(3, seed=5)
+    write_triangle_mesh(tmp_path / "template.ply", (tv, tf))
+    paths = []
+    for i, target in enumerate(targets):
+        write_triangle_mesh(tmp_path / f"p{i}.ply", target)
+        paths.append(str(tmp_path / f"p{i}.ply"))
+    out = tmp_path / "model"
+    out.mkdir()
+    template = read_triangle_mesh(tmp_path / "template.ply")
+    with open(out / model_folder.LOCK_FILE, "a") as held:  # another build, holding the folder
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(OSError, match="another model build is writing"):
+            build_model_folder(template, paths, str(out), levels=[ElasticLevel(2)])
+    assert not (out / "registrations").exists()
+    folder = build_model_folder(template, paths, str(out), levels=[ElasticLevel(2)])
+    assert folder.model is not None
+    assert not (out / model_folder.LOCK_FILE).exists()  # a finished build leaves no lock file

@@ -15,7 +15,7 @@ import hashlib
 import logging
 import os
 import shutil
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Any
@@ -75,6 +75,9 @@ class ModelFolder:
 
 
 #: What a built model consists of in its folder: none is replaced without ``overwrite``.
+#: The hidden file a model build holds locked in its folder (see ``_folder_lock``).
+LOCK_FILE = ".o3dreg-build.lock"
+
 MODEL_FILES = (
     "model.npz",
     "model.h5",
@@ -99,6 +102,33 @@ def existing_model_files(folder: str | os.PathLike[str]) -> list[str]:
         if os.path.isfile(path) or (os.path.isdir(path) and os.listdir(path)):
             found.append(name)
     return found
+
+
+@contextlib.contextmanager
+def _folder_lock(folder: str | os.PathLike[str]) -> Iterator[None]:
+    """Hold ``folder/.o3dreg-build.lock`` while a model is built there: a second build into the
+    same folder is refused at once (two runs both exited 0 and the last one's model won). The
+    kernel releases the lock when the process ends, however it ends. No lock where ``fcntl`` is
+    missing (Windows)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    with open(os.path.join(folder, LOCK_FILE), "a") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise OSError(
+                f"`output`: another model build is writing {os.fspath(folder)!r}; wait for it to "
+                "end or choose another folder"
+            ) from None
+        try:
+            yield
+        finally:
+            with contextlib.suppress(OSError):
+                os.remove(os.path.join(folder, LOCK_FILE))  # a finished build leaves no trace
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def _remove_model_files(folder: str | os.PathLike[str]) -> None:
@@ -281,89 +311,100 @@ def build_model_folder(
         )
     out = output
     os.makedirs(out, exist_ok=True)
-    template_path = os.path.join(out, "template.ply")
-    if os.path.exists(template_path):
-        previous = read_triangle_mesh(template_path)
-        same = np.array_equal(np.asarray(previous.triangles), np.asarray(template.triangles))
-        if not same and not force:
+    with _folder_lock(out):
+        # Again under the lock: a build that ended since the check above left its model.
+        present = existing_model_files(output)
+        if present and not overwrite:
+            raise FileExistsError(
+                f"`output`: {os.fspath(output)!r} already holds a model ({', '.join(present)}); "
+                "pass overwrite=True to rebuild it or choose another folder"
+            )
+        template_path = os.path.join(out, "template.ply")
+        if os.path.exists(template_path):
+            previous = read_triangle_mesh(template_path)
+            same = np.array_equal(np.asarray(previous.triangles), np.asarray(template.triangles))
+            if not same and not force:
+                raise ValueError(
+                    f"{out!r} holds a model of another template; use another folder or --force"
+                )
+        write_triangle_mesh(template_path, template, overwrite=True)
+        batch = register_batch(
+            template,
+            list(targets),
+            os.path.join(out, "registrations"),
+            executor=executor,
+            force=force,
+            progress=progress,
+            settings=settings,
+            init=inits,
+        )
+        batch = check_population(batch)
+        names, shapes = batch.shapes(accepted_only=not keep_flagged)
+        if len(names) < 2:
+            return ModelFolder(out, batch, None, [], None, {})
+        faces = np.asarray(template.triangles)
+        slid = None
+        if slide:
+            used = set(names)
+            surfaces = [read_triangle_mesh(r.source) for r in batch.registered if r.name in used]
+            slid = slide_semilandmarks(shapes, surfaces, scaling=scaling)
+            shapes = slid.shapes
+        try:
+            model = build_shape_model(shapes, faces, names=names, scaling=scaling)
+        except ValueError as exc:  # the patients' shapes do not differ: no model file is written
             raise ValueError(
-                f"{out!r} holds a model of another template; use another folder or --force"
-            )
-    write_triangle_mesh(template_path, template, overwrite=True)
-    batch = register_batch(
-        template,
-        list(targets),
-        os.path.join(out, "registrations"),
-        executor=executor,
-        force=force,
-        progress=progress,
-        settings=settings,
-        init=inits,
-    )
-    batch = check_population(batch)
-    names, shapes = batch.shapes(accepted_only=not keep_flagged)
-    if len(names) < 2:
-        return ModelFolder(out, batch, None, [], None, {})
-    faces = np.asarray(template.triangles)
-    slid = None
-    if slide:
-        used = set(names)
-        surfaces = [read_triangle_mesh(r.source) for r in batch.registered if r.name in used]
-        slid = slide_semilandmarks(shapes, surfaces, scaling=scaling)
-        shapes = slid.shapes
-    try:
-        model = build_shape_model(shapes, faces, names=names, scaling=scaling)
-    except ValueError as exc:  # the patients' shapes do not differ: no model file is written
-        raise ValueError(
-            f"{exc}; no model written, the registrations in "
-            f"{os.path.join(out, 'registrations')!r} are kept"
-        ) from exc
-    # The model's files are written together or not at all: an interrupted run (Ctrl-C, an
-    # error) removes those it wrote, so the folder never holds a half-built model that a rerun
-    # would refuse and `model info` would read. The registrations stay for the rerun.
-    try:
-        model.save(os.path.join(out, "model.npz"), overwrite=True)
-        write_statismo(os.path.join(out, "model.h5"), model, overwrite=True)
-        os.makedirs(os.path.join(out, "modes"), exist_ok=True)
-        model.write_meshes(os.path.join(out, "modes"), overwrite=True)
-        write_triangle_mesh(os.path.join(out, "mean.ply"), model.mesh(), overwrite=True)
-        atomic_write_text(
-            os.path.join(out, "variance.txt"), model.variance_table() + "\n", overwrite=True
-        )
-        quality_dir = os.path.join(out, "quality")
-        os.makedirs(quality_dir, exist_ok=True)
-        curves = [compactness(model), specificity(model, shapes, number_of_samples=100, seed=0)]
-        if len(names) >= 3:
-            curves.append(generalization(shapes, faces, scaling=scaling))
-        for curve in curves:
-            curve.plot(os.path.join(quality_dir, f"{curve.name}.png"), overwrite=True)
+                f"{exc}; no model written, the registrations in "
+                f"{os.path.join(out, 'registrations')!r} are kept"
+            ) from exc
+        # The model's files are written together or not at all: an interrupted run (Ctrl-C, an
+        # error) removes those it wrote, so the folder never holds a half-built model that a rerun
+        # would refuse and `model info` would read. The registrations stay for the rerun.
+        try:
+            model.save(os.path.join(out, "model.npz"), overwrite=True)
+            write_statismo(os.path.join(out, "model.h5"), model, overwrite=True)
+            os.makedirs(os.path.join(out, "modes"), exist_ok=True)
+            model.write_meshes(os.path.join(out, "modes"), overwrite=True)
+            write_triangle_mesh(os.path.join(out, "mean.ply"), model.mesh(), overwrite=True)
             atomic_write_text(
-                os.path.join(quality_dir, f"{curve.name}.txt"), curve.table() + "\n", overwrite=True
+                os.path.join(out, "variance.txt"), model.variance_table() + "\n", overwrite=True
             )
-        report = {
-            "model_dir": out,
-            "patients": batch.as_dicts(),
-            "settings": settings.as_dict(),
-            "in_model": list(names),
-            "registered": [r.name for r in batch.registered],
-            "failed": [r.name for r in batch.failed],
-            "flagged": {
-                r.name: {"verdict": r.verdict, "warnings": list(r.warnings)} for r in batch.flagged
-            },
-            "keep_flagged": keep_flagged,
-            "variances": model.variance_records(),
-            "quality": {c.name: c.as_dict() for c in curves},
-            "sliding": None
-            if slid is None
-            else {"iterations": slid.iterations, "message": slid.message},
-        }
-        atomic_write_text(
-            os.path.join(out, "report.json"),
-            json_text.dumps(report, indent=2) + "\n",
-            overwrite=True,
-        )
-        write_model_explorer(os.path.join(out, "explorer.html"), model, registrations=batch)
-    except BaseException:
-        _remove_model_files(out)
-        raise
-    return ModelFolder(out, batch, model, curves, slid, report)
+            quality_dir = os.path.join(out, "quality")
+            os.makedirs(quality_dir, exist_ok=True)
+            curves = [compactness(model), specificity(model, shapes, number_of_samples=100, seed=0)]
+            if len(names) >= 3:
+                curves.append(generalization(shapes, faces, scaling=scaling))
+            for curve in curves:
+                curve.plot(os.path.join(quality_dir, f"{curve.name}.png"), overwrite=True)
+                atomic_write_text(
+                    os.path.join(quality_dir, f"{curve.name}.txt"),
+                    curve.table() + "\n",
+                    overwrite=True,
+                )
+            report = {
+                "model_dir": out,
+                "patients": batch.as_dicts(),
+                "settings": settings.as_dict(),
+                "in_model": list(names),
+                "registered": [r.name for r in batch.registered],
+                "failed": [r.name for r in batch.failed],
+                "flagged": {
+                    r.name: {"verdict": r.verdict, "warnings": list(r.warnings)}
+                    for r in batch.flagged
+                },
+                "keep_flagged": keep_flagged,
+                "variances": model.variance_records(),
+                "quality": {c.name: c.as_dict() for c in curves},
+                "sliding": None
+                if slid is None
+                else {"iterations": slid.iterations, "message": slid.message},
+            }
+            atomic_write_text(
+                os.path.join(out, "report.json"),
+                json_text.dumps(report, indent=2) + "\n",
+                overwrite=True,
+            )
+            write_model_explorer(os.path.join(out, "explorer.html"), model, registrations=batch)
+        except BaseException:
+            _remove_model_files(out)
+            raise
+        return ModelFolder(out, batch, model, curves, slid, report)
