@@ -173,8 +173,10 @@ def write_dicom_series(
     positions_z: list[float],
     series_uid: str | None = None,
     prefix: str = "img",
+    edit: Any = None,
 ) -> str:
-    """Write ``stored`` (planes, rows, columns) uint16 as a CT series with pydicom."""
+    """Write ``stored`` (planes, rows, columns) uint16 as a CT series with pydicom
+    (``edit(n, dataset)``: a change to slice ``n`` before it is saved)."""
     folder.mkdir(exist_ok=True)
     series_uid = series_uid or generate_uid()
     study_uid = generate_uid()
@@ -208,6 +210,8 @@ def write_dicom_series(
         ds.RescaleSlope = slope
         ds.RescaleIntercept = intercept
         ds.PixelData = np.ascontiguousarray(plane, dtype="<u2").tobytes()
+        if edit is not None:
+            edit(n, ds)
         # Files named in reverse order of position: the reader must sort by position.
         ds.save_as(folder / f"{prefix}{len(stored) - n:03d}.dcm", enforce_file_format=True)
     return series_uid

@@ -198,6 +198,35 @@ def test_dicom_series_missing_slice_detected(tmp_path, stored_slices):
         read_volume(folder)
 
 
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("tilt", "not stacked along their normal .* sheared"),
+        ("turned", "2 slice.s. lie in another orientation"),
+        ("pixels", "2 slice.s. have another pixel spacing"),
+    ],
+)
+def test_dicom_series_that_one_grid_cannot_hold_is_refused(tmp_path, stored_slices, case, message):
+    # Read from the first slice's orientation and pixel spacing, stacked along its normal, a
+    # tilted gantry sheared a sphere by 4 mm, turned or finer slices were placed 9.5 mm off or
+    # at half size, all without a word (audit).
+    def edit(n, ds):
+        if case == "tilt":  # 20 degrees: each slice 0.73 mm further along y
+            ds.ImagePositionPatient = [-10.0, 20.0 + 2.0 * n * np.tan(np.radians(20)), 2.0 * n]
+        elif case == "turned" and n in (2, 3):
+            c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+            ds.ImageOrientationPatient = [c, s, 0, -s, c, 0]
+        elif case == "pixels" and n >= 3:
+            ds.PixelSpacing = [1.5, 1.0]
+
+    folder = tmp_path / "series"
+    write_dicom_series(
+        folder, stored_slices, slope=1.0, intercept=-1024.0, positions_z=[0, 2, 4, 6, 8], edit=edit
+    )
+    with pytest.raises(ValueError, match=message):
+        read_volume(folder)
+
+
 def test_dicom_folder_with_two_series(tmp_path, stored_slices):
     folder = tmp_path / "mixed"
     first = write_dicom_series(

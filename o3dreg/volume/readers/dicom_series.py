@@ -112,6 +112,7 @@ def _dicom_header(path: str) -> dict[str, Any]:
         "transfer_syntax": (tag("0002|0010") or "").strip().rstrip("\0"),
         "position": numbers("0020|0032"),
         "orientation": numbers("0020|0037"),
+        "pixel_spacing": numbers("0028|0030"),
         "slope": float((numbers("0028|1053") or [1.0])[0]),
         "intercept": float((numbers("0028|1052") or [0.0])[0]),
         "thickness": thickness[0] if thickness and thickness[0] > 0 else 1.0,
@@ -180,8 +181,46 @@ def _check_slice_positions(files: list[str], headers: list[dict[str, Any]], uid:
             "ImageOrientationPatient; cannot place the slices"
         )
     orientation = np.asarray(headers[0]["orientation"], dtype=np.float64)
+    # The volume is built from the first slice's orientation and pixel spacing, with the
+    # slices stacked along its normal: anything else would be placed wrong without a word.
+    turned = [
+        os.path.basename(f)
+        for f, h in zip(files, headers)
+        if np.abs(np.asarray(h["orientation"], dtype=np.float64) - orientation).max() > 1e-4
+    ]
+    if turned:
+        raise ValueError(
+            f"DICOM series {uid}: {len(turned)} slice(s) lie in another orientation than the "
+            f"first ({', '.join(turned[:5])}); one volume needs parallel slices"
+        )
+    pixel = headers[0]["pixel_spacing"]
+    if pixel is not None:
+        other = [
+            os.path.basename(f)
+            for f, h in zip(files, headers)
+            if h["pixel_spacing"] is not None
+            and np.abs(np.subtract(h["pixel_spacing"], pixel)).max() > 1e-4 * max(pixel)
+        ]
+        if other:
+            raise ValueError(
+                f"DICOM series {uid}: {len(other)} slice(s) have another pixel spacing than the "
+                f"first's {pixel} mm ({', '.join(other[:5])}); they would be placed at the "
+                "wrong size"
+            )
     normal = np.cross(orientation[:3], orientation[3:])
-    positions = np.array([np.dot(h["position"], normal) for h in headers])
+    start = np.asarray(headers[0]["position"], dtype=np.float64)
+    offsets = np.array([np.asarray(h["position"], dtype=np.float64) - start for h in headers])
+    sideways = offsets - np.outer(offsets @ normal, normal)
+    drift = float(np.sqrt((sideways**2).sum(axis=1)).max())
+    # 5% of a pixel: far above the rounding of written positions, far below a tilt's shift.
+    if drift > 0.05 * (min(pixel) if pixel else 1.0):
+        raise ValueError(
+            f"DICOM series {uid}: the slices are not stacked along their normal (gantry tilt "
+            f"or a moving table: a slice lies {drift:.3g} mm sideways of the first one's "
+            "normal); the volume would be sheared. Resample the series onto a regular grid "
+            "first"
+        )
+    positions = offsets @ normal + float(start @ normal)
     gaps = np.diff(positions)
     order = "ascending" if np.median(gaps) > 0 else "descending"
     gaps = np.abs(gaps)
