@@ -12,6 +12,7 @@ from scipy.special import ellipeinc, ellipkinc
 
 from o3dreg import Volume, connected_components, isosurface, keep_largest_components, read_volume
 from o3dreg.app.datasets import headsq_path
+from o3dreg.registration.distance import SurfaceDistanceQuery
 
 DATA = Path(__file__).resolve().parent / "data"
 HEADSQ = headsq_path().parent  # bundled with the package (o3dreg/data)
@@ -133,6 +134,24 @@ def test_crop_gives_the_same_surface_and_input_untouched():
     assert np.array_equal(array, before)
     coarse = isosurface(volume, 500, step_size=2)
     assert len(coarse.vertices) < len(cropped.vertices)
+
+
+@pytest.mark.parametrize("step", [2, 3, 4])
+@pytest.mark.parametrize("crop", [True, False])
+def test_a_coarse_step_gives_a_closed_surface_of_about_the_right_volume(step, crop):
+    # With a step, marching cubes samples every step-th voxel: the cropped box ended one voxel
+    # past the object, so a step of 3 or 4 left the ball's far side open (half its volume).
+    z, y, x = np.mgrid[:40, :40, :40]
+    ball = (((x - 20) ** 2 + (y - 20) ** 2 + (z - 20) ** 2) < 81).astype(np.float32)
+    box = np.zeros((30, 30, 30), np.float32)
+    box[:12, 5:25, 5:25] = 1  # cut by the scan's border
+    for array, truth in ((ball, 4 / 3 * np.pi * 9**3), (box, 12 * 20 * 20)):
+        mesh = isosurface(Volume(array, spacing=(1, 1, 1)), 0.5, step_size=step, crop=crop)
+        assert mesh.is_edge_manifold() and not mesh.get_non_manifold_vertices()
+        edges = SurfaceDistanceQuery(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+        assert not edges.has_boundary  # closed
+        # A sampling `step` voxels apart misses up to about a step of the shape's detail.
+        assert signed_volume(mesh) == pytest.approx(truth, rel=0.12 * step)
 
 
 def test_object_cut_by_the_border_is_closed():

@@ -45,12 +45,15 @@ def isosurface(
     step_size : int, optional
         Marching-cubes step in voxels; larger is coarser and faster. Default 1.
     crop : bool, optional
-        Run marching cubes only on the bounding box of the voxels ``>= level`` plus one voxel
-        (the result is the same, time and memory scale with the object, not the scan).
+        Run marching cubes only on the bounding box of the voxels ``>= level`` plus a margin of
+        ``step_size`` voxels (time and memory scale with the object, not the scan). With
+        ``step_size=1`` the result is the same; with a larger step the samples start elsewhere,
+        so the coarse surface differs slightly (both closed).
         Default ``True``.
     close_boundary : bool, optional
-        Pad the (cropped) volume with one voxel below ``level`` so that an object cut by the
-        border of the scan gives a closed surface, capped at the border. Default ``True``.
+        Pad the (cropped) volume below ``level`` (one voxel before, ``step_size`` after) so
+        that an object cut by the border of the scan gives a closed surface, capped at the
+        border. Default ``True``.
 
     Returns
     -------
@@ -108,8 +111,11 @@ def _isosurface(
             f"no surface found at level {level:g}: data range is [{_fmt(low)}, {_fmt(high)}]"
         )
     if crop:
-        start = np.maximum(lo - 1, 0)
-        stop = np.minimum(hi + 2, array.shape)
+        # A sample below the level on each side: marching cubes with a step samples every
+        # step-th voxel from the box's first one, so the far side needs a margin of a step
+        # (with one voxel, a step of 3 left a ball's far side open).
+        start = np.maximum(lo - step, 0)
+        stop = np.minimum(hi + 1 + step, array.shape)
     else:
         start = np.zeros(3, dtype=np.int64)
         stop = np.asarray(array.shape)
@@ -117,7 +123,8 @@ def _isosurface(
     offset = start.astype(np.float64)
     if close_boundary:
         touches = (start == 0) | (stop == np.asarray(array.shape))
-        pad = [(int(t), int(t)) for t in touches]
+        # The first sample is the low pad; the last falls within a step of the end.
+        pad = [(int(t), int(t) * step) for t in touches]
         if any(touches):
             # One voxel below the level around the box closes objects cut by the scan border.
             fill = np.float32(low)
