@@ -362,3 +362,20 @@ def test_mandible_mask_geometry(shared_data):
     assert v.shape == tuple(int(s) for s in header["sizes"][::-1])
     assert np.allclose(v.origin, header["space origin"])
     assert set(np.unique(v.array).tolist()) <= {0, 1}
+
+
+@pytest.mark.parametrize("space", ["", "space: left-posterior-superior\n"])
+def test_a_negative_nrrd_spacing_runs_its_axis_the_other_way(tmp_path, space):
+    # With a `space` field SimpleITK rejects a spacings-only header and pynrrd reads it; that
+    # path dropped the sign (the same data mirrored in y depending on the header).
+    data = np.arange(4 * 5 * 6, dtype=np.int16).reshape(4, 5, 6)
+    (tmp_path / "v.raw").write_bytes(data.tobytes())
+    header = tmp_path / "v.nhdr"
+    header.write_text(
+        "NRRD0004\ntype: short\ndimension: 3\n" + space + "sizes: 6 5 4\n"
+        "spacings: 0.7 -1.1 2.5\nencoding: raw\nendian: little\ndata file: v.raw\n"
+    )
+    v = read_volume(header)
+    np.testing.assert_allclose(v.spacing, [2.5, 1.1, 0.7])
+    np.testing.assert_allclose(v.direction, np.diag([1.0, -1.0, 1.0]))
+    assert np.array_equal(v.array, data)

@@ -156,8 +156,10 @@ def _nrrd_geometry(header: dict[str, Any], path: str) -> tuple[np.ndarray, np.nd
             raise ValueError(
                 f"`path`: {path!r} has spacings {spacing.tolist()}; each must be a non-zero number"
             )
-        spacing = np.abs(spacing)  # a negative spacing flips the axis: size is its magnitude
-        direction = np.eye(3)
+        # A negative spacing runs that axis the other way (as SimpleITK reads it): the size is
+        # its magnitude, the sign goes to the direction (it was dropped: the mesh mirrored).
+        direction = np.diag(np.sign(spacing))
+        spacing = np.abs(spacing)
     origin_in = header.get("space origin")
     origin = np.zeros(3)
     if origin_in is not None:
