@@ -238,3 +238,32 @@ def test_registered_population_recovers_variance_ratios_and_modes(pop, tmp_path)
     assert principal_cosines(model.basis[:, :1], truth.basis[:, :1])[0] > 0.95
     cos = principal_cosines(model.basis[:, :3], truth.basis[:, :2])
     assert cos.min() > 0.7, cos
+
+
+def test_a_model_file_that_breaks_the_models_invariants_is_refused(pop, tmp_path):
+    # Modes scaled by 5 loaded and projected shapes 5 times too far; unsorted variances gave a
+    # wrong Table 4; a missing member raised a bare KeyError (audit).
+    from o3dreg.io.archive import read_archive, write_archive
+
+    _, tf = pop[0]
+    model = build_shape_model(pop[2], tf)
+    path = model.save(tmp_path / "model.npz")
+    data = read_archive(path, kind="o3dreg.ShapeModel", version=1, what="ShapeModel")
+    fields = {k: v for k, v in data.items() if k not in ("format", "version")}
+
+    def rewritten(name, **changes):
+        out = tmp_path / name
+        arrays = {**fields, **changes}
+        arrays = {k: v for k, v in arrays.items() if v is not None}
+        write_archive(out, arrays, kind="o3dreg.ShapeModel", version=1, overwrite=False)
+        return out
+
+    scaled = rewritten("scaled.npz", modes=fields["modes"] * 5.0)
+    with pytest.raises(ValueError, match="holds an invalid model: `modes` must be orthonormal"):
+        ShapeModel.load(scaled)
+    unsorted = rewritten("unsorted.npz", variances=fields["variances"][::-1].copy())
+    with pytest.raises(ValueError, match="`variances` must be sorted"):
+        ShapeModel.load(unsorted)
+    missing = rewritten("missing.npz", scores=None)
+    with pytest.raises(ValueError, match="a ShapeModel without 'scores'"):
+        ShapeModel.load(missing)

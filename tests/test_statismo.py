@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 
 import h5py
 import numpy as np
@@ -190,3 +191,34 @@ def test_a_scaled_basis_is_the_same_model(model, tmp_path):
     signs = np.sign(np.sum(back.basis * model.basis, axis=0))
     np.testing.assert_allclose(back.basis * signs, model.basis, atol=1e-5)
     np.testing.assert_allclose(back.scores * signs, model.scores, rtol=1e-4, atol=1e-3)
+
+
+def test_damaged_statismo_files_are_value_errors(model, tmp_path):
+    # NaN in the basis raised LinAlgError, a mean of 3k+1 values numpy's reshape error, and a
+    # variance of -1e-9 (rounding) made a whole file unreadable (audit).
+    path = write_statismo(tmp_path / "m.h5", model)
+
+    def damaged(name, dataset, change):
+        out = tmp_path / name
+        shutil.copyfile(path, out)
+        with h5py.File(out, "r+") as h5:
+            values = np.asarray(h5[dataset])
+            del h5[dataset]
+            h5[dataset] = change(values)
+        return out
+
+    nan = damaged(
+        "nan.h5",
+        "model/pcaBasis",
+        lambda b: np.where(np.arange(b.size).reshape(b.shape) == 3, np.nan, b),
+    )
+    with pytest.raises(ValueError, match="NaN or infinite values in model/pcaBasis"):
+        read_statismo(nan)
+    short = damaged("short.h5", "model/mean", lambda m: m.reshape(-1)[:-1])
+    with pytest.raises(ValueError, match="not 3 per point"):
+        read_statismo(short)
+    rounding = damaged(
+        "rounding.h5", "model/pcaVariance", lambda v: np.append(v[:-1], -1e-12 * v.max())
+    )
+    back = read_statismo(rounding)
+    assert back.variances[-1] == 0.0

@@ -115,6 +115,17 @@ class ShapeModel:
             )
         if np.any(variances < 0) or not np.all(np.isfinite(variances)):
             raise ValueError("`variances` must be finite and >= 0")
+        # What every projection and table relies on: a file that breaks it (modes scaled by 5
+        # projected shapes 5 times too far) is refused, not loaded.
+        if variances.size > 1 and np.any(np.diff(variances) > 1e-12 * variances.max()):
+            raise ValueError(f"`variances` must be sorted from largest, got {variances.tolist()}")
+        flat = modes.reshape(modes.shape[0], 3 * n)
+        gram_error = float(np.abs(flat @ flat.T - np.eye(flat.shape[0])).max(initial=0.0))
+        if not gram_error <= 1e-6:
+            raise ValueError(
+                f"`modes` must be orthonormal (unit-norm, mutually orthogonal 3n-vectors), got "
+                f"|A^T A - I| up to {gram_error:.3g}"
+            )
         # The template's triangles as given, degenerate ones included: they must equal the
         # template's (check_template) and a triangle flat in the mean need not be in every shape.
         faces = as_faces(self.faces, n, "faces")
@@ -383,7 +394,12 @@ class ShapeModel:
             When given, check that the model was built on this template (same vertex count and
             triangle array); ``ValueError`` otherwise.
         """
-        model = cls(**read_model_archive(path))
+        try:
+            model = cls(**read_model_archive(path))
+        except ValueError as exc:
+            if str(exc).startswith("`path`"):
+                raise
+            raise ValueError(f"`path`: {os.fspath(path)!r} holds an invalid model: {exc}") from exc
         if template is not None:
             model.check_template(template)
         return model

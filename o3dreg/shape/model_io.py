@@ -46,17 +46,22 @@ def read_model_archive(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The fields of a model written by :func:`write_model_archive`, as keyword arguments of
     :class:`ShapeModel` (which validates them)."""
     data = read_archive(path, kind=_FORMAT, version=_VERSION, what="ShapeModel")
-    return {
-        "mean": data["mean"],
-        "modes": data["modes"],
-        "variances": data["variances"],
-        "faces": data["faces"],
-        "total_variance": float(data["total_variance"]),
-        "scores": data["scores"],
-        "names": tuple(json.loads(str(data["names"]))),
-        "scaling": bool(data["scaling"]),
-        "noise_variance": float(data["noise_variance"]),
-    }
+    try:
+        return {
+            "mean": data["mean"],
+            "modes": data["modes"],
+            "variances": data["variances"],
+            "faces": data["faces"],
+            "total_variance": float(data["total_variance"]),
+            "scores": data["scores"],
+            "names": tuple(json.loads(str(data["names"]))),
+            "scaling": bool(data["scaling"]),
+            "noise_variance": float(data["noise_variance"]),
+        }
+    except KeyError as exc:
+        raise ValueError(f"`path`: {os.fspath(path)!r} is a ShapeModel without {exc}") from exc
+    except (json.JSONDecodeError, TypeError, ValueError) as exc:
+        raise ValueError(f"`path`: {os.fspath(path)!r} holds a damaged ShapeModel ({exc})") from exc
 
 
 def write_model_meshes(

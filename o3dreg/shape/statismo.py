@@ -263,7 +263,12 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
             minor = (
                 int(np.asarray(h5["version/minorVersion"]).reshape(-1)[0]) if "version" in h5 else 8
             )
-            mean = np.asarray(h5["model/mean"], dtype=np.float64).reshape(-1, 3)
+            flat_mean = np.asarray(h5["model/mean"], dtype=np.float64).reshape(-1)
+            if flat_mean.size % 3:
+                raise ValueError(
+                    f"`path`: {path!r} has a model/mean of {flat_mean.size} values, not 3 per point"
+                )
+            mean = flat_mean.reshape(-1, 3)
             basis = np.asarray(h5["model/pcaBasis"], dtype=np.float64)
             variances = np.asarray(h5["model/pcaVariance"], dtype=np.float64).reshape(-1)
             noise_arr = np.asarray(h5["model/noiseVariance"], dtype=np.float64).reshape(-1)
@@ -291,6 +296,18 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
         raise ValueError(
             f"`path`: {path!r} has statismo version {major}.{minor}; 0.8 and 0.9 are read"
         )
+    for name, values in (
+        ("model/mean", mean),
+        ("model/pcaBasis", basis),
+        ("pcaVariance", variances),
+    ):
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"`path`: {path!r} has NaN or infinite values in {name}")
+    # Rounding may leave a variance a hair below zero: zero it; a truly negative one is refused.
+    tiny = 1e-9 * max(float(np.abs(variances).max(initial=0.0)), 1e-300)
+    if np.any(variances < -tiny):
+        raise ValueError(f"`path`: {path!r} has negative variances {variances[variances < 0]}")
+    variances = np.clip(variances, 0.0, None)
     k = variances.size
     if basis.shape != (mean.size, k):
         raise ValueError(f"`path`: pcaBasis has shape {basis.shape}, expected {(mean.size, k)}")
