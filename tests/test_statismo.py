@@ -222,3 +222,12 @@ def test_damaged_statismo_files_are_value_errors(model, tmp_path):
     )
     back = read_statismo(rounding)
     assert back.variances[-1] == 0.0
+
+
+def test_names_beyond_ascii_survive_a_round_trip(tmp_path):
+    # Written ASCII with replacement ("pati?nt_0"), so two names could collide (audit).
+    (_, tf), _, truths, _, _ = population(4, seed=1)
+    names = ["patiënt_0", "patiënt_1", "pätient_2", "p3"]
+    model = build_shape_model(truths, tf, names=names)
+    back = read_statismo(write_statismo(tmp_path / "u.h5", model))
+    assert list(back.names) == names

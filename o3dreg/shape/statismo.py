@@ -70,18 +70,22 @@ def _h5py() -> Any:
 
 
 def _fixed_string(text: str) -> np.ndarray:
-    """A one-element fixed-length ASCII string with room for the terminating zero."""
-    data = text.encode("ascii", errors="replace")
+    """A one-element fixed-length string (UTF-8: ASCII text is unchanged; ``patiënt_0`` was
+    written ``pati?nt_0``, so two names could collide) with room for the terminating zero."""
+    data = text.encode("utf-8")
     return np.array([data], dtype=f"S{len(data) + 1}")
 
 
 def _nullterm_string(text: str) -> tuple[np.ndarray, Any, Any]:
-    """``text`` with its HDF5 null-terminated string type and one-element space."""
+    """``text`` with its HDF5 null-terminated string type and one-element space (character set
+    UTF-8 where the text is not ASCII, ASCII as statismo writes otherwise)."""
     h5py = _h5py()
     value = _fixed_string(text)
     tid = h5py.h5t.C_S1.copy()
     tid.set_size(value.dtype.itemsize)
     tid.set_strpad(h5py.h5t.STR_NULLTERM)
+    if not text.isascii():
+        tid.set_cset(h5py.h5t.CSET_UTF8)
     return value, tid, h5py.h5s.create_simple((1,))
 
 
