@@ -111,7 +111,7 @@ def _folder_lock(folder: str | os.PathLike[str]) -> Iterator[None]:
     kernel releases the lock when the process ends, however it ends. No lock where ``fcntl`` is
     missing (Windows)."""
     try:
-        import fcntl
+        import fcntl  # POSIX only: absent on Windows, where no lock is taken
     except ImportError:  # pragma: no cover - not POSIX
         yield
         return
