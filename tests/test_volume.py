@@ -379,3 +379,28 @@ def test_a_negative_nrrd_spacing_runs_its_axis_the_other_way(tmp_path, space):
     np.testing.assert_allclose(v.spacing, [2.5, 1.1, 0.7])
     np.testing.assert_allclose(v.direction, np.diag([1.0, -1.0, 1.0]))
     assert np.array_equal(v.array, data)
+
+
+def test_a_nifti_whose_qform_and_sform_disagree_is_read_by_the_qform_with_a_warning(
+    tmp_path, caplog
+):
+    # ITK places the volume by the qform, nibabel by the sform: the same file lands 80 mm
+    # apart depending on the software (audit). Read as before, and said.
+    data = np.zeros((6, 7, 8), np.int16)
+    affine = np.diag([0.8, 0.9, 2.0, 1.0])
+    affine[:3, 3] = [10, 20, 30]
+    image = nib.Nifti1Image(data, affine)
+    image.set_qform(affine, code=1)
+    image.set_sform(affine, code=1)
+    nib.save(image, tmp_path / "same.nii.gz")
+    other = affine.copy()
+    other[:3, 3] = [50, -60, 70]
+    image.set_sform(other, code=2)
+    nib.save(image, tmp_path / "differ.nii.gz")
+    with caplog.at_level("WARNING", logger="o3dreg"):
+        same = read_volume(tmp_path / "same.nii.gz")
+        assert "qform and sform" not in caplog.text
+        differ = read_volume(tmp_path / "differ.nii.gz")
+    assert "qform and sform place the volume up to 80 mm apart" in caplog.text
+    np.testing.assert_allclose(differ.origin, same.origin)  # by the qform (LPS: x, y negated)
+    np.testing.assert_allclose(same.origin, [-10.0, -20.0, 30.0])

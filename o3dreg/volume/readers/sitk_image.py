@@ -80,6 +80,7 @@ def read_sitk_file(path: str) -> Volume:
 
     if path.lower().endswith((".nii", ".nii.gz")):
         _check_nifti_complete(path)
+        _warn_if_qform_and_sform_differ(path)
     try:
         image = sitk.ReadImage(path)
     except RuntimeError as exc:
@@ -113,6 +114,52 @@ def _check_nifti_complete(path: str) -> None:
     if size < expected:
         raise OSError(
             f"`path`: {path!r} is truncated: {size} bytes where its header needs {expected}"
+        )
+
+
+def _warn_if_qform_and_sform_differ(path: str) -> None:
+    """Log a warning when a NIfTI-1 header holds a qform and an sform that place the volume
+    differently: ITK (and so o3dreg) places it by the qform, nibabel and some viewers by the
+    sform, so the same file lands in two places depending on the software."""
+    opener: Any = gzip.open if path.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rb") as fh:
+            head = fh.read(348)
+    except (OSError, EOFError, zlib.error):
+        return
+    for order in ("<", ">"):
+        if len(head) == 348 and struct.unpack(order + "i", head[:4])[0] == 348:
+            break
+    else:
+        return  # NIfTI-2 or not NIfTI: nothing checked
+    qform_code, sform_code = struct.unpack(order + "2h", head[252:256])
+    if qform_code <= 0 or sform_code <= 0:
+        return
+    qfac = struct.unpack(order + "f", head[76:80])[0]
+    pixdim = np.array(struct.unpack(order + "3f", head[80:92]), dtype=np.float64)
+    b, c, d, qx, qy, qz = struct.unpack(order + "6f", head[256:280])
+    a = float(np.sqrt(max(0.0, 1.0 - (b * b + c * c + d * d))))
+    rotation = np.array(
+        [
+            [a * a + b * b - c * c - d * d, 2 * (b * c - a * d), 2 * (b * d + a * c)],
+            [2 * (b * c + a * d), a * a + c * c - b * b - d * d, 2 * (c * d - a * b)],
+            [2 * (b * d - a * c), 2 * (c * d + a * b), a * a + d * d - b * b - c * c],
+        ]
+    )
+    scale = pixdim * np.array([1.0, 1.0, -1.0 if qfac < 0 else 1.0])
+    qform = np.column_stack([rotation * scale, [qx, qy, qz]])
+    sform = np.array(struct.unpack(order + "12f", head[280:328]), dtype=np.float64).reshape(3, 4)
+    # Voxel (i, j, k) of the far corner, placed by each: how far apart the two placements are.
+    corner = np.array(struct.unpack(order + "3h", head[42:48]), dtype=np.float64)
+    points = np.array([[0, 0, 0, 1], [*corner, 1]], dtype=np.float64)
+    gap = float(np.abs(points @ qform.T - points @ sform.T).max())
+    if gap > 1e-3 * max(float(pixdim.max()), 1.0):
+        logger.warning(
+            "%s: the NIfTI header's qform and sform place the volume up to %.3g mm apart; it is "
+            "read by the qform (as ITK reads it), while nibabel and some viewers use the sform: "
+            "check which the scanner meant",
+            path,
+            gap,
         )
 
 
