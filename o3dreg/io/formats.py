@@ -32,6 +32,7 @@ import json
 import logging
 import re
 import struct
+import warnings
 import zlib
 from typing import Any
 from xml.etree import ElementTree
@@ -489,11 +490,35 @@ def write_vtp(path: str, vertices: np.ndarray, faces: np.ndarray, *, ascii: bool
 # ---------------------------------------------------------------------------------------------
 
 
-#: The texture and normal indices of an OBJ face corner (``i/t/n``, ``i//n``, ``i/t``).
-_OBJ_SUFFIX = re.compile(rb"/\S*")
+def _obj_numbers_per_corner(faces_text: bytes, faces: int) -> int:
+    """How many numbers each face corner holds when all ``faces`` are triangles written alike:
+    1 (``i``), 2 (``i//n``) or 3 (``i/t/n``); 0 when that cannot be told from the counts of
+    ``/`` and ``//`` (then the faces are read line by line)."""
+    slashes, doubled = faces_text.count(b"/"), faces_text.count(b"//")
+    if slashes == 0:
+        return 1
+    if slashes == 6 * faces and doubled == 3 * faces:
+        return 2  # two slashes per corner, one "//" per corner: every corner is i//n
+    if slashes == 6 * faces and doubled == 0:
+        return 3
+    return 0
 
 
-def read_obj(path: str) -> tuple[np.ndarray, np.ndarray]:
+def _numbers(text: bytes, dtype: Any) -> np.ndarray | None:
+    """The whitespace-separated numbers of ``text``, parsed in C; it stops at a token that is
+    not a number (the caller compares the count with what it expects). None if it cannot."""
+    with warnings.catch_warnings():
+        # "could not be read to its end": the short count says it.
+        warnings.simplefilter("ignore", DeprecationWarning)
+        try:
+            return np.fromstring(  # type: ignore[call-overload,no-any-return]
+                text.decode("ascii", errors="replace"), dtype=dtype, sep=" "
+            )
+        except ValueError:
+            return None
+
+
+def read_obj(path: str, name: str = "path") -> tuple[np.ndarray, np.ndarray]:
     """Vertices and triangles of an OBJ file, the vertices in the file's order.
 
     Open3D's OBJ reader numbers the vertices in the order the faces first use them (and splits
@@ -503,24 +528,59 @@ def read_obj(path: str) -> tuple[np.ndarray, np.ndarray]:
     the faces, ``i``, ``i/t``, ``i//n`` or ``i/t/n`` (negative ``i`` counting back from the
     last vertex read), polygons split into triangle fans with a warning. Other lines (texture
     coordinates, normals, groups, materials, lines, points) are ignored.
+
+    ``OSError`` (``name`` the parameter the path came from) for a file shorter than it says:
+    faces that refer to vertices the file does not hold, or fewer vertices or triangles than
+    the counts Open3D writes in its comments (``# number of vertices: N``).
     """
     with open(path, "rb") as fh:
         lines = fh.read().splitlines()
     vertex_lines = [line[2:] for line in lines if line[:2] in (b"v ", b"v\t")]
     face_lines = [line[2:] for line in lines if line[:2] in (b"f ", b"f\t")]
-    # The common file (x y z vertices, triangles of positive indices) in a few NumPy calls; any
-    # other (colours, polygons, negative indices, a malformed line) line by line.
-    try:
-        vertices = np.array(b" ".join(vertex_lines).split(), dtype=np.float64)
-        corners = np.array(_OBJ_SUFFIX.sub(b"", b" ".join(face_lines)).split(), dtype=np.int64)
-    except ValueError:
-        vertices, corners = np.zeros(0), np.zeros(0, dtype=np.int64)
+    declared = {
+        match.group(1).decode(): int(match.group(2))
+        for match in (_OBJ_COUNT.match(line.strip()) for line in lines if line[:1] == b"#")
+        if match
+    }
+    vertices, faces = _obj_arrays(lines, vertex_lines, face_lines, path, name)
+    if faces.size and faces.max() >= vertices.shape[0]:
+        raise OSError(
+            f"`{name}`: {path!r} is truncated or damaged: a face refers to vertex "
+            f"{int(faces.max()) + 1}, the file holds {vertices.shape[0]}"
+        )
+    for what, held in (("vertices", vertices.shape[0]), ("triangles", faces.shape[0])):
+        if what in declared and held < declared[what]:
+            raise OSError(
+                f"`{name}`: {path!r} is truncated: it declares {declared[what]} {what} and "
+                f"holds {held}"
+            )
+    return _check_mesh(vertices, faces, path)
+
+
+#: The counts Open3D writes at the top of an OBJ file.
+_OBJ_COUNT = re.compile(rb"^#\s*number of (vertices|triangles):\s*(\d+)\s*$")
+
+
+def _obj_arrays(
+    lines: list[bytes], vertex_lines: list[bytes], face_lines: list[bytes], path: str, name: str
+) -> tuple[np.ndarray, np.ndarray]:
+    # The common file (x y z vertices, triangles of positive indices, every corner written
+    # alike: ``i``, ``i//n`` or ``i/t/n``) in a few NumPy calls; any other (colours, polygons,
+    # negative indices, mixed corners, a malformed line) line by line.
+    faces_text = b" ".join(face_lines)
+    per_corner = _obj_numbers_per_corner(faces_text, len(face_lines))
+    vertices = _numbers(b" ".join(vertex_lines), np.float64)
+    corners = _numbers(faces_text.replace(b"/", b" "), np.int64) if per_corner else None
     if (
-        vertices.size == 3 * len(vertex_lines)
-        and corners.size == 3 * len(face_lines)
-        and (corners.size == 0 or corners.min() > 0)
+        per_corner
+        and vertices is not None
+        and corners is not None
+        and vertices.size == 3 * len(vertex_lines)
+        and corners.size == 3 * per_corner * len(face_lines)
     ):
-        return _check_mesh(vertices.reshape(-1, 3), corners.reshape(-1, 3) - 1, path)
+        corners = corners[::per_corner]
+        if corners.size == 0 or corners.min() > 0:
+            return vertices.reshape(-1, 3), corners.reshape(-1, 3) - 1
     coordinates: list[bytes] = []
     offsets = [0]
     connectivity: list[int] = []
@@ -529,26 +589,31 @@ def read_obj(path: str) -> tuple[np.ndarray, np.ndarray]:
         if head in (b"v ", b"v\t"):
             xyz = line.split()[1:4]
             if len(xyz) < 3:
-                raise OSError(f"{path!r}: line {number}: a vertex needs x, y, z, got {line!r}")
+                raise OSError(
+                    f"`{name}`: {path!r} line {number}: a vertex needs x, y, z, got {line!r}"
+                )
             coordinates.extend(xyz)
         elif head in (b"f ", b"f\t"):
             seen = len(coordinates) // 3
             try:
                 face = [int(token.split(b"/", 1)[0]) for token in line.split()[1:]]
             except ValueError:
-                raise OSError(f"{path!r}: line {number}: malformed face {line!r}") from None
+                face = []
             if len(face) < 3 or 0 in face:
-                raise OSError(f"{path!r}: line {number}: malformed face {line!r}")
+                raise OSError(
+                    f"`{name}`: {path!r} has a malformed face line "
+                    f"{line.decode(errors='replace').strip()!r} (line {number})"
+                )
             connectivity.extend(c - 1 if c > 0 else seen + c for c in face)
             offsets.append(len(connectivity))
     try:
-        vertices = np.array(coordinates, dtype=np.float64).reshape(-1, 3)
+        vertex_array = np.array(coordinates, dtype=np.float64).reshape(-1, 3)
     except ValueError:
-        raise OSError(f"{path!r}: a vertex coordinate is not a number") from None
+        raise OSError(f"`{name}`: {path!r}: a vertex coordinate is not a number") from None
     faces = _cells_to_triangles(
         np.array(offsets), np.array(connectivity, dtype=np.int64), strips=False, path=path
     )
-    return _check_mesh(vertices, faces, path)
+    return vertex_array, faces
 
 
 # ---------------------------------------------------------------------------------------------
@@ -649,8 +714,9 @@ def write_glb(
 OWN_SUFFIXES = (".vtk", ".vtp")
 
 
-def read_mesh(path: str, suffix: str) -> Any:
-    """Read ``path`` as an ``open3d.geometry.TriangleMesh`` (empty when Open3D finds nothing)."""
+def read_mesh(path: str, suffix: str, name: str = "path") -> Any:
+    """Read ``path`` as an ``open3d.geometry.TriangleMesh`` (empty when Open3D finds nothing;
+    ``name``: the parameter the path came from, for the OBJ reader's messages)."""
     from .mesh import to_open3d  # io.mesh imports this module: not at module level (a cycle)
 
     if suffix == ".vtk":
@@ -658,7 +724,7 @@ def read_mesh(path: str, suffix: str) -> Any:
     if suffix == ".vtp":
         return to_open3d(*read_vtp(path))
     if suffix == ".obj":
-        return to_open3d(*read_obj(path))
+        return to_open3d(*read_obj(path, name))
     mesh = o3d.io.read_triangle_mesh(path)  # type: ignore[arg-type]  # stubs say PathLike only
     if suffix == ".stl" and len(mesh.triangles):
         vertices, faces = merge_identical_vertices(

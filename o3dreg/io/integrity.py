@@ -1,8 +1,8 @@
 """Checks that a mesh file is whole before a reader allocates what its header promises.
 
 A PLY header claiming two billion vertices would make Open3D try to allocate them (tens of GB)
-before finding the file short; a truncated OBJ is read silently as the part that is left. These
-checks compare what the header (or Open3D's OBJ comments, and the faces' vertex indices) promise
+before finding the file short. (A truncated OBJ is found by o3dreg's OBJ reader itself,
+``formats.read_obj``.) These checks compare what the header promises
 with what the file holds, reading the file once and allocating nothing in proportion to the
 claims.
 """
@@ -10,11 +10,10 @@ claims.
 from __future__ import annotations
 
 import os
-import re
 
 import numpy as np
 
-__all__ = ["check_obj_complete", "check_ply_complete"]
+__all__ = ["check_ply_complete"]
 
 _PLY_TYPE_SIZES = {
     "char": 1, "uchar": 1, "int8": 1, "uint8": 1,
@@ -165,49 +164,3 @@ def _count_lines(path: str, start: int) -> int:
             lines += block.count(b"\n") - block.count(b"\n\n")
             last = block[-1:]
     return lines + (last != b"\n")
-
-
-_OBJ_COUNT = re.compile(rb"^#\s*number of (vertices|triangles):\s*(\d+)\s*$")
-
-
-def check_obj_complete(path: str, name: str = "path") -> None:
-    """``OSError`` when an OBJ file is shorter than it says or its faces point past its vertices.
-
-    Open3D writes ``# number of vertices: N`` and ``# number of triangles: M``; other writers
-    do not, so faces referring to vertices the file does not hold are the general test.
-    """
-    declared: dict[bytes, int] = {}
-    vertices = faces = 0
-    largest = 0
-    with open(path, "rb") as fh:
-        for line in fh:
-            if line.startswith(b"v ") or line.startswith(b"v\t"):
-                vertices += 1
-            elif line.startswith(b"f ") or line.startswith(b"f\t"):
-                corners = line.split()[1:]
-                faces += max(len(corners) - 2, 0)
-                for corner in corners:
-                    index = corner.split(b"/", 1)[0]
-                    try:
-                        value = int(index)
-                    except ValueError:
-                        raise OSError(
-                            f"`{name}`: {path!r} has a malformed face line "
-                            f"{line.decode(errors='replace').strip()!r}"
-                        ) from None
-                    largest = max(largest, value if value > 0 else vertices + 1 + value)
-            elif line.startswith(b"#"):
-                match = _OBJ_COUNT.match(line.strip())
-                if match:
-                    declared[match.group(1)] = int(match.group(2))
-    if largest > vertices:
-        raise OSError(
-            f"`{name}`: {path!r} is truncated or damaged: a face refers to vertex {largest}, "
-            f"the file holds {vertices}"
-        )
-    for what, held in ((b"vertices", vertices), (b"triangles", faces)):
-        if what in declared and held < declared[what]:
-            raise OSError(
-                f"`{name}`: {path!r} is truncated: it declares {declared[what]} "
-                f"{what.decode()} and holds {held}"
-            )

@@ -16,7 +16,7 @@ import open3d as o3d
 
 from .._validation import as_mesh_arrays, check_output_path
 from . import formats
-from .integrity import check_obj_complete, check_ply_complete
+from .integrity import check_ply_complete
 
 __all__ = [
     "MESH_SUFFIXES",
@@ -92,9 +92,7 @@ def read_triangle_mesh(
     declared: dict[str, int] = {}
     if suffix == ".ply":
         declared = check_ply_complete(path, name)
-    elif suffix == ".obj":
-        check_obj_complete(path, name)
-    mesh = formats.read_mesh(path, suffix)
+    mesh = formats.read_mesh(path, suffix, name)  # OBJ: checked whole as it is read
     if len(mesh.vertices) == 0 or len(mesh.triangles) == 0:
         raise OSError(
             f"`{name}`: {path!r} could not be read as a triangle mesh "
