@@ -53,6 +53,10 @@ MAX_SIZE_RATIO = 3.0
 #: A target with fewer triangles cannot determine a pose, let alone a deformation (one
 #: triangle's moments say nothing of a bone's): refused before any work.
 MIN_TARGET_TRIANGLES = 4
+#: A target whose open edges are longer than this times the square root of its area is
+#: taken as partial when a scale is estimated: the bunny with its holes 1.4, cut by 10-50% of
+#: its height 3.3-5.6, its front half 3.8; a bone surface from CT is closed (0).
+PARTIAL_BOUNDARY = 2.5
 #: A distinct pose whose score is within this factor of the winner's is an ambiguity: the
 #: demo's flipped poses score 1.7-2.5 times the right one.
 AMBIGUITY_RATIO = 1.2
@@ -495,7 +499,8 @@ def _registration_rigid(
             )
         result = search.run(candidates, estimation_method, criteria)
     if with_scaling:
-        cut = open_boundary_ratio(vt, ft)
+        known = target_query.open_edges[0] if target_query is not None else None
+        cut = open_boundary_ratio(vt, ft, known)
         if cut > PARTIAL_BOUNDARY:
             scale = float(np.cbrt(np.linalg.det(np.asarray(result.transformation)[:3, :3])))
             result.warnings += (
@@ -508,15 +513,13 @@ def _registration_rigid(
     return result
 
 
-#: A target whose open edges are longer than this times the square root of its area is
-#: taken as partial when a scale is estimated: the bunny with its holes 1.4, cut by 10-50% of
-#: its height 3.3-5.6, its front half 3.8; a bone surface from CT is closed (0).
-PARTIAL_BOUNDARY = 2.5
-
-
-def open_boundary_ratio(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Total length of a surface's open edges over the square root of its area (scale-free)."""
-    open_edge, _ = SortedEdges(vertices.shape[0], faces).open_edges()
+def open_boundary_ratio(
+    vertices: np.ndarray, faces: np.ndarray, open_edge: np.ndarray | None = None
+) -> float:
+    """Total length of a surface's open edges over the square root of its area (scale-free;
+    ``open_edge``: the surface's per-triangle open-edge table, where known)."""
+    if open_edge is None:
+        open_edge, _ = SortedEdges(vertices.shape[0], faces).open_edges()
     length = 0.0
     for k in range(3):
         rows = np.flatnonzero(open_edge[:, k])
