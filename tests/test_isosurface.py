@@ -193,6 +193,13 @@ def test_isosurface_rejects_bad_input():
     bad[1, 2, 3] = np.nan
     with pytest.raises(ValueError, match=r"must hold finite values, got 1 NaN"):
         isosurface(Volume(bad, spacing=(1, 1, 1)), 0.5)
+    # Values beyond float32 (marching cubes' type) and a level at the maximum: said plainly.
+    huge = np.zeros((6, 6, 6))
+    huge[2:4, 2:4, 2:4] = 1e300
+    with pytest.raises(ValueError, match="values must fit in float32"):
+        isosurface(Volume(huge, spacing=(1, 1, 1)), 1e299)
+    with pytest.raises(RuntimeError, match="strictly between the lowest and the highest"):
+        isosurface(Volume((huge > 0).astype(np.uint8), spacing=(1, 1, 1)), 1)
     # A step larger than the object: the message names the step, not the level.
     z, y, x = np.mgrid[:20, :20, :20]
     ball = Volume(

@@ -108,7 +108,15 @@ def _isosurface(
     low, high, lo, hi = _scan(array, level)
     if not low < level < high or lo is None or hi is None:
         raise RuntimeError(
-            f"no surface found at level {level:g}: data range is [{_fmt(low)}, {_fmt(high)}]"
+            f"no surface found at level {level:g}: data range is [{_fmt(low)}, {_fmt(high)}] "
+            "(the level must lie strictly between the lowest and the highest value)"
+        )
+    limit = float(np.finfo(np.float32).max)
+    if max(abs(low), abs(high)) > limit:
+        # Marching cubes works in float32: such values become inf and the surface NaN.
+        raise ValueError(
+            f"`volume` values must fit in float32 (|x| <= {limit:.3g}) for marching cubes, got "
+            f"a range [{_fmt(low)}, {_fmt(high)}]: rescale the volume"
         )
     if crop:
         # A sample below the level on each side: marching cubes with a step samples every
