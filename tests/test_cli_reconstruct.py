@@ -97,6 +97,12 @@ def test_reconstruct_bad_input_leaves_no_file(tmp_path, scan, capsys):
     )
     assert code == 2
     assert "`--largest` must be a finite integer > 0" in err
+    # An error from the library names the flag too (it named only `step_size`).
+    code, _, err = _run(
+        capsys, str(scan), "-o", str(output), "--threshold", "400", "--step-size", "0"
+    )
+    assert code == 2
+    assert "`step_size` (--step-size) must be a finite integer > 0" in err
     code, _, err = _run(
         capsys, str(tmp_path / "missing.nii"), "-o", str(output), "--threshold", "1"
     )

@@ -141,6 +141,26 @@ def _signals_and_streams() -> Iterator[None]:
             os.close(saved)
 
 
+def _with_flags(message: str, parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> str:
+    """``message`` with each API parameter it names (```step_size```) followed by the command's
+    flag for it (``(--step-size)``): the errors come from the library, the user typed flags."""
+    words = list(sys.argv[1:] if argv is None else argv)
+    flags: dict[str, str] = {}
+    current: argparse.ArgumentParser | None = parser
+    while current is not None:
+        chosen = None
+        for action in current._actions:  # argparse keeps its actions here (stable since 3.2)
+            if isinstance(action, argparse._SubParsersAction):
+                chosen = next((action.choices[w] for w in words if w in action.choices), None)
+            elif action.option_strings and action.dest != "help":
+                long = max(action.option_strings, key=len)
+                flags.setdefault(action.dest, long)
+        current = chosen
+    for dest, flag in flags.items():
+        message = message.replace(f"`{dest}`", f"`{dest}` ({flag})")
+    return message
+
+
 #: Exit status of each outcome (documented in docs/cli.md).
 EXIT_OK, EXIT_INCOMPLETE, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
 
@@ -166,12 +186,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_OK
     except (TypeError, ValueError, OSError, RuntimeError) as exc:
         # The documented exception types of the API: bad input, unreadable or unwritable files.
-        print(f"{command}: error: {exc}", file=sys.stderr)
+        print(f"{command}: error: {_with_flags(str(exc), parser, argv)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except MemoryError:
+        hint = "; e.g. fewer or coarser --levels" if hasattr(args, "levels") else ""
         print(
             f"{command}: error: out of memory (an input or an option asks for more than this "
-            "machine has; e.g. fewer or coarser --levels)",
+            f"machine has{hint})",
             file=sys.stderr,
         )
         return EXIT_BAD_INPUT
