@@ -183,3 +183,19 @@ def test_pictures_are_not_mirrored(tmp_path):
     # The explorer's camera agrees: its right-hand direction is -y.
     rotation = np.reshape(view_rotation((0, 0), (0, 0, 1)), (3, 3))
     np.testing.assert_allclose(rotation[0], [0.0, -1.0, 0.0], atol=1e-12)
+
+
+@pytest.mark.parametrize("scale", [0.0031, 0.052, 37.0])
+def test_the_colour_bar_label_stays_inside_the_picture(tmp_path, scale):
+    # Long tick labels ("-0.75") pushed the label's second line past the right edge (audit):
+    # the last column of the picture held ink. Now a margin of white is left, whatever the scale.
+    import matplotlib.image
+    from _helpers import population
+
+    from o3dreg import build_shape_model
+
+    (_, tf), _, truths, _, _ = population(6, seed=1)
+    model = build_shape_model([t * scale for t in truths], tf)
+    image = matplotlib.image.imread(render_shape_modes(model, tmp_path / "m.png"))[..., :3]
+    ink = np.flatnonzero((image.min(axis=2) < 0.9).any(axis=0))
+    assert ink.max() < image.shape[1] - 2

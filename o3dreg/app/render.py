@@ -400,6 +400,7 @@ def render_mesh(
                     norm=matplotlib.colors.Normalize(lo, hi), cmap=cmap
                 )
                 fig.colorbar(mappable, cax=cax, label=label)
+                _keep_inside(fig, cax)
         fig.savefig(tmp, format="png", dpi=dpi)
 
     return atomic_write(path, write, overwrite=overwrite, name="path")
@@ -414,6 +415,16 @@ def mode_displacements(model: Any, mode: int, standard_deviations: float) -> np.
     normals = vertex_normals(np.asarray(model.mean), np.asarray(model.faces))
     moved = model.mode_shape(mode, standard_deviations) - model.mean
     return np.asarray((moved * normals).sum(axis=1))
+
+
+def _keep_inside(fig: Any, cax: Any, margin: float = 4.0) -> None:
+    """Move a colour bar left until its ticks and label fit in the figure: long tick labels
+    ("-0.75") pushed the label's second line past the right edge."""
+    width = fig.get_figwidth() * fig.dpi
+    overflow = cax.get_tightbbox(fig.canvas.get_renderer()).x1 - (width - margin)
+    if overflow > 0:
+        box = cax.get_position()
+        cax.set_position((box.x0 - overflow / width, box.y0, box.width, box.height))
 
 
 def render_shape_modes(
@@ -532,6 +543,7 @@ def render_shape_modes(
         cax = fig.add_axes((1.0 - 105 / fig_w, 0.15, 18 / fig_w, 0.7))
         mappable = matplotlib.cm.ScalarMappable(norm=norm, cmap=colormap)
         fig.colorbar(mappable, cax=cax, label="displacement from the mean\nalong the normal (mm)")
+        _keep_inside(fig, cax)
         fig.savefig(tmp, format="png", dpi=dpi)
 
     return atomic_write(path, write, overwrite=overwrite, name="path")
