@@ -205,7 +205,10 @@ def test_isosurface_rejects_bad_input():
     ball = Volume(
         (((x - 10) ** 2 + (y - 10) ** 2 + (z - 10) ** 2) < 36).astype(np.float32), (1, 1, 1)
     )
-    with pytest.raises(RuntimeError, match="no surface found with step_size=30: .*smaller step"):
+    with pytest.raises(
+        RuntimeError,
+        match=r"no surface found with step_size=30: the object spans \(11, 11, 11\).*smaller step",
+    ):
         isosurface(ball, 0.5, step_size=30)
 
 

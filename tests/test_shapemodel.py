@@ -267,3 +267,18 @@ def test_a_model_file_that_breaks_the_models_invariants_is_refused(pop, tmp_path
     missing = rewritten("missing.npz", scores=None)
     with pytest.raises(ValueError, match="a ShapeModel without 'scores'"):
         ShapeModel.load(missing)
+
+
+def test_the_docs_pipeline_takes_open3d_triangles_and_a_new_modes_folder(pop, tmp_path):
+    # docs/shape-model.md passes `template.triangles` (an Open3D Vector3iVector) and writes
+    # into a "modes" folder that does not exist yet: both raised (docs audit).
+    from o3dreg.io.mesh import to_open3d
+
+    (tv, tf), _, truths, _, _ = pop
+    model = build_shape_model(truths, to_open3d(tv, tf).triangles)
+    np.testing.assert_array_equal(model.faces, tf)
+    written = model.write_meshes(tmp_path / "modes", modes=[0])
+    assert len(written) == 3 and (tmp_path / "modes" / "mean.ply").is_file()
+    (tmp_path / "file").write_text("")
+    with pytest.raises(OSError, match="exists and is not a folder"):
+        model.write_meshes(tmp_path / "file")

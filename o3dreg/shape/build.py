@@ -11,6 +11,7 @@ import logging
 from typing import Any
 
 import numpy as np
+import open3d as o3d
 
 from .._validation import as_faces, as_mesh_arrays, check_positive
 from .model import ShapeModel
@@ -28,6 +29,8 @@ SAME_SHAPE = 1e-9
 
 def template_faces(faces: Any, points: int) -> np.ndarray:
     """A new ``(m, 3) int64`` array: ``faces`` as given, or the triangles of a template mesh."""
+    if isinstance(faces, o3d.utility.Vector3iVector):  # an Open3D mesh's ``triangles``
+        faces = np.asarray(faces)
     if isinstance(faces, np.ndarray):
         return as_faces(faces, points, "faces")
     if isinstance(faces, (list, tuple)) and not (

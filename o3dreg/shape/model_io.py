@@ -72,10 +72,12 @@ def write_model_meshes(
     standard_deviations: Any = (-3.0, 3.0),
     overwrite: bool = False,
 ) -> list[str]:
-    """Write ``mean.ply`` and ``mode{i}_{c:+g}sd.ply`` (1-based ``i``) into ``folder``."""
+    """Write ``mean.ply`` and ``mode{i}_{c:+g}sd.ply`` (1-based ``i``) into ``folder`` (made
+    when missing)."""
     folder = os.fspath(folder)
-    if not os.path.isdir(folder):
-        raise OSError(f"`folder`: {folder!r} is not a folder")
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise OSError(f"`folder`: {folder!r} exists and is not a folder")
+    os.makedirs(folder, exist_ok=True)  # as the docs' examples write into a new "modes" folder
     written = [
         write_triangle_mesh(os.path.join(folder, "mean.ply"), model.mesh(), overwrite=overwrite)
     ]

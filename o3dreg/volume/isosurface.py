@@ -148,10 +148,11 @@ def _isosurface(
             sub, level, step_size=step, allow_degenerate=False, method="lewiner"
         )
     except (ValueError, RuntimeError) as exc:
-        if step > 1 and step >= min(sub.shape) // 2:
+        if step > 1 and step >= int(min(hi - lo + 1)) // 2 + 1:
             # The step, not the level, leaves marching cubes too few samples.
             raise RuntimeError(
-                f"no surface found with step_size={step}: the object spans {tuple(sub.shape)} "
+                f"no surface found with step_size={step}: the object spans "
+                f"{tuple(int(n) for n in hi - lo + 1)} "
                 "voxels, too few for that step; use a smaller step"
             ) from exc
         raise RuntimeError(f"no surface found at level {level:g}: {exc}") from exc
