@@ -34,8 +34,8 @@ batch = o3dreg.register_batch(
 )
 print(batch.table())
 
-# 5. Procrustes + PCA: P = M + A alpha.
-names, shapes = batch.shapes()
+# 5. Procrustes + PCA: P = M + A alpha, of the patients whose verdict is 'ok' only.
+names, shapes = batch.shapes(accepted_only=True)
 model = o3dreg.build_shape_model(shapes, np.asarray(template.triangles), names=names)
 print(model.variance_table())
 

@@ -1,6 +1,6 @@
 """Reproduce Tables 1 and 2 of Berar et al. (2005), section 3.1, with o3dreg.
 
-Four synthetic forms (sphere, cube, open ring, cone; o3dreg.synthetic.synthetic_form), each at a
+Four synthetic forms (sphere, cube, open ring, cone; o3dreg.app.synthetic.synthetic_form), each at a
 low (1000 vertices) and a high (30000) density, give 8 objects. Every ordered pair is registered
 twice, with the single distance (eq. 2) and the symmetric distance (eq. 3), from the identity
 (the forms share their centre, as the paper's do), with the default levels and the barycentre

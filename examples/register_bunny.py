@@ -1,9 +1,10 @@
 """Register a 3k-vertex template of the bunny onto the full bunny under a known warp.
 
 Evaluate the initial alignment -> register (single and symmetric distance) -> print the results
-and the ground-truth correspondence error -> draw when run interactively.
+and the ground-truth correspondence error -> with ``--draw`` in a terminal, draw them.
 
     python examples/register_bunny.py
+    python examples/register_bunny.py --draw
 """
 
 import sys
