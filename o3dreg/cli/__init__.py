@@ -58,7 +58,7 @@ _EXAMPLES = {
     ],
     "o3dreg model": [
         "o3dreg model info model/",
-        "o3dreg model modes model/ --modes 3 --sd -3 3",
+        "o3dreg model modes model/ --modes 3 --sd -3 3 --overwrite  # redraws model/modes/",
         "o3dreg model fit model/ patient.ply --landmarks landmarks.mrk.json -o predicted.mrk.json",
     ],
     "o3dreg model info": ["o3dreg model info model/", "o3dreg model info model/ --json"],
