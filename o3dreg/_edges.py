@@ -57,10 +57,7 @@ class SortedEdges:
         """Per triangle, which slot is an open edge (an edge of no other triangle), ``(m, 3)``
         bool; per vertex, whether it lies on an open edge, ``(n,)`` bool."""
         m = self.faces.shape[0]
-        single = np.ones(3 * m, dtype=bool)
-        single[1:] &= ~self.same
-        single[:-1] &= ~self.same
-        entries = self.order[single]
+        entries = self.order[self._runs_of(1)]
         open_edge = np.zeros(3 * m, dtype=bool)
         open_edge[entries] = True
         triangle, slot = entries // 3, entries % 3
@@ -72,11 +69,23 @@ class SortedEdges:
     def inconsistent_edges(self) -> int:
         """Edges of exactly two triangles that run along it the same way: where the triangles'
         orientations disagree (0 on a consistently oriented mesh)."""
+        pairs = self._runs_of(2)  # the first entry of each edge of exactly two triangles
+        first = self.order[pairs]
+        second = self.order[np.flatnonzero(pairs) + 1]
+        return int(np.count_nonzero(self._forward[first] == self._forward[second]))
+
+    def _runs_of(self, length: int) -> np.ndarray:
+        """Per sorted entry, whether it starts a run of exactly ``length`` (1 or 2) entries of
+        one edge."""
         same = self.same
-        if same.size == 0:
-            return 0
-        alone = same.copy()  # pairs (i, i + 1) of one edge, not part of a longer run
-        alone[1:] &= ~same[:-1]
-        alone[:-1] &= ~same[1:]
-        forward = self._forward[self.order]
-        return int(np.count_nonzero(alone & (forward[1:] == forward[:-1])))
+        if self.order.size == 0:
+            return np.zeros(0, dtype=bool)
+        starts = np.ones(same.size + 1, dtype=bool)  # not the continuation of a run
+        starts[1:] &= ~same
+        if length == 1:
+            starts[:-1] &= ~same  # and not continued
+            return starts
+        starts[:-1] &= same  # continued once...
+        starts[:-2] &= ~same[1:]  # ...and not twice
+        starts[-1] = False
+        return starts

@@ -131,6 +131,17 @@ def _folder_lock(folder: str | os.PathLike[str]) -> Iterator[None]:
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
+def _refuse_a_model(output: str | os.PathLike[str], overwrite: bool) -> None:
+    """``FileExistsError`` when ``output`` holds a model and ``overwrite`` is false."""
+    present = existing_model_files(output)
+    if present and not overwrite:
+        raise FileExistsError(
+            f"`output`: {os.fspath(output)!r} already holds a model ({', '.join(present)}); pass "
+            "overwrite=True to rebuild it (finished registrations are reused) or choose another "
+            "folder"
+        )
+
+
 def _remove_model_files(folder: str | os.PathLike[str]) -> None:
     """Remove the :data:`MODEL_FILES` of ``folder`` (not its registrations or template)."""
     for name in MODEL_FILES:
@@ -293,13 +304,7 @@ def build_model_folder(
     settings = settings if settings is not None else RegistrationSettings()
     if not isinstance(settings, RegistrationSettings):
         raise TypeError(f"`settings` must be a RegistrationSettings, got {type(settings).__name__}")
-    present = existing_model_files(output)
-    if present and not overwrite:
-        raise FileExistsError(
-            f"`output`: {os.fspath(output)!r} already holds a model ({', '.join(present)}); pass "
-            "overwrite=True to rebuild it (finished registrations are reused) or choose another "
-            "folder"
-        )
+    _refuse_a_model(output, overwrite)
     check_inputs_outside(output, targets)
     if landmarks is not None:
         check_inputs_outside(output, [landmarks], "landmarks")
@@ -312,13 +317,7 @@ def build_model_folder(
     out = output
     os.makedirs(out, exist_ok=True)
     with _folder_lock(out):
-        # Again under the lock: a build that ended since the check above left its model.
-        present = existing_model_files(output)
-        if present and not overwrite:
-            raise FileExistsError(
-                f"`output`: {os.fspath(output)!r} already holds a model ({', '.join(present)}); "
-                "pass overwrite=True to rebuild it or choose another folder"
-            )
+        _refuse_a_model(output, overwrite)  # again: a build may have ended since
         template_path = os.path.join(out, "template.ply")
         if os.path.exists(template_path):
             previous = read_triangle_mesh(template_path)

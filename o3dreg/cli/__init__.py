@@ -141,20 +141,18 @@ def _signals_and_streams() -> Iterator[None]:
             os.close(saved)
 
 
-def _with_flags(message: str, parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> str:
+def _with_flags(message: str, parser: argparse.ArgumentParser, args: argparse.Namespace) -> str:
     """``message`` with each API parameter it names (```step_size```) followed by the command's
     flag for it (``(--step-size)``): the errors come from the library, the user typed flags."""
-    words = list(sys.argv[1:] if argv is None else argv)
     flags: dict[str, str] = {}
     current: argparse.ArgumentParser | None = parser
     while current is not None:
         chosen = None
         for action in current._actions:  # argparse keeps its actions here (stable since 3.2)
             if isinstance(action, argparse._SubParsersAction):
-                chosen = next((action.choices[w] for w in words if w in action.choices), None)
+                chosen = action.choices.get(getattr(args, action.dest, None) or "")
             elif action.option_strings and action.dest != "help":
-                long = max(action.option_strings, key=len)
-                flags.setdefault(action.dest, long)
+                flags.setdefault(action.dest, max(action.option_strings, key=len))
         current = chosen
     for dest, flag in flags.items():
         message = message.replace(f"`{dest}`", f"`{dest}` ({flag})")
@@ -186,7 +184,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_OK
     except (TypeError, ValueError, OSError, RuntimeError) as exc:
         # The documented exception types of the API: bad input, unreadable or unwritable files.
-        print(f"{command}: error: {_with_flags(str(exc), parser, argv)}", file=sys.stderr)
+        print(f"{command}: error: {_with_flags(str(exc), parser, args)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except MemoryError:
         hint = "; e.g. fewer or coarser --levels" if hasattr(args, "levels") else ""

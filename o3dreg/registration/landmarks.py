@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from .._geometry import apply_transformation
 from .._validation import as_points
 from ..io.landmarks import read_landmarks
 
@@ -87,6 +88,47 @@ def _umeyama(source: np.ndarray, target: np.ndarray, scaling: bool) -> np.ndarra
     t[:3, :3] = s * r
     t[:3, 3] = mu_t - s * r @ mu_s
     return t
+
+
+def _fit_findings(
+    labels: tuple[str, ...],
+    ps: np.ndarray,
+    pt: np.ndarray,
+    residuals: np.ndarray,
+    with_scaling: bool,
+) -> tuple[str, ...]:
+    """What a landmark fit shows (:attr:`LandmarkRegistrationResult.warnings`): a set that no
+    motion fits, else each landmark far from its pair under the fit of the others."""
+    spread = float(np.sqrt(((pt - pt.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    rms = float(np.sqrt(np.mean(residuals**2)))
+    if rms > MISFIT_FRACTION * spread:
+        # No motion fits the set: swapped labels spread their misfit over every landmark.
+        return (
+            f"the landmarks fit no {'similarity' if with_scaling else 'rigid motion'}: residual "
+            f"rms {rms:.3g} is {100 * rms / spread:.0f}% of their spread {spread:.3g}; labels "
+            "swapped (left and right?) or the two files in other coordinate systems (LPS, RAS)?",
+        )
+    # A misplaced landmark pulls the fit towards itself (its residual in the fit of all is a
+    # fraction of its error, and it spreads to the others): each is measured against the fit of
+    # the others, the worst named and set aside, while 3 remain to fit.
+    found: list[str] = []
+    kept = np.arange(ps.shape[0])
+    while kept.size >= 4:
+        left_out = np.empty(kept.size)
+        for j, i in enumerate(kept):
+            others = kept[kept != i]
+            fit = _umeyama(ps[others], pt[others], with_scaling)
+            left_out[j] = np.linalg.norm(apply_transformation(fit, ps[i]) - pt[i])
+        worst = int(np.argmax(left_out))
+        if left_out[worst] <= MISFIT_FRACTION * spread:
+            break
+        found.append(
+            f"landmark {labels[kept[worst]]!r} lies {left_out[worst]:.3g} from its pair under the "
+            f"fit of the others ({100 * left_out[worst] / spread:.0f}% of the landmarks' spread "
+            f"{spread:.3g}): misplaced or mislabelled"
+        )
+        kept = np.delete(kept, worst)
+    return tuple(found)
 
 
 def _as_landmarks(value: Any, name: str) -> tuple[tuple[str, ...] | None, np.ndarray]:
@@ -211,42 +253,9 @@ def registration_landmarks(
                 "rotation about that line is undetermined; add a landmark off the line"
             )
     t = _umeyama(ps, pt, with_scaling)
-    moved = ps @ t[:3, :3].T + t[:3, 3]
-    residuals = np.linalg.norm(moved - pt, axis=1)
+    residuals = np.linalg.norm(apply_transformation(t, ps) - pt, axis=1)
     scale = float(np.cbrt(np.linalg.det(t[:3, :3])))
-    spread = float(np.sqrt(((pt - pt.mean(axis=0)) ** 2).sum(axis=1).mean()))
-    rms = float(np.sqrt(np.mean(residuals**2)))
-    if rms > MISFIT_FRACTION * spread:
-        # No motion fits the set: swapped labels spread their misfit over every landmark.
-        warnings: tuple[str, ...] = (
-            f"the landmarks fit no {'similarity' if with_scaling else 'rigid motion'}: residual "
-            f"rms {rms:.3g} is {100 * rms / spread:.0f}% of their spread {spread:.3g}; labels "
-            "swapped (left and right?) or the two files in other coordinate systems (LPS, RAS)?",
-        )
-    elif ps.shape[0] >= 4:
-        # A misplaced landmark pulls the fit towards itself (its residual in the fit of all is
-        # a fraction of its error, and it spreads to the others): each is measured against the
-        # fit of the others, the worst named and set aside, while 3 remain to fit.
-        found: list[str] = []
-        kept = np.arange(ps.shape[0])
-        while kept.size >= 4:
-            left_out = np.empty(kept.size)
-            for j, i in enumerate(kept):
-                others = kept[kept != i]
-                ti = _umeyama(ps[others], pt[others], with_scaling)
-                left_out[j] = float(np.linalg.norm(ps[i] @ ti[:3, :3].T + ti[:3, 3] - pt[i]))
-            worst = int(np.argmax(left_out))
-            if left_out[worst] <= MISFIT_FRACTION * spread:
-                break
-            found.append(
-                f"landmark {labels[kept[worst]]!r} lies {left_out[worst]:.3g} from its pair "
-                f"under the fit of the others ({100 * left_out[worst] / spread:.0f}% of the "
-                f"landmarks' spread {spread:.3g}): misplaced or mislabelled"
-            )
-            kept = np.delete(kept, worst)
-        warnings = tuple(found)
-    else:
-        warnings = ()
+    warnings = _fit_findings(labels, ps, pt, residuals, with_scaling)
     for line in warnings:
         logger.warning("registration_landmarks: %s", line)
     return LandmarkRegistrationResult(t, tuple(labels), residuals, scale, warnings)

@@ -303,7 +303,7 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
     for name, values in (
         ("model/mean", mean),
         ("model/pcaBasis", basis),
-        ("pcaVariance", variances),
+        ("model/pcaVariance", variances),
     ):
         if not np.all(np.isfinite(values)):
             raise ValueError(f"`path`: {path!r} has NaN or infinite values in {name}")
