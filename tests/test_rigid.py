@@ -300,24 +300,18 @@ def test_a_near_tie_refines_both_poses(monkeypatch):
 
 
 def count_aabb_trees(monkeypatch):
-    """A list that gets the vertex count of every surface an AABB tree is built for."""
-    import igl
+    """A list that gets the vertex count of every surface a closest-point tree is built for."""
+    from o3dreg._bvh import TriangleTree
+    from o3dreg.registration import distance
 
     sizes = []
-    real = igl.AABB
 
-    class Counted:
-        def __init__(self):
-            self.tree = real()
-
-        def init(self, vertices, faces):
+    class Counted(TriangleTree):
+        def __init__(self, vertices, faces):
             sizes.append(len(vertices))
-            return self.tree.init(vertices, faces)
+            super().__init__(vertices, faces)
 
-        def squared_distance(self, *args):
-            return self.tree.squared_distance(*args)
-
-    monkeypatch.setattr(igl, "AABB", Counted)
+    monkeypatch.setattr(distance, "TriangleTree", Counted)
     return sizes
 
 

@@ -23,8 +23,8 @@ from typing import Protocol
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
+from .._nearest import nearest_two
 from ._assembly import NormalAssembly, symmetric_outer
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
@@ -197,7 +197,6 @@ class BarycentreTerm:
         self.target_points = target_points
         self.sqrt_ws = float(np.sqrt(weight))
         self.offsets = offsets
-        self._nn_bound = np.inf
         # Search state of :meth:`measure`: the positions, nearest template point, gap between
         # the nearest and second-nearest distance at each target point's last search.
         self._last: np.ndarray | None = None
@@ -219,9 +218,7 @@ class BarycentreTerm:
         searched (exact ties included), ``d`` the nearest point's summed moves between
         searches and ``D`` the sum of the template's largest moves (the nearest point's own
         path instead of ``D`` searches 20-25% fewer points on the bunny's 4- and 8-cell
-        levels, the same assignments). The k-d tree search is bounded by a radius that held for
-        nearly all points last time (it prunes more: measured 40% faster); the few points
-        without a neighbour inside it are searched again unbounded.
+        levels, the same assignments). The search is :func:`o3dreg._nearest.nearest_two`.
         """
         t = self.target_points
         if self._last is None or self._last.shape != y.shape:
@@ -242,34 +239,14 @@ class BarycentreTerm:
             search = own + (self._moved - self._mark) >= self._gap
         self._last = y.copy()
         if search.any():
-            tree = cKDTree(y, leafsize=32)
-            points = t[search]
-            k = min(2, y.shape[0])
-            e, nearest = tree.query(points, k=k, workers=-1, distance_upper_bound=self._nn_bound)
-            e, nearest = e.reshape(-1, k), nearest.reshape(-1, k)
-            # The radius each point was searched within (a second neighbour beyond it is at
-            # least that far): the bound, or none for the points searched again unbounded.
-            bound = np.full(e.shape[0], self._nn_bound)
-            missed = ~np.isfinite(e[:, 0])
-            if missed.any():
-                e2, n2 = tree.query(points[missed], k=k, workers=-1)
-                e[missed], nearest[missed] = e2.reshape(-1, k), n2.reshape(-1, k)
-                bound[missed] = np.inf
-            first = nearest[:, 0]
-            second = np.full(e.shape[0], np.inf)
-            if k == 2:
-                # Exact ties (symmetric shapes) go to the smaller index, whatever the tree's
-                # order; a second neighbour beyond the search radius is at least that far.
-                tied = e[:, 1] == e[:, 0]
-                first = np.where(tied, nearest.min(axis=1), first)
-                second = np.minimum(e[:, 1], bound)
-            self._nearest[search] = first
-            self._gap[search] = second - e[:, 0]
+            e, nearest = nearest_two(y, t[search])
+            # Exact ties (symmetric shapes) go to the smaller index.
+            self._nearest[search] = nearest[:, 0]
+            self._gap[search] = e[:, 1] - e[:, 0]
             self._mark[search] = self._moved
-            self._path_mark[search] = self._path[first]
+            self._path_mark[search] = self._path[nearest[:, 0]]
         nearest = self._nearest.copy()
         distance = np.sqrt(((t - y[nearest]) ** 2).sum(axis=1))
-        self._nn_bound = 2.0 * float(np.percentile(distance, 99)) if distance.size else np.inf
         return distance, nearest
 
     def targets(self, g: Geometry, w: Weights) -> tuple[np.ndarray, np.ndarray]:

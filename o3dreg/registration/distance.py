@@ -5,10 +5,10 @@ from __future__ import annotations
 from functools import cached_property
 from typing import Any
 
-import igl
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .._bvh import TriangleTree
 from .._edges import SortedEdges
 from .._geometry import apply_transformation, barycentric, face_cross, into_frame, row_norms
 
@@ -49,10 +49,8 @@ class SurfaceDistanceQuery:
             self.__dict__["open_edges"] = open_edges  # the cached property, known already
 
     @cached_property
-    def _tree(self) -> Any:
-        tree = igl.AABB()
-        tree.init(self.vertices, self.faces)
-        return tree
+    def _tree(self) -> TriangleTree:
+        return TriangleTree(self.vertices, self.faces)
 
     @property
     def has_tree(self) -> bool:
@@ -96,7 +94,7 @@ class SurfaceDistanceQuery:
         pts = np.ascontiguousarray(points, dtype=np.float64)
         if pts.shape[0] == 0:
             return np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 3))
-        sqr, face, closest = self._tree.squared_distance(self.vertices, self.faces, pts)
+        sqr, face, closest = self._tree.closest(pts)
         return np.sqrt(sqr), face, closest
 
     def closest_few(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
