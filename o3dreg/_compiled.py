@@ -1,31 +1,74 @@
-"""How o3dreg's compiled kernels are compiled and spread over the cores.
+"""o3dreg's compiled kernels (``o3dreg/_kernels.c``), loaded with ctypes and spread over the cores.
 
-The kernels (:mod:`o3dreg._bvh`, :mod:`o3dreg._nearest`) are Numba functions compiled once per
-installation (``cache=True``: the machine code is kept beside the sources, or in Numba's user
-cache where those are read-only) and run without the GIL. Each answers a range ``[begin, end)``
-of independent queries; :func:`split` runs the ranges of one call on a small pool of Python
-threads, so every answer is computed by the same code whatever the number of threads (results
-are identical run to run), and calls from several threads at once (the rigid step's candidate
-search) are safe without a thread-safe Numba threading layer.
+The kernels are plain C, built with the package (``setup.py``) and called through ctypes, which
+releases the GIL for the length of each call: the rigid step's ICP threads and the registration
+keep running beside them, and nothing is paid at start-up beyond loading a small library. Each
+kernel answers a range ``[begin, end)`` of independent queries; :func:`split` runs the ranges
+of one call on a small pool of Python threads, so every answer is computed by the same code
+whatever the number of threads (results are identical run to run).
 """
 
 from __future__ import annotations
 
+import ctypes
+import importlib.util
 import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-__all__ = ["JIT", "split"]
+import numpy as np
 
-#: Options of every kernel: compiled to a file once, run without the GIL, NumPy's float
-#: semantics (a division by zero gives inf or NaN, not an exception).
-JIT: dict[str, Any] = {"nogil": True, "cache": True, "error_model": "numpy"}
+__all__ = ["library", "split"]
 
 #: Queries below this many per thread run on the calling thread (a thread's start and join
 #: cost more than a few hundred queries).
 MIN_PER_THREAD = 512
+
+_int = ctypes.c_int64
+_double = ctypes.c_double
+
+
+def _array(dtype: Any) -> Any:
+    return np.ctypeslib.ndpointer(dtype=dtype, flags="C_CONTIGUOUS")
+
+
+_f8, _i8, _u1 = _array(np.float64), _array(np.int64), _array(np.uint8)
+
+#: Argument types of each kernel, checked by ctypes at every call (dtype and contiguity).
+_SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
+    "o3dreg_flat": (None, [_f8, _int, _u1]),
+    "o3dreg_bvh_build": (_int, [_f8, _int, _int, _int, _i8, _i8, _i8, _i8, _f8]),
+    "o3dreg_bvh_query": (
+        None,
+        [_f8, _u1, _i8, _i8, _i8, _i8, _i8, _f8, _f8, _i8, _f8, _i8, _f8, _int, _int],
+    ),
+    "o3dreg_grid_build": (_int, [_f8, _int, _f8, _double, _i8, _i8, _i8]),
+    "o3dreg_grid_nearest_two": (
+        None,
+        [_f8, _i8, _i8, _f8, _double, _i8, _f8, _f8, _i8, _int, _int],
+    ),
+}
+
+
+def _load() -> ctypes.CDLL:
+    spec = importlib.util.find_spec("o3dreg._kernels")
+    if spec is None or spec.origin is None or not os.path.isfile(spec.origin):
+        raise ImportError(
+            "o3dreg's compiled kernels (o3dreg/_kernels.c) are not built: install the package "
+            "with pip (`pip install -e .` in a source checkout; a C compiler is needed)"
+        )
+    lib = ctypes.CDLL(spec.origin)
+    for name, (restype, argtypes) in _SIGNATURES.items():
+        function = getattr(lib, name)
+        function.restype = restype
+        function.argtypes = argtypes
+    return lib
+
+
+#: The loaded library; its functions are declared in ``o3dreg/_kernels.c``.
+library = _load()
 
 _pool: ThreadPoolExecutor | None = None
 _pool_lock = threading.Lock()
@@ -46,7 +89,7 @@ def _executor() -> ThreadPoolExecutor:
         return _pool
 
 
-def split(kernel: Callable[..., None], count: int, *args: Any) -> None:
+def split(kernel: Callable[..., Any], count: int, *args: Any) -> None:
     """Run ``kernel(*args, begin, end)`` over ``[0, count)``, in one range per core."""
     parts = min(_threads(), count // MIN_PER_THREAD)
     if parts <= 1:

@@ -131,13 +131,19 @@ class PointToSurfaceTerm:
         self.assembly = assembly
         self.target = target
         self.number_of_unknowns = 3 * assembly.W.shape[1]
+        self._faces = np.zeros(0, dtype=np.int64)
 
     def measure(
         self, y: np.ndarray, found: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Distances, closest points, gradients and closest faces of the points ``y``
-        (``found``: ``target.closest(y)`` when the caller has it)."""
+        (``found``: ``target.closest(y)`` when the caller has it). The search of each point
+        starts from the triangle found for it last time."""
+        if found is None:
+            last = self._faces
+            found = self.target.closest(y, last if last.shape[0] == y.shape[0] else None)
         dist, closest, grad, face = self.target.gradient(y, return_faces=True, found=found)
+        self._faces = face
         return dist, closest, grad, face
 
     def linearise(self, g: Geometry, w: Weights) -> TermBlock:

@@ -79,8 +79,14 @@ class SurfaceDistanceQuery:
             f"SurfaceDistanceQuery(vertices={self.vertices.shape[0]}, faces={self.faces.shape[0]})"
         )
 
-    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def closest(
+        self, points: np.ndarray, hint: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Closest surface point of each query point.
+
+        ``hint``: per point a triangle to start the search from (the one found for it last
+        time, say; -1 for none). It makes the search shorter, not its answer other, up to which
+        of several equally close triangles is named.
 
         Returns
         -------
@@ -94,7 +100,7 @@ class SurfaceDistanceQuery:
         pts = np.ascontiguousarray(points, dtype=np.float64)
         if pts.shape[0] == 0:
             return np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 3))
-        sqr, face, closest = self._tree.closest(pts)
+        sqr, face, closest = self._tree.closest(pts, hint)
         return np.sqrt(sqr), face, closest
 
     def closest_few(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -295,8 +301,10 @@ class FramedQuery(SurfaceDistanceQuery):
         dist, face, closest = found
         return dist, face, into_frame(self._frame, closest)
 
-    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self._here(self._surface.closest(self._there(points)))  # type: ignore[no-any-return]
+    def closest(
+        self, points: np.ndarray, hint: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self._here(self._surface.closest(self._there(points), hint))  # type: ignore[no-any-return]
 
     def closest_few(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return self._here(self._surface.closest_few(self._there(points)))  # type: ignore[no-any-return]

@@ -1,0 +1,425 @@
+/* o3dreg's compiled kernels, called through ctypes (o3dreg/_kernels.py), without the GIL.
+ *
+ * 1. A bounding volume hierarchy of a mesh's triangles and its exact closest-point query.
+ *    Each range of triangles is split in halves at the median of their box centres along their
+ *    longest extent, down to leaves of at most `leaf` triangles; a node holds the box of its
+ *    triangles, and a node's two children are stored side by side. A query descends the nearer
+ *    child first and skips every node whose box is not nearer than the best triangle so far.
+ *    The closest point on a triangle is found in the Voronoi region of the point (vertex, edge
+ *    or face; Ericson, Real-Time Collision Detection, 5.1.5); flat triangles (a point, a
+ *    segment, collinear corners) are answered by their edges.
+ * 2. The nearest and second-nearest of a set of sites for many points, on a uniform grid: each
+ *    point searches the cells around its own in growing shells and stops once no unsearched
+ *    cell can hold a site nearer than its second-nearest.
+ *
+ * Every query is independent: a call answers the range [begin, end) and the Python side splits
+ * one call over threads, so an answer does not depend on the threads. Indices are int64, points
+ * float64, arrays C-contiguous; inputs are validated on the Python side. Built without
+ * floating-point contraction (see setup.py), so results are the same on every x86-64 machine.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+typedef int64_t idx;
+typedef struct {
+    double x, y, z;
+} vec;
+
+static inline vec sub(vec a, vec b) { return (vec){a.x - b.x, a.y - b.y, a.z - b.z}; }
+static inline double dot(vec a, vec b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+static inline vec along(vec a, vec u, double t) { return (vec){a.x + t * u.x, a.y + t * u.y, a.z + t * u.z}; }
+static inline double sqdist(vec a, vec b) {
+    double dx = a.x - b.x, dy = a.y - b.y, dz = a.z - b.z;
+    return dx * dx + dy * dy + dz * dz;
+}
+static inline double lesser(double a, double b) { return b < a ? b : a; }
+static inline double greater(double a, double b) { return b > a ? b : a; }
+static inline vec corner(const double *corners, idx t, int k) {
+    const double *c = corners + 9 * t + 3 * k;
+    return (vec){c[0], c[1], c[2]};
+}
+
+/* ---- closest point on a triangle ------------------------------------------------------------ */
+
+/* Closest point to p on the segment ab (the point a when a == b). */
+static vec on_segment(vec p, vec a, vec b) {
+    vec u = sub(b, a);
+    double uu = dot(u, u), t = 0.0;
+    if (uu > 0.0) {
+        t = dot(sub(p, a), u) / uu;
+        t = lesser(1.0, greater(0.0, t));
+    }
+    return along(a, u, t);
+}
+
+/* Closest point to p on a flat triangle abc: the nearest of its edges' closest points. */
+static vec on_flat(vec p, vec a, vec b, vec c) {
+    vec q = on_segment(p, a, b), r;
+    double best = sqdist(q, p), d;
+    r = on_segment(p, b, c);
+    d = sqdist(r, p);
+    if (d < best) {
+        q = r;
+        best = d;
+    }
+    r = on_segment(p, c, a);
+    d = sqdist(r, p);
+    if (d < best) q = r;
+    return q;
+}
+
+/* Closest point to p on a triangle abc that is not flat, found in its Voronoi region. */
+static vec on_triangle(vec p, vec a, vec b, vec c) {
+    vec ab = sub(b, a), ac = sub(c, a), ap = sub(p, a);
+    double d1 = dot(ab, ap), d2 = dot(ac, ap);
+    if (d1 <= 0.0 && d2 <= 0.0) return a;
+    vec bp = sub(p, b);
+    double d3 = dot(ab, bp), d4 = dot(ac, bp);
+    if (d3 >= 0.0 && d4 <= d3) return b;
+    double vc = d1 * d4 - d3 * d2;
+    if (vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0) return on_segment(p, a, b);
+    vec cp = sub(p, c);
+    double d5 = dot(ab, cp), d6 = dot(ac, cp);
+    if (d6 >= 0.0 && d5 <= d6) return c;
+    double vb = d5 * d2 - d1 * d6;
+    if (vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0) return on_segment(p, a, c);
+    double va = d3 * d6 - d5 * d4;
+    if (va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0) return on_segment(p, b, c);
+    double denom = va + vb + vc;
+    if (!(denom > 0.0)) return on_flat(p, a, b, c); /* flat after all, by rounding */
+    double v = vb / denom, w = vc / denom;
+    return (vec){a.x + ab.x * v + ac.x * w, a.y + ab.y * v + ac.y * w, a.z + ab.z * v + ac.z * w};
+}
+
+static inline vec on(const double *corners, const uint8_t *flat, idx t, vec p) {
+    vec a = corner(corners, t, 0), b = corner(corners, t, 1), c = corner(corners, t, 2);
+    return flat[t] ? on_flat(p, a, b, c) : on_triangle(p, a, b, c);
+}
+
+/* Per triangle, whether it is flat: |ab x ac|^2 <= 1e-20 |ab|^2 |ac|^2 (a point, a segment, or
+ * corners collinear to ten digits), where the Voronoi regions of a triangle do not hold. */
+void o3dreg_flat(const double *corners, idx m, uint8_t *flat) {
+    for (idx t = 0; t < m; t++) {
+        vec u = sub(corner(corners, t, 1), corner(corners, t, 0));
+        vec w = sub(corner(corners, t, 2), corner(corners, t, 0));
+        vec n = {u.y * w.z - u.z * w.y, u.z * w.x - u.x * w.z, u.x * w.y - u.y * w.x};
+        flat[t] = dot(n, n) <= 1e-20 * dot(u, u) * dot(w, w);
+    }
+}
+
+/* ---- the tree ------------------------------------------------------------------------------- */
+
+/* Reorder rows s..e-1 of centre (and order alike) so that row k holds the element of rank k - s
+ * along axis, none greater before it and none smaller after (Hoare's selection). */
+static void select_rank(idx *order, double *centre, int axis, idx s, idx e, idx k) {
+    idx lo = s, hi = e - 1;
+    while (lo < hi) {
+        idx mid = (lo + hi) / 2;
+        /* The median of three as the pivot (deterministic; sorted input costs no more). */
+        double a = centre[3 * lo + axis], b = centre[3 * mid + axis], c = centre[3 * hi + axis];
+        double pivot = greater(lesser(a, b), lesser(greater(a, b), c));
+        idx i = lo, j = hi;
+        while (i <= j) {
+            while (centre[3 * i + axis] < pivot) i++;
+            while (centre[3 * j + axis] > pivot) j--;
+            if (i <= j) {
+                idx o = order[i];
+                order[i] = order[j];
+                order[j] = o;
+                for (int x = 0; x < 3; x++) {
+                    double v = centre[3 * i + x];
+                    centre[3 * i + x] = centre[3 * j + x];
+                    centre[3 * j + x] = v;
+                }
+                i++;
+                j--;
+            }
+        }
+        if (k <= j)
+            hi = j;
+        else if (k >= i)
+            lo = i;
+        else
+            return;
+    }
+}
+
+/* The tree of m triangles (corners: m x 9). Outputs, sized by the caller for `capacity` nodes
+ * (2 ceil(m / ceil(leaf / 2)) suffice: halving a range longer than a leaf leaves halves of at
+ * least (leaf + 1) / 2): order (m; triangle of each slot), start, stop, left (-1 at a leaf;
+ * the right child is left + 1), box (capacity x 6: low corner, high corner). Returns the number
+ * of nodes, or -1 when memory is short. */
+idx o3dreg_bvh_build(const double *corners, idx m, idx leaf, idx capacity, idx *order, idx *start,
+                     idx *stop, idx *left, double *box) {
+    double *tri = malloc(sizeof(double) * 6 * (size_t)(m > 0 ? m : 1));
+    double *centre = malloc(sizeof(double) * 3 * (size_t)(m > 0 ? m : 1));
+    idx stack[128];
+    if (!tri || !centre) {
+        free(tri);
+        free(centre);
+        return -1;
+    }
+    for (idx t = 0; t < m; t++) {
+        for (int a = 0; a < 3; a++) {
+            double p = corners[9 * t + a], q = corners[9 * t + 3 + a], r = corners[9 * t + 6 + a];
+            tri[6 * t + a] = lesser(lesser(p, q), r);
+            tri[6 * t + 3 + a] = greater(greater(p, q), r);
+            centre[3 * t + a] = 0.5 * (tri[6 * t + a] + tri[6 * t + 3 + a]);
+        }
+        order[t] = t;
+    }
+    start[0] = 0;
+    stop[0] = m;
+    left[0] = -1;
+    idx count = 1;
+    int top = 0;
+    stack[0] = 0;
+    while (top >= 0) {
+        idx node = stack[top--];
+        idx s = start[node], e = stop[node];
+        if (e - s <= leaf || count + 2 > capacity) continue;
+        double lo[3], hi[3];
+        for (int a = 0; a < 3; a++) lo[a] = hi[a] = centre[3 * s + a];
+        for (idx k = s + 1; k < e; k++)
+            for (int a = 0; a < 3; a++) {
+                lo[a] = lesser(lo[a], centre[3 * k + a]);
+                hi[a] = greater(hi[a], centre[3 * k + a]);
+            }
+        int axis = 0;
+        if (hi[1] - lo[1] > hi[0] - lo[0]) axis = 1;
+        if (hi[2] - lo[2] > greater(hi[0] - lo[0], hi[1] - lo[1])) axis = 2;
+        idx mid = (s + e) / 2;
+        select_rank(order, centre, axis, s, e, mid);
+        left[node] = count;
+        start[count] = s;
+        stop[count] = mid;
+        start[count + 1] = mid;
+        stop[count + 1] = e;
+        left[count] = left[count + 1] = -1;
+        stack[++top] = count;
+        stack[++top] = count + 1;
+        count += 2;
+    }
+    /* Boxes from the leaves up: children are made after their parent. */
+    for (idx node = count - 1; node >= 0; node--) {
+        double *b = box + 6 * node;
+        if (left[node] < 0) {
+            for (int a = 0; a < 3; a++) {
+                b[a] = INFINITY;
+                b[3 + a] = -INFINITY;
+            }
+            for (idx k = start[node]; k < stop[node]; k++)
+                for (int a = 0; a < 3; a++) {
+                    b[a] = lesser(b[a], tri[6 * order[k] + a]);
+                    b[3 + a] = greater(b[3 + a], tri[6 * order[k] + 3 + a]);
+                }
+        } else {
+            const double *l = box + 6 * left[node], *r = box + 6 * (left[node] + 1);
+            for (int a = 0; a < 3; a++) {
+                b[a] = lesser(l[a], r[a]);
+                b[3 + a] = greater(l[3 + a], r[3 + a]);
+            }
+        }
+    }
+    free(tri);
+    free(centre);
+    return count;
+}
+
+static inline double box_gap(const double *box, idx node, vec p) {
+    const double *b = box + 6 * node;
+    double gx = greater(greater(b[0] - p.x, 0.0), p.x - b[3]);
+    double gy = greater(greater(b[1] - p.y, 0.0), p.y - b[4]);
+    double gz = greater(greater(b[2] - p.z, 0.0), p.z - b[5]);
+    return gx * gx + gy * gy + gz * gz;
+}
+
+/* Closest triangle of points begin..end-1. corners and flat are in the tree's order (slot k
+ * holds mesh triangle face_of[k]; rank is its inverse); hint[i] >= 0 names a mesh triangle to
+ * start from. Exact ties go to the smaller mesh index among the triangles the search reaches. */
+void o3dreg_bvh_query(const double *corners, const uint8_t *flat, const idx *face_of,
+                      const idx *rank, const idx *start, const idx *stop, const idx *left,
+                      const double *box, const double *points, const idx *hint, double *out_sqr,
+                      idx *out_face, double *out_point, idx begin, idx end) {
+    idx stack[128];
+    double gap[128];
+    for (idx i = begin; i < end; i++) {
+        vec p = {points[3 * i], points[3 * i + 1], points[3 * i + 2]};
+        double best = INFINITY;
+        idx found = -1;
+        vec q = {0.0, 0.0, 0.0};
+        if (hint[i] >= 0) {
+            found = rank[hint[i]];
+            q = on(corners, flat, found, p);
+            best = sqdist(q, p);
+        }
+        int top = 0;
+        stack[0] = 0;
+        gap[0] = box_gap(box, 0, p);
+        while (top >= 0) {
+            idx node = stack[top];
+            double near = gap[top--];
+            if (near >= best) continue;
+            if (left[node] < 0) {
+                for (idx k = start[node]; k < stop[node]; k++) {
+                    if (k == found) continue;
+                    vec r = on(corners, flat, k, p);
+                    double d = sqdist(r, p);
+                    if (d < best || (found >= 0 && d == best && face_of[k] < face_of[found])) {
+                        best = d;
+                        found = k;
+                        q = r;
+                    }
+                }
+                continue;
+            }
+            idx a = left[node], b = a + 1;
+            double da = box_gap(box, a, p), db = box_gap(box, b, p);
+            if (da > db) {
+                idx t = a;
+                a = b;
+                b = t;
+                double g = da;
+                da = db;
+                db = g;
+            }
+            /* The nearer child is popped first. */
+            if (db < best) {
+                stack[++top] = b;
+                gap[top] = db;
+            }
+            if (da < best) {
+                stack[++top] = a;
+                gap[top] = da;
+            }
+        }
+        out_sqr[i] = best;
+        out_face[i] = found >= 0 ? face_of[found] : -1;
+        out_point[3 * i] = q.x;
+        out_point[3 * i + 1] = q.y;
+        out_point[3 * i + 2] = q.z;
+    }
+}
+
+/* ---- nearest two sites on a grid ------------------------------------------------------------ */
+
+/* Sites sorted by cell (a counting sort): first (cells + 1 entries, zeroed by the caller) and
+ * order, each cell's sites in index order. Returns 0, or -1 when memory is short. */
+idx o3dreg_grid_build(const double *sites, idx n, const double *origin, double size,
+                      const idx *dims, idx *first, idx *order) {
+    idx *cell = malloc(sizeof(idx) * (size_t)(n > 0 ? n : 1));
+    idx cells = dims[0] * dims[1] * dims[2];
+    if (!cell) return -1;
+    for (idx i = 0; i < n; i++) {
+        idx c = 0;
+        for (int a = 0; a < 3; a++) {
+            double k = floor((sites[3 * i + a] - origin[a]) / size);
+            idx j = k < 0.0 ? 0 : (k > (double)(dims[a] - 1) ? dims[a] - 1 : (idx)k);
+            c = c * dims[a] + j;
+        }
+        cell[i] = c;
+        first[c + 1]++;
+    }
+    for (idx c = 1; c <= cells; c++) first[c] += first[c - 1];
+    idx *fill = malloc(sizeof(idx) * (size_t)(cells > 0 ? cells : 1));
+    if (!fill) {
+        free(cell);
+        return -1;
+    }
+    memcpy(fill, first, sizeof(idx) * (size_t)cells);
+    for (idx i = 0; i < n; i++) order[fill[cell[i]]++] = i;
+    free(fill);
+    free(cell);
+    return 0;
+}
+
+typedef struct {
+    double d1, d2;
+    idx i1, i2;
+} two;
+
+/* The best two so far, updated with the sites of one cell; lexicographic in (distance, index):
+ * exact ties go to the smaller index. */
+static inline void visit(const double *sites, const idx *first, const idx *order, idx cell, vec p,
+                         two *b) {
+    for (idx k = first[cell]; k < first[cell + 1]; k++) {
+        idx i = order[k];
+        double e0 = sites[3 * i] - p.x, e1 = sites[3 * i + 1] - p.y, e2 = sites[3 * i + 2] - p.z;
+        double d = e0 * e0 + e1 * e1 + e2 * e2;
+        if (d < b->d1 || (d == b->d1 && i < b->i1)) {
+            b->d2 = b->d1;
+            b->i2 = b->i1;
+            b->d1 = d;
+            b->i1 = i;
+        } else if (d < b->d2 || (d == b->d2 && i < b->i2)) {
+            b->d2 = d;
+            b->i2 = i;
+        }
+    }
+}
+
+/* Distance from p to the grid's cells outside [c - r, c + r] on one axis (inf if none). */
+static inline double side_gap(double p, double origin, double size, idx dim, idx c, idx r) {
+    double g = INFINITY;
+    if (c - r > 0) g = greater(p - (origin + (double)(c - r) * size), 0.0);
+    if (c + r < dim - 1) g = lesser(g, greater(origin + (double)(c + r + 1) * size - p, 0.0));
+    return g;
+}
+
+/* Nearest and second-nearest site of points begin..end-1: out_d (k x 2) distances, out_i (k x 2)
+ * indices (inf and -1 for a missing second). */
+void o3dreg_grid_nearest_two(const double *sites, const idx *first, const idx *order,
+                             const double *origin, double size, const idx *dims,
+                             const double *points, double *out_d, idx *out_i, idx begin, idx end) {
+    for (idx j = begin; j < end; j++) {
+        double p3[3] = {points[3 * j], points[3 * j + 1], points[3 * j + 2]};
+        vec p = {p3[0], p3[1], p3[2]};
+        idx c[3];
+        double away[3]; /* distance from the point to the grid's extent, per axis */
+        for (int a = 0; a < 3; a++) {
+            double k = floor((p3[a] - origin[a]) / size);
+            c[a] = k < 0.0 ? 0 : (k > (double)(dims[a] - 1) ? dims[a] - 1 : (idx)k);
+            double top = origin[a] + (double)dims[a] * size;
+            away[a] = greater(greater(origin[a] - p3[a], 0.0), p3[a] - top);
+        }
+        two b = {INFINITY, INFINITY, -1, -1};
+        for (idx r = 0;; r++) {
+            /* The shell of cells at Chebyshev distance r from the point's cell. */
+            idx x0 = c[0] - r < 0 ? 0 : c[0] - r, x1 = c[0] + r > dims[0] - 1 ? dims[0] - 1 : c[0] + r;
+            idx y0 = c[1] - r < 0 ? 0 : c[1] - r, y1 = c[1] + r > dims[1] - 1 ? dims[1] - 1 : c[1] + r;
+            idx z0 = c[2] - r < 0 ? 0 : c[2] - r, z1 = c[2] + r > dims[2] - 1 ? dims[2] - 1 : c[2] + r;
+            for (idx x = x0; x <= x1; x++)
+                for (idx y = y0; y <= y1; y++) {
+                    idx row = (x * dims[1] + y) * dims[2];
+                    if (llabs(x - c[0]) == r || llabs(y - c[1]) == r) {
+                        for (idx z = z0; z <= z1; z++) visit(sites, first, order, row + z, p, &b);
+                    } else { /* inside the shell's x-y extent: only its two z faces */
+                        if (c[2] - r >= 0) visit(sites, first, order, row + c[2] - r, p, &b);
+                        if (c[2] + r < dims[2]) visit(sites, first, order, row + c[2] + r, p, &b);
+                    }
+                }
+            /* The nearest unsearched cell lies outside the block [c - r, c + r] on some axis:
+             * its squared distance is at least the gap to that side plus the point's distance
+             * to the grid's extent along the other two axes. */
+            double bound = INFINITY;
+            for (int a = 0; a < 3; a++) {
+                double g = side_gap(p3[a], origin[a], size, dims[a], c[a], r);
+                double rest = 0.0;
+                for (int o = 0; o < 3; o++)
+                    if (o != a) rest += away[o] * away[o];
+                bound = lesser(bound, g * g + rest);
+            }
+            if (b.d2 < bound || bound == INFINITY) break;
+        }
+        out_d[2 * j] = sqrt(b.d1);
+        out_d[2 * j + 1] = sqrt(b.d2);
+        out_i[2 * j] = b.i1;
+        out_i[2 * j + 1] = b.i2;
+    }
+}
+
+/* The library is loaded with ctypes, not imported; this stub only satisfies build tools that
+ * expect an extension module's entry point. */
+void *PyInit__kernels(void) { return NULL; }
