@@ -49,6 +49,11 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
         None,
         [_f8, _i8, _i8, _f8, _double, _i8, _f8, _f8, _i8, _int, _int],
     ),
+    "o3dreg_grid_reassign": (
+        None,
+        [_f8, _i8, _i8, _f8, _double, _i8, _f8, _f8, _double, ctypes.c_int]
+        + [_i8, _f8, _f8, _f8, _f8, _int, _int],
+    ),
 }
 
 

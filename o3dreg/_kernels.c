@@ -368,55 +368,84 @@ static inline double side_gap(double p, double origin, double size, idx dim, idx
     return g;
 }
 
+/* The nearest and second-nearest site of p on the grid. */
+static two search_two(const double *sites, const idx *first, const idx *order, const double *origin,
+                      double size, const idx *dims, const double *p3) {
+    vec p = {p3[0], p3[1], p3[2]};
+    idx c[3];
+    double away[3]; /* distance from the point to the grid's extent, per axis */
+    for (int a = 0; a < 3; a++) {
+        double k = floor((p3[a] - origin[a]) / size);
+        c[a] = k < 0.0 ? 0 : (k > (double)(dims[a] - 1) ? dims[a] - 1 : (idx)k);
+        double top = origin[a] + (double)dims[a] * size;
+        away[a] = greater(greater(origin[a] - p3[a], 0.0), p3[a] - top);
+    }
+    two b = {INFINITY, INFINITY, -1, -1};
+    for (idx r = 0;; r++) {
+        /* The shell of cells at Chebyshev distance r from the point's cell. */
+        idx x0 = c[0] - r < 0 ? 0 : c[0] - r, x1 = c[0] + r > dims[0] - 1 ? dims[0] - 1 : c[0] + r;
+        idx y0 = c[1] - r < 0 ? 0 : c[1] - r, y1 = c[1] + r > dims[1] - 1 ? dims[1] - 1 : c[1] + r;
+        idx z0 = c[2] - r < 0 ? 0 : c[2] - r, z1 = c[2] + r > dims[2] - 1 ? dims[2] - 1 : c[2] + r;
+        for (idx x = x0; x <= x1; x++)
+            for (idx y = y0; y <= y1; y++) {
+                idx row = (x * dims[1] + y) * dims[2];
+                if (llabs(x - c[0]) == r || llabs(y - c[1]) == r) {
+                    for (idx z = z0; z <= z1; z++) visit(sites, first, order, row + z, p, &b);
+                } else { /* inside the shell's x-y extent: only its two z faces */
+                    if (c[2] - r >= 0) visit(sites, first, order, row + c[2] - r, p, &b);
+                    if (c[2] + r < dims[2]) visit(sites, first, order, row + c[2] + r, p, &b);
+                }
+            }
+        /* The nearest unsearched cell lies outside the block [c - r, c + r] on some axis: its
+         * squared distance is at least the gap to that side plus the point's distance to the
+         * grid's extent along the other two axes. */
+        double bound = INFINITY;
+        for (int a = 0; a < 3; a++) {
+            double g = side_gap(p3[a], origin[a], size, dims[a], c[a], r);
+            double rest = 0.0;
+            for (int o = 0; o < 3; o++)
+                if (o != a) rest += away[o] * away[o];
+            bound = lesser(bound, g * g + rest);
+        }
+        if (b.d2 < bound || bound == INFINITY) return b;
+    }
+}
+
 /* Nearest and second-nearest site of points begin..end-1: out_d (k x 2) distances, out_i (k x 2)
  * indices (inf and -1 for a missing second). */
 void o3dreg_grid_nearest_two(const double *sites, const idx *first, const idx *order,
                              const double *origin, double size, const idx *dims,
                              const double *points, double *out_d, idx *out_i, idx begin, idx end) {
     for (idx j = begin; j < end; j++) {
-        double p3[3] = {points[3 * j], points[3 * j + 1], points[3 * j + 2]};
-        vec p = {p3[0], p3[1], p3[2]};
-        idx c[3];
-        double away[3]; /* distance from the point to the grid's extent, per axis */
-        for (int a = 0; a < 3; a++) {
-            double k = floor((p3[a] - origin[a]) / size);
-            c[a] = k < 0.0 ? 0 : (k > (double)(dims[a] - 1) ? dims[a] - 1 : (idx)k);
-            double top = origin[a] + (double)dims[a] * size;
-            away[a] = greater(greater(origin[a] - p3[a], 0.0), p3[a] - top);
-        }
-        two b = {INFINITY, INFINITY, -1, -1};
-        for (idx r = 0;; r++) {
-            /* The shell of cells at Chebyshev distance r from the point's cell. */
-            idx x0 = c[0] - r < 0 ? 0 : c[0] - r, x1 = c[0] + r > dims[0] - 1 ? dims[0] - 1 : c[0] + r;
-            idx y0 = c[1] - r < 0 ? 0 : c[1] - r, y1 = c[1] + r > dims[1] - 1 ? dims[1] - 1 : c[1] + r;
-            idx z0 = c[2] - r < 0 ? 0 : c[2] - r, z1 = c[2] + r > dims[2] - 1 ? dims[2] - 1 : c[2] + r;
-            for (idx x = x0; x <= x1; x++)
-                for (idx y = y0; y <= y1; y++) {
-                    idx row = (x * dims[1] + y) * dims[2];
-                    if (llabs(x - c[0]) == r || llabs(y - c[1]) == r) {
-                        for (idx z = z0; z <= z1; z++) visit(sites, first, order, row + z, p, &b);
-                    } else { /* inside the shell's x-y extent: only its two z faces */
-                        if (c[2] - r >= 0) visit(sites, first, order, row + c[2] - r, p, &b);
-                        if (c[2] + r < dims[2]) visit(sites, first, order, row + c[2] + r, p, &b);
-                    }
-                }
-            /* The nearest unsearched cell lies outside the block [c - r, c + r] on some axis:
-             * its squared distance is at least the gap to that side plus the point's distance
-             * to the grid's extent along the other two axes. */
-            double bound = INFINITY;
-            for (int a = 0; a < 3; a++) {
-                double g = side_gap(p3[a], origin[a], size, dims[a], c[a], r);
-                double rest = 0.0;
-                for (int o = 0; o < 3; o++)
-                    if (o != a) rest += away[o] * away[o];
-                bound = lesser(bound, g * g + rest);
-            }
-            if (b.d2 < bound || bound == INFINITY) break;
-        }
+        two b = search_two(sites, first, order, origin, size, dims, points + 3 * j);
         out_d[2 * j] = sqrt(b.d1);
         out_d[2 * j + 1] = sqrt(b.d2);
         out_i[2 * j] = b.i1;
         out_i[2 * j + 1] = b.i2;
+    }
+}
+
+/* The barycentre term's assignment, kept up to date (o3dreg.registration._terms.BarycentreTerm):
+ * point j is searched again (all of them when `all` is set) unless its nearest site is still
+ * provably nearest, own + (moved - mark[j]) < gap[j] with own = path[nearest[j]] - path_mark[j];
+ * a search sets nearest[j], gap[j] (second minus first distance), mark[j] = moved and
+ * path_mark[j] = path[nearest[j]]. distance[j]: the distance to the nearest site. */
+void o3dreg_grid_reassign(const double *sites, const idx *first, const idx *order,
+                          const double *origin, double size, const idx *dims,
+                          const double *points, const double *path, double moved, int all,
+                          idx *nearest, double *gap, double *mark, double *path_mark,
+                          double *distance, idx begin, idx end) {
+    for (idx j = begin; j < end; j++) {
+        if (all || path[nearest[j]] - path_mark[j] + (moved - mark[j]) >= gap[j]) {
+            two b = search_two(sites, first, order, origin, size, dims, points + 3 * j);
+            nearest[j] = b.i1;
+            gap[j] = sqrt(b.d2) - sqrt(b.d1);
+            mark[j] = moved;
+            path_mark[j] = path[b.i1];
+        }
+        const double *p = points + 3 * j, *q = sites + 3 * nearest[j];
+        double e0 = p[0] - q[0], e1 = p[1] - q[1], e2 = p[2] - q[2];
+        distance[j] = sqrt(e0 * e0 + e1 * e1 + e2 * e2);
     }
 }
 

@@ -10,14 +10,89 @@ bound: the distance from the point to the cells outside the searched block). Com
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ._compiled import library, split
 
-__all__ = ["nearest_two"]
+__all__ = ["Assignment", "SiteGrid", "nearest_two"]
 
 #: Cells at most per site (the grid's memory stays linear in the sites).
 CELLS_PER_SITE = 8
+
+
+class SiteGrid:
+    """A uniform grid of sites (``(n, 3)``, at least one), sorted into cells in one counting
+    sort."""
+
+    def __init__(self, sites: np.ndarray) -> None:
+        s = np.ascontiguousarray(sites, dtype=np.float64)
+        n = s.shape[0]
+        lo = np.ascontiguousarray(s.min(axis=0))
+        extent = np.maximum(s.max(axis=0) - lo, 0.0)
+        # Cells about as wide as the spacing of sites on a surface filling half its box's area.
+        box_area = 2.0 * (extent[0] * extent[1] + extent[1] * extent[2] + extent[2] * extent[0])
+        size = float(np.sqrt(box_area / n)) if box_area > 0 else float(extent.max())
+        if not size > 0:
+            size = 1.0
+        dims = np.maximum(np.ceil(extent / size).astype(np.int64), 1)
+        while int(np.prod(dims)) > CELLS_PER_SITE * n + 27:
+            size *= 1.25
+            dims = np.maximum(np.ceil(extent / size).astype(np.int64), 1)
+        first = np.zeros(int(np.prod(dims)) + 1, dtype=np.int64)
+        order = np.empty(n, dtype=np.int64)
+        if library.o3dreg_grid_build(s, n, lo, size, dims, first, order) < 0:
+            raise MemoryError(f"no memory for the grid of {n} sites")
+        self.sites = s
+        self._grid = (first, order, lo, size, dims)
+
+    def nearest_two(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`nearest_two` of ``points`` among these sites."""
+        p = np.ascontiguousarray(points, dtype=np.float64)
+        distances = np.empty((p.shape[0], 2))
+        indices = np.empty((p.shape[0], 2), dtype=np.int64)
+        split(
+            library.o3dreg_grid_nearest_two, p.shape[0], self.sites, *self._grid, p, distances,
+            indices,
+        )  # fmt: skip
+        return distances, indices
+
+    def reassign(
+        self, points: np.ndarray, path: np.ndarray, moved: float, state: Assignment, every: bool
+    ) -> np.ndarray:
+        """Update the nearest site of each point where it may have changed (every point's with
+        ``every``), and return each point's distance to it.
+
+        The sites have moved along paths of length ``path`` (per site) and ``moved`` (the sum of
+        the largest moves) since the first assignment. A point is searched again unless its
+        nearest site is still provably nearest: ``own + (moved - mark) < gap``, ``own`` its
+        nearest site's path since its last search (see ``BarycentreTerm.measure``).
+        """
+        p = np.ascontiguousarray(points, dtype=np.float64)
+        distance = np.empty(p.shape[0])
+        split(
+            library.o3dreg_grid_reassign, p.shape[0], self.sites, *self._grid, p,
+            np.ascontiguousarray(path, dtype=np.float64), float(moved), int(every),
+            state.nearest, state.gap, state.mark, state.path_mark, distance,
+        )  # fmt: skip
+        return distance
+
+
+@dataclass
+class Assignment:
+    """Each point's nearest site and what proves it still nearest (updated in place by
+    :meth:`SiteGrid.reassign`): the gap between its second and first distances at its last
+    search, the sites' summed largest moves then (``mark``), its nearest site's path then."""
+
+    nearest: np.ndarray
+    gap: np.ndarray
+    mark: np.ndarray
+    path_mark: np.ndarray
+
+    @classmethod
+    def empty(cls, k: int) -> Assignment:
+        return cls(np.zeros(k, dtype=np.int64), np.zeros(k), np.zeros(k), np.zeros(k))
 
 
 def nearest_two(sites: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -37,28 +112,4 @@ def nearest_two(sites: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.n
     distances : (k, 2) ndarray
     indices : (k, 2) int64 ndarray
     """
-    s = np.ascontiguousarray(sites, dtype=np.float64)
-    p = np.ascontiguousarray(points, dtype=np.float64)
-    n = s.shape[0]
-    lo = np.ascontiguousarray(s.min(axis=0))
-    extent = np.maximum(s.max(axis=0) - lo, 0.0)
-    # Cells about as wide as the spacing of sites on a surface filling half its box's area.
-    box_area = 2.0 * (extent[0] * extent[1] + extent[1] * extent[2] + extent[2] * extent[0])
-    size = float(np.sqrt(box_area / n)) if box_area > 0 else float(extent.max())
-    if not size > 0:
-        size = 1.0
-    dims = np.maximum(np.ceil(extent / size).astype(np.int64), 1)
-    while int(np.prod(dims)) > CELLS_PER_SITE * n + 27:
-        size *= 1.25
-        dims = np.maximum(np.ceil(extent / size).astype(np.int64), 1)
-    first = np.zeros(int(np.prod(dims)) + 1, dtype=np.int64)
-    order = np.empty(n, dtype=np.int64)
-    if library.o3dreg_grid_build(s, n, lo, size, dims, first, order) < 0:
-        raise MemoryError(f"no memory for the grid of {n} sites")
-    distances = np.empty((p.shape[0], 2))
-    indices = np.empty((p.shape[0], 2), dtype=np.int64)
-    split(
-        library.o3dreg_grid_nearest_two, p.shape[0], s, first, order, lo, size, dims, p,
-        distances, indices,
-    )  # fmt: skip
-    return distances, indices
+    return SiteGrid(sites).nearest_two(points)

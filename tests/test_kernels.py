@@ -166,3 +166,29 @@ def test_one_site_has_no_second():
     d, i = nearest_two(np.zeros((1, 3)), np.array([[3.0, 4.0, 0.0]]))
     np.testing.assert_array_equal(d, [[5.0, np.inf]])
     np.testing.assert_array_equal(i, [[0, -1]])
+
+
+def test_the_kept_assignment_is_the_nearest_site_after_every_move():
+    # SiteGrid.reassign searches only the points whose nearest site may have changed (the
+    # barycentre term's bound): after each of 12 random moves of the sites, small and large,
+    # every point's site is its nearest by brute force (ties to the smaller index), and its
+    # distance is that site's.
+    from o3dreg._nearest import Assignment, SiteGrid
+
+    rng = np.random.default_rng(6)
+    sites = np.asarray(synthetic_form("sphere", 800).vertices)
+    points = sites[rng.choice(len(sites), 3000)] + rng.normal(scale=3.0, size=(3000, 3))
+    state = Assignment.empty(len(points))
+    path, moved, last = np.zeros(len(sites)), 0.0, None
+    for step in range(12):
+        if last is not None:
+            sites = sites + rng.normal(scale=[0.05, 0.5, 4.0][step % 3], size=sites.shape)
+            move = np.sqrt(((sites - last) ** 2).sum(axis=1))
+            path, moved = path + move, moved + move.max()
+        distance = SiteGrid(sites).reassign(points, path, moved, state, every=last is None)
+        last = sites.copy()
+        _, best = brute_nearest_two(sites, points)
+        np.testing.assert_array_equal(state.nearest, best[:, 0])
+        np.testing.assert_array_equal(
+            distance, np.sqrt(((points - sites[best[:, 0]]) ** 2).sum(axis=1))
+        )

@@ -24,7 +24,7 @@ from typing import Protocol
 import numpy as np
 import scipy.sparse as sp
 
-from .._nearest import nearest_two
+from .._nearest import Assignment, SiteGrid
 from ._assembly import NormalAssembly, symmetric_outer
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
@@ -203,15 +203,12 @@ class BarycentreTerm:
         self.target_points = target_points
         self.sqrt_ws = float(np.sqrt(weight))
         self.offsets = offsets
-        # Search state of :meth:`measure`: the positions, nearest template point, gap between
-        # the nearest and second-nearest distance at each target point's last search.
+        # Search state of :meth:`measure`: the positions at the last call, the template points'
+        # paths since the first and the sum of their largest moves, the assignment.
         self._last: np.ndarray | None = None
         self._moved = 0.0
-        self._mark = np.zeros(0)
         self._path = np.zeros(0)
-        self._path_mark = np.zeros(0)
-        self._gap = np.zeros(0)
-        self._nearest = np.zeros(0, dtype=np.int64)
+        self._assignment = Assignment.empty(0)
 
     def measure(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest moved template point of every target point (exact), and its distance.
@@ -224,36 +221,22 @@ class BarycentreTerm:
         searched (exact ties included), ``d`` the nearest point's summed moves between
         searches and ``D`` the sum of the template's largest moves (the nearest point's own
         path instead of ``D`` searches 20-25% fewer points on the bunny's 4- and 8-cell
-        levels, the same assignments). The search is :func:`o3dreg._nearest.nearest_two`.
+        levels, the same assignments). The search: :meth:`o3dreg._nearest.SiteGrid.reassign`.
         """
         t = self.target_points
-        if self._last is None or self._last.shape != y.shape:
-            search = np.ones(t.shape[0], dtype=bool)
+        every = self._last is None or self._last.shape != y.shape
+        if every:
             self._moved = 0.0
             self._path = np.zeros(y.shape[0])
-            self._mark = np.zeros(t.shape[0])
-            self._path_mark = np.zeros(t.shape[0])
-            self._gap = np.zeros(t.shape[0])
-            self._nearest = np.zeros(t.shape[0], dtype=np.int64)
+            self._assignment = Assignment.empty(t.shape[0])
         else:
             step = np.sqrt(((y - self._last) ** 2).sum(axis=1))
             self._moved += float(step.max())
             self._path += step
-            # The nearest point has come at most its own path nearer or farther, any other at
-            # most the largest path nearer.
-            own = self._path[self._nearest] - self._path_mark
-            search = own + (self._moved - self._mark) >= self._gap
         self._last = y.copy()
-        if search.any():
-            e, nearest = nearest_two(y, t[search])
-            # Exact ties (symmetric shapes) go to the smaller index.
-            self._nearest[search] = nearest[:, 0]
-            self._gap[search] = e[:, 1] - e[:, 0]
-            self._mark[search] = self._moved
-            self._path_mark[search] = self._path[nearest[:, 0]]
-        nearest = self._nearest.copy()
-        distance = np.sqrt(((t - y[nearest]) ** 2).sum(axis=1))
-        return distance, nearest
+        # Exact ties (symmetric shapes) go to the smaller index.
+        distance = SiteGrid(y).reassign(t, self._path, self._moved, self._assignment, every)
+        return distance, self._assignment.nearest.copy()
 
     def targets(self, g: Geometry, w: Weights) -> tuple[np.ndarray, np.ndarray]:
         """The barycentres ``b_i`` (offsets applied) and row scales ``s_i`` of an assignment."""

@@ -64,8 +64,9 @@ class SurfaceDistanceQuery:
 
     def face_normal(self, face: np.ndarray) -> np.ndarray:
         """Unit normals of the triangles ``face`` (indices), ``(k, 3)``: the rows of
-        :attr:`face_normals`, without computing all of them on a large surface."""
-        if "face_normals" in self.__dict__:
+        :attr:`face_normals`, computed all at once for a surface queried often (its tree is
+        built, which costs far more), else only those asked for."""
+        if "face_normals" in self.__dict__ or self.has_tree:
             return self.face_normals[face]
         return self._normals(self.faces[face])
 
