@@ -155,9 +155,11 @@ def test_checkers_alone():
 
 
 def test_the_normal_checker_looks_up_only_the_normals_it_needs():
-    # The final support check of a registration runs once on the full target: it asks the
-    # query for the normals of the triangles found (face_normal) instead of computing the
-    # normal of every triangle (face_normals), with the same verdicts.
+    # The final support check of a registration runs once on the full target: on a target
+    # whose tree is not built (a large one, answered by closest_few), it asks the query for
+    # the normals of the triangles found (face_normal) instead of computing the normal of every
+    # triangle (face_normals), with the same verdicts. A query whose tree is built (queried
+    # tens of times by the levels) computes them all once.
     from o3dreg.app.synthetic import synthetic_form
     from o3dreg.registration.elastic import _supported, vertex_normals
     from o3dreg.registration.options import DistanceEstimation
@@ -168,8 +170,8 @@ def test_the_normal_checker_looks_up_only_the_normals_it_needs():
     pts = v[:300] + rng.normal(scale=2.0, size=(300, 3))
     normals = vertex_normals(v, f)[:300] + rng.normal(scale=0.8, size=(300, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    lazy_query = SurfaceDistanceQuery(v, f)
-    found = lazy_query.closest(pts)
+    lazy_query, other = SurfaceDistanceQuery(v, f), SurfaceDistanceQuery(v, f)
+    found = other.closest(pts)
     lazy = NormalChecker(normals, lazy_query.face_normal, 45.0).check(pts, *found)
     assert "face_normals" not in lazy_query.__dict__
     full = NormalChecker(normals, SurfaceDistanceQuery(v, f).face_normals, 45.0)
@@ -177,8 +179,10 @@ def test_the_normal_checker_looks_up_only_the_normals_it_needs():
     assert 0 < lazy.sum() < lazy.size  # both verdicts occur
     method = DistanceEstimation(reject_boundary=False, max_normal_angle=45.0)
     moved = v[:, :] * 1.01
-    _supported(moved, f, lazy_query, lazy_query.closest(moved), method, None)
+    _supported(moved, f, lazy_query, other.closest(moved), method, None)
     assert "face_normals" not in lazy_query.__dict__
+    np.testing.assert_array_equal(other.face_normal(found[1]), full.face_normals[found[1]])
+    assert "face_normals" in other.__dict__
 
 
 def test_normal_assembly_is_the_sum_over_points():
