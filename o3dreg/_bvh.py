@@ -38,28 +38,26 @@ class TriangleTree:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
         v = np.ascontiguousarray(vertices, dtype=np.float64)
         f = np.ascontiguousarray(faces, dtype=np.int64)
-        corners = np.ascontiguousarray(v[f].reshape(-1, 9))
-        m = corners.shape[0]
+        m = f.shape[0]
         # Halving a range longer than a leaf leaves halves of at least (LEAF_SIZE + 1) // 2.
         smallest = (LEAF_SIZE + 1) // 2
         capacity = max(1, 2 * -(-m // smallest))
         order = np.empty(m, dtype=np.int64)
+        corners = np.empty((m, 9))
+        flat = np.empty(m, dtype=np.uint8)
         start, stop, left = (np.empty(capacity, dtype=np.int64) for _ in range(3))
         box = np.empty((capacity, 6))
         count = library.o3dreg_bvh_build(
-            corners, m, LEAF_SIZE, capacity, order, start, stop, left, box
+            v, f, m, LEAF_SIZE, capacity, order, corners, flat, start, stop, left, box
         )
         if count < 0:
             raise MemoryError(f"no memory for the closest-point tree of {m} triangles")
         self._start, self._stop, self._left = start[:count], stop[:count], left[:count]
         self._box = box[:count]
-        # Leaves' triangles side by side, in the tree's order.
-        self._corners = np.ascontiguousarray(corners[order])
-        self._face_of = order
+        # Leaves' triangles side by side, in the tree's order (``face_of``; ``rank``: inverse).
+        self._corners, self._flat, self._face_of = corners, flat, order
         self._rank = np.empty_like(order)
         self._rank[order] = np.arange(m)
-        self._flat = np.empty(m, dtype=np.uint8)
-        library.o3dreg_flat(self._corners, m, self._flat)
 
     def __repr__(self) -> str:
         return f"TriangleTree(faces={self._corners.shape[0]}, nodes={self._left.shape[0]})"

@@ -146,13 +146,15 @@ static void select_rank(idx *order, double *centre, int axis, idx s, idx e, idx 
     }
 }
 
-/* The tree of m triangles (corners: m x 9). Outputs, sized by the caller for `capacity` nodes
- * (2 ceil(m / ceil(leaf / 2)) suffice: halving a range longer than a leaf leaves halves of at
- * least (leaf + 1) / 2): order (m; triangle of each slot), start, stop, left (-1 at a leaf;
- * the right child is left + 1), box (capacity x 6: low corner, high corner). Returns the number
- * of nodes, or -1 when memory is short. */
-idx o3dreg_bvh_build(const double *corners, idx m, idx leaf, idx capacity, idx *order, idx *start,
-                     idx *stop, idx *left, double *box) {
+/* The tree of the m triangles `faces` (m x 3) of `vertices`. Outputs, sized by the caller for
+ * `capacity` nodes (2 ceil(m / ceil(leaf / 2)) suffice: halving a range longer than a leaf
+ * leaves halves of at least (leaf + 1) / 2): order (m; the mesh triangle in each slot of the
+ * tree's order), corners (m x 9) and flat (m) in that order, start, stop, left (-1 at a leaf;
+ * the right child is left + 1), box (capacity x 6: low corner, high corner). Returns the
+ * number of nodes, or -1 when memory is short. */
+idx o3dreg_bvh_build(const double *vertices, const idx *faces, idx m, idx leaf, idx capacity,
+                     idx *order, double *corners, uint8_t *flat, idx *start, idx *stop, idx *left,
+                     double *box) {
     double *tri = malloc(sizeof(double) * 6 * (size_t)(m > 0 ? m : 1));
     double *centre = malloc(sizeof(double) * 3 * (size_t)(m > 0 ? m : 1));
     idx stack[128];
@@ -162,10 +164,11 @@ idx o3dreg_bvh_build(const double *corners, idx m, idx leaf, idx capacity, idx *
         return -1;
     }
     for (idx t = 0; t < m; t++) {
+        const double *p = vertices + 3 * faces[3 * t], *q = vertices + 3 * faces[3 * t + 1];
+        const double *r = vertices + 3 * faces[3 * t + 2];
         for (int a = 0; a < 3; a++) {
-            double p = corners[9 * t + a], q = corners[9 * t + 3 + a], r = corners[9 * t + 6 + a];
-            tri[6 * t + a] = lesser(lesser(p, q), r);
-            tri[6 * t + 3 + a] = greater(greater(p, q), r);
+            tri[6 * t + a] = lesser(lesser(p[a], q[a]), r[a]);
+            tri[6 * t + 3 + a] = greater(greater(p[a], q[a]), r[a]);
             centre[3 * t + a] = 0.5 * (tri[6 * t + a] + tri[6 * t + 3 + a]);
         }
         order[t] = t;
@@ -223,6 +226,11 @@ idx o3dreg_bvh_build(const double *corners, idx m, idx leaf, idx capacity, idx *
             }
         }
     }
+    /* The triangles' corners in the tree's order: a leaf's side by side. */
+    for (idx k = 0; k < m; k++)
+        for (int c = 0; c < 3; c++)
+            memcpy(corners + 9 * k + 3 * c, vertices + 3 * faces[3 * order[k] + c], 3 * sizeof(double));
+    o3dreg_flat(corners, m, flat);
     free(tri);
     free(centre);
     return count;
