@@ -22,7 +22,7 @@ from ._compiled import library, split
 __all__ = ["LEAF_SIZE", "TriangleTree"]
 
 #: Triangles per leaf at most: a leaf's triangles are tested one after the other.
-LEAF_SIZE = 2
+LEAF_SIZE = 4
 
 
 class TriangleTree:
