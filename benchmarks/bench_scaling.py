@@ -34,13 +34,13 @@ TEMPLATES = (1000, 3000, 10000, 20000)
 STAGES = [
     ("cost evaluation _cost.LevelProblem.evaluate (total)", "_cost.py:evaluate"),
     ("  point-to-surface SurfaceDistanceQuery.closest", "distance.py:closest"),
-    ("accepted points: barycentre re-assignment (k-d tree)", "_cost.py:reweighted"),
+    ("accepted points: barycentre re-assignment (grid search)", "_cost.py:reweighted"),
     ("level starts: scales, first queries, pattern", "_cost.py:__init__"),
     ("normal equations (fixed pattern)", "normal_equations"),
     ("solve the damped system DampedSystem.solve_damped", "_solvers.py:solve_damped"),
     ("lattice weights / Jacobian (lattice.py)", "lattice.py"),
     ("target levels of detail (vertex clustering)", "_target.py:build_levels_of_detail"),
-    ("AABB tree builds SurfaceDistanceQuery._tree", "distance.py:_tree"),
+    ("closest-point tree builds SurfaceDistanceQuery._tree", "distance.py:_tree"),
     ("final distances both ways (TargetSurface.distances)", "_target.py:distances"),
 ]
 

@@ -1,4 +1,4 @@
-"""Point-to-surface distances with libigl's AABB tree, built once per surface."""
+"""Point-to-surface distances on an AABB tree (``o3dreg._bvh``), built once per surface."""
 
 from __future__ import annotations
 
