@@ -39,6 +39,16 @@ class TriangleTree:
         v = np.ascontiguousarray(vertices, dtype=np.float64)
         f = np.ascontiguousarray(faces, dtype=np.int64)
         m = f.shape[0]
+        # The compiled code trusts its indices: checked here, once, in O(m).
+        if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or m == 0:
+            raise ValueError(
+                f"a closest-point tree needs (n, 3) vertices and (m >= 1, 3) faces, got "
+                f"{v.shape} and {f.shape}"
+            )
+        if f.min() < 0 or f.max() >= v.shape[0]:
+            raise ValueError(
+                f"face indices must lie in [0, {v.shape[0]}), got {f.min()}..{f.max()}"
+            )
         # Halving a range longer than a leaf leaves halves of at least (LEAF_SIZE + 1) // 2.
         smallest = (LEAF_SIZE + 1) // 2
         capacity = max(1, 2 * -(-m // smallest))
@@ -71,12 +81,14 @@ class TriangleTree:
         answer is the same with or without it, up to which of several equally close triangles
         is named (the smallest index of those the search reaches).
         """
-        pts = np.ascontiguousarray(points, dtype=np.float64)
+        pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         k = pts.shape[0]
         if hint is None:
             hints = np.full(k, -1, dtype=np.int64)
         else:
             hints = np.ascontiguousarray(hint, dtype=np.int64)
+            if hints.shape != (k,) or (k and hints.max() >= self._rank.shape[0]):
+                raise ValueError(f"hint must hold {k} triangle indices (or -1), got {hints.shape}")
         sqr = np.empty(k)
         face = np.empty(k, dtype=np.int64)
         closest = np.empty((k, 3))

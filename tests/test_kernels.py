@@ -192,3 +192,41 @@ def test_the_kept_assignment_is_the_nearest_site_after_every_move():
         np.testing.assert_array_equal(
             distance, np.sqrt(((points - sites[best[:, 0]]) ** 2).sum(axis=1))
         )
+
+
+def test_the_tree_refuses_what_its_compiled_code_would_read_out_of_bounds():
+    v = np.eye(3)
+    with pytest.raises(ValueError, match="face indices"):
+        TriangleTree(v, np.array([[0, 1, 3]]))
+    with pytest.raises(ValueError, match="m >= 1"):
+        TriangleTree(v, np.zeros((0, 3), dtype=np.int64))
+    tree = TriangleTree(v, np.array([[0, 1, 2]]))
+    with pytest.raises(ValueError, match="hint"):
+        tree.closest(np.zeros((2, 3)), np.array([0, 1]))
+    sqr, face, _ = tree.closest(np.zeros((2, 3)), np.array([0, -1]))
+    np.testing.assert_allclose(sqr, [1 / 3, 1 / 3])
+    np.testing.assert_array_equal(face, [0, 0])
+
+
+def test_a_forked_child_splits_queries_on_threads_of_its_own(monkeypatch):
+    # A process forked after the parent split a query (a ProcessPoolExecutor of `build-model
+    # --jobs` after a first registration) inherits no threads: its queries must not wait for
+    # the parent's. Before: the child's first split query hung.
+    import multiprocessing
+
+    monkeypatch.setattr(_compiled, "MIN_PER_THREAD", 1)
+    monkeypatch.setattr(_compiled, "_threads", lambda: 2)
+    v, f = random_soup(np.random.default_rng(7), 200, 0)
+    pts = np.random.default_rng(8).uniform(-12, 12, size=(500, 3))
+    tree = TriangleTree(v, f)
+    here = tree.closest(pts)[0]  # the parent's pool exists now
+    context = multiprocessing.get_context("fork")
+    receive, send = context.Pipe(duplex=False)
+    child = context.Process(target=lambda: send.send(tree.closest(pts)[0]))
+    child.start()
+    answered = receive.poll(30)
+    if not answered:
+        child.kill()
+    child.join()
+    assert answered, "the forked child's query did not finish in 30 s"
+    np.testing.assert_array_equal(receive.recv(), here)
