@@ -49,6 +49,8 @@ class TriangleTree:
             raise ValueError(
                 f"face indices must lie in [0, {v.shape[0]}), got {f.min()}..{f.max()}"
             )
+        if not np.isfinite(v).all():
+            raise ValueError("a closest-point tree needs finite vertex coordinates")
         # Halving a range longer than a leaf leaves halves of at least (LEAF_SIZE + 1) // 2.
         smallest = (LEAF_SIZE + 1) // 2
         capacity = max(1, 2 * -(-m // smallest))
@@ -83,6 +85,8 @@ class TriangleTree:
         """
         pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         k = pts.shape[0]
+        if not np.isfinite(pts).all():
+            raise ValueError("closest points are asked for finite points only")
         if hint is None:
             hints = np.full(k, -1, dtype=np.int64)
         else:

@@ -1,4 +1,4 @@
-/* o3dreg's compiled kernels, called through ctypes (o3dreg/_kernels.py), without the GIL.
+/* o3dreg's compiled kernels, called through ctypes (o3dreg/_compiled.py), without the GIL.
  *
  * 1. A bounding volume hierarchy of a mesh's triangles and its exact closest-point query.
  *    Each range of triangles is split in halves at the median of their box centres along their
@@ -14,7 +14,8 @@
  *
  * Every query is independent: a call answers the range [begin, end) and the Python side splits
  * one call over threads, so an answer does not depend on the threads. Indices are int64, points
- * float64, arrays C-contiguous; inputs are validated on the Python side. Built without
+ * float64 and finite, arrays C-contiguous; inputs are checked on the Python side (o3dreg/_bvh.py,
+ * o3dreg/_nearest.py): nothing here reads outside its arrays when they hold what they should. Built without
  * floating-point contraction (see setup.py), so results are the same on every x86-64 machine.
  */
 #include <math.h>

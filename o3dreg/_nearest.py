@@ -29,6 +29,9 @@ class SiteGrid:
     def __init__(self, sites: np.ndarray) -> None:
         s = np.ascontiguousarray(sites, dtype=np.float64)
         n = s.shape[0]
+        # The compiled search turns coordinates into cell numbers: they must be finite.
+        if s.ndim != 2 or s.shape[1] != 3 or n == 0 or not np.isfinite(s).all():
+            raise ValueError(f"sites must be (n >= 1, 3) finite coordinates, got {s.shape}")
         lo = np.ascontiguousarray(s.min(axis=0))
         extent = np.maximum(s.max(axis=0) - lo, 0.0)
         # Cells about as wide as the spacing of sites on a surface filling half its box's area.
@@ -49,7 +52,7 @@ class SiteGrid:
 
     def nearest_two(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:func:`nearest_two` of ``points`` among these sites."""
-        p = np.ascontiguousarray(points, dtype=np.float64)
+        p = _finite_points(points)
         distances = np.empty((p.shape[0], 2))
         indices = np.empty((p.shape[0], 2), dtype=np.int64)
         split(
@@ -69,14 +72,28 @@ class SiteGrid:
         nearest site is still provably nearest: ``own + (moved - mark) < gap``, ``own`` its
         nearest site's path since its last search (see ``BarycentreTerm.measure``).
         """
-        p = np.ascontiguousarray(points, dtype=np.float64)
-        distance = np.empty(p.shape[0])
+        p = _finite_points(points)
+        k = p.shape[0]
+        if any(a.shape != (k,) for a in (state.nearest, state.gap, state.mark, state.path_mark)):
+            raise ValueError(f"the assignment must hold one entry per point ({k})")
+        if k and not 0 <= state.nearest.min() <= state.nearest.max() < self.sites.shape[0]:
+            raise ValueError("the assignment names sites that do not exist")
+        if np.shape(path) != (self.sites.shape[0],):
+            raise ValueError(f"path must hold one length per site ({self.sites.shape[0]})")
+        distance = np.empty(k)
         split(
             library.o3dreg_grid_reassign, p.shape[0], self.sites, *self._grid, p,
             np.ascontiguousarray(path, dtype=np.float64), float(moved), int(every),
             state.nearest, state.gap, state.mark, state.path_mark, distance,
         )  # fmt: skip
         return distance
+
+
+def _finite_points(points: np.ndarray) -> np.ndarray:
+    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    if not np.isfinite(p).all():
+        raise ValueError("the nearest sites are asked for finite points only")
+    return p
 
 
 @dataclass

@@ -230,3 +230,25 @@ def test_a_forked_child_splits_queries_on_threads_of_its_own(monkeypatch):
     child.join()
     assert answered, "the forked child's query did not finish in 30 s"
     np.testing.assert_array_equal(receive.recv(), here)
+
+
+def test_the_grid_refuses_what_its_compiled_code_cannot_place():
+    from o3dreg._nearest import Assignment, SiteGrid
+
+    with pytest.raises(ValueError, match="finite"):
+        nearest_two(np.array([[0.0, np.nan, 0.0]]), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="finite"):
+        nearest_two(np.zeros((2, 3)), np.array([[np.inf, 0.0, 0.0]]))
+    grid = SiteGrid(np.eye(3))
+    with pytest.raises(ValueError, match="sites that do not exist"):
+        grid.reassign(
+            np.zeros((2, 3)),
+            np.zeros(3),
+            0.0,
+            Assignment(np.array([0, 3]), *np.zeros((3, 2))),
+            False,
+        )
+    with pytest.raises(ValueError, match="one entry per point"):
+        grid.reassign(np.zeros((2, 3)), np.zeros(3), 0.0, Assignment.empty(3), True)
+    with pytest.raises(ValueError, match="finite"):
+        TriangleTree(np.eye(3), np.array([[0, 1, 2]])).closest(np.full((1, 3), np.nan))
