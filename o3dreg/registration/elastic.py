@@ -333,7 +333,9 @@ def _coarse_to_fine(
     orientation = 1.0
     if estimation_method.max_normal_angle is not None:
         orientation = _relative_orientation(points, fs, surface.finest_detail())
-    surface_samples, sample_weights = _surface_samples(points, fs)
+    # Only the barycentre correction uses them (off by default).
+    correct = target_points is not None and estimation_method.barycentre_correction
+    samples = _surface_samples(points, fs) if correct else None
     deformation = LatticeDeformation(())
     previous = np.zeros_like(points)
     history: list[LevelReport] = []
@@ -379,9 +381,9 @@ def _coarse_to_fine(
         if estimation_method.max_normal_angle is not None:
             normals = orientation * vertex_normals(points + previous, fs)[use]
         offsets = None
-        if use_target is not None and estimation_method.barycentre_correction:
+        if use_target is not None and samples is not None:
             offsets = _barycentre_offsets(
-                (points + previous)[use], surface_samples, deformation, sample_weights
+                (points + previous)[use], samples[0], deformation, samples[1]
             )
         problem = LevelProblem(
             points[use],
