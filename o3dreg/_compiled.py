@@ -52,6 +52,10 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
         None,
         [_f8, _i8, _i8, _f8, _double, _i8, _f8, _f8, _i8, _int, _int],
     ),
+    "o3dreg_ply_walk": (
+        _int,
+        [_u1, _int, _int, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int],
+    ),
     "o3dreg_grid_reassign": (
         None,
         [_f8, _i8, _i8, _f8, _double, _i8, _f8, _f8, _double, ctypes.c_int]

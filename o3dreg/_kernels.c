@@ -458,6 +458,31 @@ void o3dreg_grid_reassign(const double *sites, const idx *first, const idx *orde
     }
 }
 
+/* ---- binary PLY face records ------------------------------------------------------------- */
+
+/* Walk `faces` records of a binary PLY list property: a count of `count_size` bytes (1, 2 or 4;
+ * signed when `count_signed`) followed by that many indices of `index_size` bytes, in `nbytes`
+ * of data. Returns the bytes walked, or -(k + 1) when record k's count is below 3 (Open3D's
+ * reader crashes on a polygon of fewer corners) or the record runs past the data. */
+idx o3dreg_ply_walk(const uint8_t *data, idx nbytes, idx faces, int count_size, int count_signed,
+                    int big_endian, int index_size) {
+    idx at = 0;
+    for (idx k = 0; k < faces; k++) {
+        if (at + count_size > nbytes) return -(k + 1);
+        uint64_t raw = 0;
+        for (int b = 0; b < count_size; b++) {
+            int shift = 8 * (big_endian ? count_size - 1 - b : b);
+            raw |= (uint64_t)data[at + b] << shift;
+        }
+        int64_t count = (int64_t)raw;
+        if (count_signed && (raw >> (8 * count_size - 1)) & 1) count -= (int64_t)1 << (8 * count_size);
+        if (count < 3) return -(k + 1);
+        at += count_size + count * index_size;
+        if (at > nbytes) return -(k + 1);
+    }
+    return at;
+}
+
 /* The library is loaded with ctypes, not imported; this stub only satisfies build tools that
  * expect an extension module's entry point. */
 void *PyInit__kernels(void) { return NULL; }

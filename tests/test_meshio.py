@@ -1,5 +1,6 @@
 """Mesh IO: clear errors, atomic writes, nothing overwritten by accident."""
 
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -98,6 +99,50 @@ def test_malformed_ply_faces_are_an_error_not_a_smaller_or_garbled_mesh(tmp_path
             read_triangle_mesh(path)
     assert len(read_triangle_mesh(binary_path).triangles) == m  # the intact files still read
     assert len(read_triangle_mesh(ascii_path).triangles) == m
+
+
+def polygon_ply(path, counts, big_endian=False, count_type="uchar"):
+    """A binary PLY of 6 vertices and three polygons (two quads, a triangle) whose corner
+    counts are ``counts`` (the records keep their real lengths)."""
+    order = ">" if big_endian else "<"
+    fmt = {"uchar": "B", "char": "b", "ushort": "H", "int": "i"}[count_type]
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1]])
+    faces = [[0, 1, 2, 3], [0, 1, 5, 4], [1, 2, 5]]
+    header = (
+        f"ply\nformat binary_{'big' if big_endian else 'little'}_endian 1.0\nelement vertex 6\n"
+        "property float x\nproperty float y\nproperty float z\nelement face 3\n"
+        f"property list {count_type} int vertex_indices\nend_header\n"
+    )
+    body = v.astype(order + "f4").tobytes()
+    for count, face in zip(counts, faces):
+        body += struct.pack(order + fmt, count) + np.array(face, dtype=order + "i4").tobytes()
+    path.write_bytes(header.encode() + body)
+    return path
+
+
+@pytest.mark.parametrize("big_endian", [False, True])
+@pytest.mark.parametrize("count_type", ["uchar", "char", "ushort", "int"])
+def test_polygon_ply_records_with_too_few_corners_are_refused(tmp_path, big_endian, count_type):
+    # A binary PLY of polygons whose second record's corner count reads 2 (or -1, or 0): before,
+    # Open3D's reader crashed the process (exit 139); a count running past the file was already
+    # refused by the element count. The intact file reads as 5 triangles.
+    good = polygon_ply(tmp_path / "good.ply", [4, 4, 3], big_endian, count_type)
+    assert len(read_triangle_mesh(good).triangles) == 5
+    if not big_endian and count_type == "uchar":  # ASCII: a line "2 0 3" crashed it as well
+        text = tmp_path / "two.ply"
+        text.write_text(
+            "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+            "property float z\nelement face 2\nproperty list uchar int vertex_indices\n"
+            "end_header\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n3 0 1 2\n2 0 3\n"
+        )
+        with pytest.raises(OSError, match="face 1 is '2 0 3'"):
+            read_triangle_mesh(text)
+    assert len(read_triangle_mesh(good).triangles) == 5
+    bad_counts = [2, 0] + ([-1] if count_type in ("char", "int") else [])
+    for bad in bad_counts:
+        path = polygon_ply(tmp_path / f"bad{bad}.ply", [4, bad, 3], big_endian, count_type)
+        with pytest.raises(OSError, match="face 1 of its 3 is not a polygon of at least 3"):
+            read_triangle_mesh(path)
 
 
 def test_write_errors(tmp_path):

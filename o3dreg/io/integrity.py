@@ -127,10 +127,10 @@ def _check_triangle_records(
             lines = [line for line in fh.read().splitlines() if line.strip()]
         for number, line in enumerate(lines[vertices : vertices + faces]):
             words = line.split()
-            if not words[0].isdigit() or len(words) != int(words[0]) + 1:
+            if not words[0].isdigit() or len(words) != int(words[0]) + 1 or int(words[0]) < 3:
                 raise OSError(
                     f"`{name}`: {path!r} is malformed: face {number} is {line.decode(errors='replace')!r} "
-                    "(a corner count followed by that many vertex indices expected)"
+                    "(a corner count of at least 3 followed by that many vertex indices expected)"
                 )
         return
     if any(p[0] == "list" for p in properties.get(0, [])):
@@ -143,7 +143,9 @@ def _check_triangle_records(
     record = np.dtype([("n", order + count_type), ("i", order + index_type, 3)])
     offset = body_start + vertices * sum(elements[0][2])
     if os.path.getsize(path) - offset != faces * record.itemsize:
-        return  # polygons, or elements after the faces: not the triangle layout
+        # Polygons, or elements after the faces: walk the records one by one.
+        _check_polygon_records(path, name, fmt, offset, faces, count_type, index_type)
+        return
     counts = np.fromfile(path, dtype=record, count=faces, offset=offset)["n"]
     wrong = np.flatnonzero(counts != 3)
     if wrong.size:
@@ -151,6 +153,27 @@ def _check_triangle_records(
             f"`{name}`: {path!r} is malformed: {wrong.size} of its {faces} triangle records "
             f"do not start with the corner count 3 (face {int(wrong[0])}: "
             f"{int(counts[wrong[0]])})"
+        )
+
+
+def _check_polygon_records(
+    path: str, name: str, fmt: str, offset: int, faces: int, count_type: str, index_type: str
+) -> None:
+    """``OSError`` when a binary PLY's face records (polygons) do not each hold at least three
+    corners within the file: Open3D's reader crashes the process on a polygon of fewer
+    corners (a flipped count byte)."""
+    from .._compiled import library  # the compiled walk: millions of records in milliseconds
+
+    data = np.fromfile(path, dtype=np.uint8, offset=offset)
+    count = np.dtype(count_type)
+    walked = library.o3dreg_ply_walk(
+        data, data.size, faces, count.itemsize, int(count.kind == "i"),
+        int(fmt == "binary_big_endian"), np.dtype(index_type).itemsize,
+    )  # fmt: skip
+    if walked < 0:
+        raise OSError(
+            f"`{name}`: {path!r} is malformed: face {-walked - 1} of its {faces} is not a "
+            "polygon of at least 3 corners within the file (a corrupted corner count)"
         )
 
 
