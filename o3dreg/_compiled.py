@@ -92,7 +92,8 @@ def _forget_pool() -> None:
     _pool, _pool_lock = None, threading.Lock()
 
 
-os.register_at_fork(after_in_child=_forget_pool)
+if hasattr(os, "register_at_fork"):  # POSIX: where fork exists
+    os.register_at_fork(after_in_child=_forget_pool)
 
 
 def _threads() -> int:
