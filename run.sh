@@ -11,8 +11,9 @@ need_apt=()
 for pkg in libusb-1.0-0 libgomp1 libgl1 libvulkan1 mesa-vulkan-drivers chromium; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
-# A C compiler for o3dreg's kernels (o3dreg/_kernels.c, built by pip install).
-command -v cc >/dev/null 2>&1 || need_apt+=(gcc libc6-dev)
+# The C compiler Python builds extensions with, for o3dreg's kernels (o3dreg/_kernels.c).
+compiler=$("${PYTHON:-python3}" -c "import sysconfig; print((sysconfig.get_config_var('CC') or 'cc').split()[0])" 2>/dev/null || echo cc)
+command -v "$compiler" >/dev/null 2>&1 || need_apt+=(gcc libc6-dev)
 if [ ${#need_apt[@]} -gt 0 ]; then
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
   $SUDO apt-get update -qq
