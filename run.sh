@@ -12,7 +12,8 @@ for pkg in libusb-1.0-0 libgomp1 libgl1 libvulkan1 mesa-vulkan-drivers chromium;
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
 # The C compiler Python builds extensions with, for o3dreg's kernels (o3dreg/_kernels.c).
-compiler=$("${PYTHON:-python3}" -c "import sysconfig; print((sysconfig.get_config_var('CC') or 'cc').split()[0])" 2>/dev/null || echo cc)
+PY=${PYTHON:-python3}
+compiler=$("$PY" -c "import sysconfig; print((sysconfig.get_config_var('CC') or 'cc').split()[0])" 2>/dev/null || echo cc)
 command -v "$compiler" >/dev/null 2>&1 || need_apt+=(gcc libc6-dev)
 if [ ${#need_apt[@]} -gt 0 ]; then
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
@@ -20,7 +21,6 @@ if [ ${#need_apt[@]} -gt 0 ]; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
 fi
 
-PY=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi

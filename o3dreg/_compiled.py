@@ -38,7 +38,6 @@ _f8, _i8, _u1 = _array(np.float64), _array(np.int64), _array(np.uint8)
 
 #: Argument types of each kernel, checked by ctypes at every call (dtype and contiguity).
 _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
-    "o3dreg_flat": (None, [_f8, _int, _u1]),
     "o3dreg_bvh_build": (
         _int,
         [_f8, _i8, _int, _int, _int, _i8, _f8, _u1, _i8, _i8, _i8, _f8],

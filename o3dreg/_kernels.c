@@ -101,7 +101,7 @@ static inline vec on(const double *corners, const uint8_t *flat, idx t, vec p) {
 
 /* Per triangle, whether it is flat: |ab x ac|^2 <= 1e-20 |ab|^2 |ac|^2 (a point, a segment, or
  * corners collinear to ten digits), where the Voronoi regions of a triangle do not hold. */
-void o3dreg_flat(const double *corners, idx m, uint8_t *flat) {
+static void flat_triangles(const double *corners, idx m, uint8_t *flat) {
     for (idx t = 0; t < m; t++) {
         vec u = sub(corner(corners, t, 1), corner(corners, t, 0));
         vec w = sub(corner(corners, t, 2), corner(corners, t, 0));
@@ -231,7 +231,7 @@ idx o3dreg_bvh_build(const double *vertices, const idx *faces, idx m, idx leaf, 
     for (idx k = 0; k < m; k++)
         for (int c = 0; c < 3; c++)
             memcpy(corners + 9 * k + 3 * c, vertices + 3 * faces[3 * order[k] + c], 3 * sizeof(double));
-    o3dreg_flat(corners, m, flat);
+    flat_triangles(corners, m, flat);
     free(tri);
     free(centre);
     return count;
@@ -314,6 +314,12 @@ void o3dreg_bvh_query(const double *corners, const uint8_t *flat, const idx *fac
 
 /* ---- nearest two sites on a grid ------------------------------------------------------------ */
 
+/* The cell of coordinate x along one axis of the grid, clamped to [0, dim - 1]. */
+static inline idx cell_along(double x, double origin, double size, idx dim) {
+    double k = floor((x - origin) / size);
+    return k < 0.0 ? 0 : (k > (double)(dim - 1) ? dim - 1 : (idx)k);
+}
+
 /* Sites sorted by cell (a counting sort): first (cells + 1 entries, zeroed by the caller) and
  * order, each cell's sites in index order. Returns 0, or -1 when memory is short. */
 idx o3dreg_grid_build(const double *sites, idx n, const double *origin, double size,
@@ -324,9 +330,7 @@ idx o3dreg_grid_build(const double *sites, idx n, const double *origin, double s
     for (idx i = 0; i < n; i++) {
         idx c = 0;
         for (int a = 0; a < 3; a++) {
-            double k = floor((sites[3 * i + a] - origin[a]) / size);
-            idx j = k < 0.0 ? 0 : (k > (double)(dims[a] - 1) ? dims[a] - 1 : (idx)k);
-            c = c * dims[a] + j;
+            c = c * dims[a] + cell_along(sites[3 * i + a], origin[a], size, dims[a]);
         }
         cell[i] = c;
         first[c + 1]++;
@@ -384,8 +388,7 @@ static two search_two(const double *sites, const idx *first, const idx *order, c
     idx c[3];
     double away[3]; /* distance from the point to the grid's extent, per axis */
     for (int a = 0; a < 3; a++) {
-        double k = floor((p3[a] - origin[a]) / size);
-        c[a] = k < 0.0 ? 0 : (k > (double)(dims[a] - 1) ? dims[a] - 1 : (idx)k);
+        c[a] = cell_along(p3[a], origin[a], size, dims[a]);
         double top = origin[a] + (double)dims[a] * size;
         away[a] = greater(greater(origin[a] - p3[a], 0.0), p3[a] - top);
     }

@@ -382,8 +382,9 @@ def _coarse_to_fine(
             normals = orientation * vertex_normals(points + previous, fs)[use]
         offsets = None
         if use_target is not None and samples is not None:
+            surface_samples, sample_weights = samples
             offsets = _barycentre_offsets(
-                (points + previous)[use], samples[0], deformation, samples[1]
+                (points + previous)[use], surface_samples, deformation, sample_weights
             )
         problem = LevelProblem(
             points[use],
