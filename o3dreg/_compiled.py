@@ -34,7 +34,7 @@ def _array(dtype: Any) -> Any:
     return np.ctypeslib.ndpointer(dtype=dtype, flags="C_CONTIGUOUS")
 
 
-_f8, _i8, _u1 = _array(np.float64), _array(np.int64), _array(np.uint8)
+_f8, _i8, _i4, _u1 = (_array(t) for t in (np.float64, np.int64, np.int32, np.uint8))
 
 #: Argument types of each kernel, checked by ctypes at every call (dtype and contiguity).
 _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
@@ -51,6 +51,8 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
         None,
         [_f8, _i8, _i8, _f8, _double, _i8, _f8, _f8, _i8, _int, _int],
     ),
+    "o3dreg_lattice_field": (None, [_f8, _f8, _i8, _f8, _f8, ctypes.c_int, _f8, _int, _int]),
+    "o3dreg_damped_cg": (_int, [_int, _i4, _i4, _f8, _f8, _f8, _double, _int, _f8]),
     "o3dreg_ply_walk": (
         _int,
         [_u1, _int, _int, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int],

@@ -461,6 +461,174 @@ void o3dreg_grid_reassign(const double *sites, const idx *first, const idx *orde
     }
 }
 
+/* ---- trilinear lattices --------------------------------------------------------------------- */
+
+/* The cell of point p and the factors of its 8 corners' trilinear weights and their derivatives
+ * (o3dreg.registration.lattice.TrilinearLattice.basis): f[bit][axis] the weight factors,
+ * df[bit][axis] their derivatives (zero along an axis where p lies outside the box, which the
+ * field is clamped to). Returns the cell's first node. */
+static idx trilinear(const double *origin, const double *cell, const idx *shape, const double *p,
+                     double f[2][3], double df[2][3]) {
+    idx c[3];
+    for (int a = 0; a < 3; a++) {
+        double s = (p[a] - origin[a]) / cell[a];
+        double top = (double)shape[a];
+        int inside = s >= 0.0 && s <= top;
+        s = s >= 0.0 ? (s <= top ? s : top) : 0.0; /* NaN (a non-finite box) to 0 */
+        double k = floor(s);
+        c[a] = k > (double)(shape[a] - 1) ? shape[a] - 1 : (idx)k;
+        double t = s - (double)c[a];
+        f[0][a] = 1.0 - t;
+        f[1][a] = t;
+        df[0][a] = inside ? -1.0 / cell[a] : 0.0;
+        df[1][a] = inside ? 1.0 / cell[a] : 0.0;
+    }
+    return (c[0] * (shape[1] + 1) + c[1]) * (shape[2] + 1) + c[2];
+}
+
+/* Adds the displacement of the lattice (node displacements `field`, (nodes x 3)) at points
+ * begin..end-1 to out (k x 3); with `gradient`, adds its spatial derivative to out (k x 3 x 3,
+ * [c][a] = d u_c / d x_a) instead. */
+void o3dreg_lattice_field(const double *origin, const double *cell, const idx *shape,
+                          const double *field, const double *points, int gradient, double *out,
+                          idx begin, idx end) {
+    idx ny1 = shape[1] + 1, nz1 = shape[2] + 1;
+    for (idx i = begin; i < end; i++) {
+        double f[2][3], df[2][3];
+        idx first = trilinear(origin, cell, shape, points + 3 * i, f, df);
+        double sum[9] = {0.0};
+        for (int k = 0; k < 8; k++) {
+            int b0 = k >> 2, b1 = (k >> 1) & 1, b2 = k & 1;
+            const double *d = field + 3 * (first + (b0 * ny1 + b1) * nz1 + b2);
+            if (gradient) {
+                double g[3] = {df[b0][0] * f[b1][1] * f[b2][2], f[b0][0] * df[b1][1] * f[b2][2],
+                               f[b0][0] * f[b1][1] * df[b2][2]};
+                for (int c = 0; c < 3; c++)
+                    for (int a = 0; a < 3; a++) sum[3 * c + a] += d[c] * g[a];
+            } else {
+                double w = f[b0][0] * f[b1][1] * f[b2][2];
+                for (int c = 0; c < 3; c++) sum[c] += w * d[c];
+            }
+        }
+        int count = gradient ? 9 : 3;
+        for (int e = 0; e < count; e++) out[count * i + e] += sum[e];
+    }
+}
+
+/* ---- damped normal equations by conjugate gradients ----------------------------------------- */
+
+static double dot_n(const double *a, const double *b, idx n) {
+    double s = 0.0;
+    for (idx i = 0; i < n; i++) s += a[i] * b[i];
+    return s;
+}
+
+/* y = (A + diag(damping)) x for A in 3x3-block CSR form (indptr, indices, blocks row-major). */
+static void damped_product(idx nb, const int32_t *indptr, const int32_t *indices,
+                           const double *blocks, const double *damping, const double *x,
+                           double *y) {
+    for (idx r = 0; r < nb; r++) {
+        double s0 = damping[3 * r] * x[3 * r], s1 = damping[3 * r + 1] * x[3 * r + 1],
+               s2 = damping[3 * r + 2] * x[3 * r + 2];
+        for (idx k = indptr[r]; k < indptr[r + 1]; k++) {
+            const double *m = blocks + 9 * k, *v = x + 3 * (idx)indices[k];
+            s0 += m[0] * v[0] + m[1] * v[1] + m[2] * v[2];
+            s1 += m[3] * v[0] + m[4] * v[1] + m[5] * v[2];
+            s2 += m[6] * v[0] + m[7] * v[1] + m[8] * v[2];
+        }
+        y[3 * r] = s0;
+        y[3 * r + 1] = s1;
+        y[3 * r + 2] = s2;
+    }
+}
+
+/* The Cholesky factor (l00, l10, l11, l20, l21, l22) of a symmetric 3x3 block, or of its
+ * diagonal where the block is not positive definite. */
+static void block_factor(const double *m, const double *damping, double *l) {
+    double a00 = m[0] + damping[0], a11 = m[4] + damping[1], a22 = m[8] + damping[2];
+    double a10 = m[3], a20 = m[6], a21 = m[7];
+    double l00 = a00 > 0.0 ? sqrt(a00) : 0.0;
+    double l10 = l00 > 0.0 ? a10 / l00 : 0.0, l20 = l00 > 0.0 ? a20 / l00 : 0.0;
+    double p11 = a11 - l10 * l10;
+    double l11 = p11 > 0.0 ? sqrt(p11) : 0.0;
+    double l21 = l11 > 0.0 ? (a21 - l20 * l10) / l11 : 0.0;
+    double p22 = a22 - l20 * l20 - l21 * l21;
+    double l22 = p22 > 0.0 ? sqrt(p22) : 0.0;
+    if (l00 > 0.0 && l11 > 0.0 && l22 > 0.0 && isfinite(l21) && isfinite(l22)) {
+        double out[6] = {l00, l10, l11, l20, l21, l22};
+        memcpy(l, out, sizeof out);
+        return;
+    }
+    double out[6] = {a00 > 0.0 ? sqrt(a00) : 1.0, 0.0, a11 > 0.0 ? sqrt(a11) : 1.0,
+                     0.0, 0.0, a22 > 0.0 ? sqrt(a22) : 1.0};
+    memcpy(l, out, sizeof out);
+}
+
+/* z = L^-T L^-1 r for one block's factor. */
+static inline void block_apply(const double *l, const double *r, double *z) {
+    double y0 = r[0] / l[0];
+    double y1 = (r[1] - l[1] * y0) / l[2];
+    double y2 = (r[2] - l[3] * y0 - l[4] * y1) / l[5];
+    z[2] = y2 / l[5];
+    z[1] = (y1 - l[4] * z[2]) / l[2];
+    z[0] = (y0 - l[1] * z[1] - l[3] * z[2]) / l[0];
+}
+
+/* Solves (A + diag(damping)) x = b (A symmetric positive semidefinite, 3x3-block CSR; each row's
+ * blocks include its diagonal block) by conjugate gradients preconditioned by the inverse of
+ * each 3x3 diagonal block, from x = 0, until |r| <= rtol |b|. Returns the iterations, -1 when
+ * maxiter iterations do not reach the tolerance (or the iteration breaks down), -2 when memory
+ * is short. */
+idx o3dreg_damped_cg(idx nb, const int32_t *indptr, const int32_t *indices, const double *blocks,
+                     const double *damping, const double *b, double rtol, idx maxiter, double *x) {
+    idx n = 3 * nb;
+    double *work = malloc(sizeof(double) * (size_t)(4 * n + 6 * nb + 1));
+    if (!work) return -2;
+    double *r = work, *z = r + n, *p = z + n, *q = p + n, *factor = q + n;
+    for (idx row = 0; row < nb; row++) {
+        const double *diagonal = NULL;
+        for (idx k = indptr[row]; k < indptr[row + 1]; k++)
+            if (indices[k] == row) diagonal = blocks + 9 * k;
+        double zero[9] = {0.0};
+        block_factor(diagonal ? diagonal : zero, damping + 3 * row, factor + 6 * row);
+    }
+    for (idx i = 0; i < n; i++) {
+        x[i] = 0.0;
+        r[i] = b[i];
+    }
+    double bound = rtol * sqrt(dot_n(b, b, n));
+    idx result = -1;
+    if (sqrt(dot_n(r, r, n)) <= bound) {
+        result = 0;
+    } else {
+        for (idx row = 0; row < nb; row++) block_apply(factor + 6 * row, r + 3 * row, z + 3 * row);
+        memcpy(p, z, sizeof(double) * (size_t)n);
+        double rho = dot_n(r, z, n);
+        for (idx it = 1; it <= maxiter; it++) {
+            damped_product(nb, indptr, indices, blocks, damping, p, q);
+            double pq = dot_n(p, q, n);
+            if (!(pq > 0.0) || !isfinite(rho)) break;
+            double alpha = rho / pq;
+            for (idx i = 0; i < n; i++) {
+                x[i] += alpha * p[i];
+                r[i] -= alpha * q[i];
+            }
+            if (sqrt(dot_n(r, r, n)) <= bound) {
+                result = it;
+                break;
+            }
+            for (idx row = 0; row < nb; row++)
+                block_apply(factor + 6 * row, r + 3 * row, z + 3 * row);
+            double next = dot_n(r, z, n);
+            double beta = next / rho;
+            rho = next;
+            for (idx i = 0; i < n; i++) p[i] = z[i] + beta * p[i];
+        }
+    }
+    free(work);
+    return result;
+}
+
 /* ---- binary PLY face records ------------------------------------------------------------- */
 
 /* Walk `faces` records of a binary PLY list property: a count of `count_size` bytes (1, 2 or 4;

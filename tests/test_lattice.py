@@ -86,6 +86,34 @@ def test_displacement_gradient_matches_finite_differences():
     np.testing.assert_allclose(lat.displacement_gradient(pts), fd, atol=1e-6)
 
 
+def test_the_compiled_field_is_the_trilinear_basis_summed():
+    # The kernel against the NumPy formula of the basis (``basis``: nodes, weights and their
+    # derivatives), inside the box, on its faces and outside it (clamped).
+    lat = random_lattice(shape=(3, 4, 2))
+    pts = points_in(lat, n=400, margin=1.5)
+    pts[:20] = lat.node_positions()[:20]  # exactly on nodes and faces
+    nodes, w, grads = lat.basis(pts)
+    d = lat.displacements.reshape(-1, 3)[nodes]  # (n, 8, 3)
+    # Rounding of 8 products of O(1) numbers.
+    np.testing.assert_allclose(lat.displacement(pts), (w[:, :, None] * d).sum(1), atol=1e-13)
+    expected = (d[:, :, :, None] * grads[:, :, None, :]).sum(1)
+    np.testing.assert_allclose(lat.displacement_gradient(pts), expected, atol=1e-13)
+
+
+def test_the_field_adds_to_out_and_refuses_what_it_cannot_place():
+    lat = random_lattice()
+    pts = points_in(lat, n=50)
+    out = np.ones((50, 3))
+    assert lat.displacement(pts, out=out) is out
+    np.testing.assert_array_equal(out, 1.0 + lat.displacement(pts))
+    with pytest.raises(ValueError, match="out"):
+        lat.displacement_gradient(pts, out=np.zeros((50, 3)))
+    bad = pts.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        lat.displacement(bad)
+
+
 def test_outside_the_box_is_clamped():
     lat = random_lattice()
     inside = lat.origin + lat.size * np.array([0.3, 1.0, 0.6])

@@ -149,3 +149,61 @@ def test_kept_jumps_shorten_a_lloyd_level(monkeypatch):
     assert with_jumps.iterations < plain.iterations
     assert with_jumps.evaluations < plain.evaluations
     assert with_jumps.evaluation.cost <= plain.evaluation.cost
+
+
+def block_system(seed=0, nodes=60):
+    """A symmetric positive semidefinite 3x3-block matrix on a chain of nodes (each coupled with
+    its neighbours within 3), with rank-1 blocks on the diagonal: point-to-plane normal
+    equations' shape, whose x, y, z are coupled at every node."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for _ in range(4 * nodes):
+        g = rng.normal(size=3)
+        a = int(rng.integers(0, nodes))
+        b = min(nodes - 1, a + int(rng.integers(0, 4)))
+        r = np.zeros(3 * nodes)
+        r[3 * a : 3 * a + 3] += g
+        r[3 * b : 3 * b + 3] += 0.5 * g
+        rows.append(r)
+    J = np.array(rows)
+    return J.T @ J
+
+
+def test_the_damped_system_is_solved_to_the_conjugate_gradients_tolerance():
+    import scipy.sparse as sp
+
+    A = block_system()
+    n = A.shape[0]
+    assert n > _solvers.DENSE_UNKNOWNS  # the conjugate-gradients path
+    rng = np.random.default_rng(1)
+    b = rng.normal(size=n)
+    damping = 1e-3 * np.maximum(np.diag(A), 1e-12)
+    x = _solvers.DampedSystem(sp.bsr_matrix(A, blocksize=(3, 3))).solve_damped(damping, b)
+    M = A + np.diag(damping)
+    residual = np.linalg.norm(M @ x - b)
+    assert residual <= _solvers.CG_RTOL * np.linalg.norm(b) * (1 + 1e-9)
+    # From a CSR matrix too (the system takes any sparse format).
+    y = _solvers.DampedSystem(sp.csr_matrix(A)).solve_damped(damping, b)
+    np.testing.assert_array_equal(x, y)
+
+
+def test_the_damped_system_falls_back_to_a_direct_solve(monkeypatch):
+    import scipy.sparse as sp
+
+    A = block_system(seed=2)
+    n = A.shape[0]
+    b = np.random.default_rng(3).normal(size=n)
+    damping = 1e-3 * np.maximum(np.diag(A), 1e-12)
+    exact = np.linalg.solve(A + np.diag(damping), b)
+    # Conjugate gradients stopped after one iteration: the sparse LU answers.
+    monkeypatch.setattr(_solvers, "CG_MAXITER", 1)
+    x = _solvers.DampedSystem(sp.bsr_matrix(A, blocksize=(3, 3))).solve_damped(damping, b)
+    np.testing.assert_allclose(x, exact, rtol=1e-8, atol=1e-10 * np.abs(exact).max())
+    # An indefinite system breaks conjugate gradients down (p.Ap <= 0): the LU answers it too.
+    monkeypatch.setattr(_solvers, "CG_MAXITER", 1000)
+    indefinite = A - 0.5 * np.abs(A).max() * np.eye(n)
+    exact = np.linalg.solve(indefinite, b)
+    x = _solvers.DampedSystem(sp.bsr_matrix(indefinite, blocksize=(3, 3))).solve_damped(
+        np.zeros(n), b
+    )
+    np.testing.assert_allclose(x, exact, rtol=1e-8, atol=1e-10 * np.abs(exact).max())

@@ -75,12 +75,20 @@ class NormalAssembly:
         self.pairs = keys.size
         cell_slot = np.searchsorted(keys, cell_key)
         # S[pair, point] = W_ia W_ib: the node-level matrix of per-point scalars c is S @ c.
+        # Built as its transpose, one row of pairs per point, straight into CSR form (no sort):
+        # S = S^T^T is then column-compressed, and S @ c sums each pair's points in point
+        # order, as a row-compressed S would.
         valid = cell_valid[cell_of]
-        point = np.broadcast_to(np.arange(n)[:, None, None], (n, 8, 8))[valid]
         factor = (weights[:, :, None] * weights[:, None, :])[valid]
-        self.S = sp.csr_matrix((factor, (cell_slot[cell_of][valid], point)), shape=(self.pairs, n))
+        per_point = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(cell_valid.sum(axis=(1, 2))[cell_of], out=per_point[1:])
+        transposed = sp.csr_matrix(
+            (factor, cell_slot[cell_of][valid], per_point), shape=(n, self.pairs)
+        )
+        self.S = transposed.T
+        # The regulariser's pairs are distinct entries of a sparse product.
         self.gram_values = np.zeros(self.pairs)
-        np.add.at(self.gram_values, np.searchsorted(keys, gram_key), gram.data)
+        self.gram_values[np.searchsorted(keys, gram_key)] = gram.data
         # The trilinear weights W (n, m) of the free nodes, and W^T for the right-hand sides.
         rows_w = np.broadcast_to(np.arange(n)[:, None], nodes.shape)
         keep = nodes >= 0

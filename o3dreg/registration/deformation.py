@@ -104,9 +104,9 @@ class LatticeDeformation:
     def displacement(self, points: Any) -> np.ndarray:
         """``T(x) - x`` at ``points (n, 3)``."""
         pts = self._local(as_points(points, "points", allow_empty=True))
-        out = np.zeros_like(pts)
+        out = np.zeros(pts.shape)
         for lat in self.levels:
-            out += lat.displacement(pts)
+            lat.displacement(pts, out=out)
         return out if self.frame is None else out @ self.frame[:3, :3].T
 
     def transform(self, points: Any) -> np.ndarray:
@@ -119,7 +119,7 @@ class LatticeDeformation:
         pts = self._local(as_points(points, "points", allow_empty=True))
         jac = np.broadcast_to(np.eye(3), (pts.shape[0], 3, 3)).copy()
         for lat in self.levels:
-            jac += lat.displacement_gradient(pts)
+            lat.displacement_gradient(pts, out=jac)
         if self.frame is None:
             return jac
         rotation = self.frame[:3, :3]

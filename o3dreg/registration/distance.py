@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from functools import cached_property
 from typing import Any
 
@@ -50,12 +51,27 @@ class SurfaceDistanceQuery:
 
     @cached_property
     def _tree(self) -> TriangleTree:
+        pending = self.__dict__.pop("_building", None)
+        if pending is not None:
+            return pending.result()  # type: ignore[no-any-return]
         return TriangleTree(self.vertices, self.faces)
 
     @property
     def has_tree(self) -> bool:
-        """Whether the AABB tree is built (by the first :meth:`closest`)."""
-        return "_tree" in self.__dict__
+        """Whether the AABB tree is built (by the first :meth:`closest`) or being built (see
+        :meth:`prefetch_tree`)."""
+        return "_tree" in self.__dict__ or "_building" in self.__dict__
+
+    def prefetch_tree(self) -> None:
+        """Start building the AABB tree on a thread of its own; the first :meth:`closest` waits
+        for it (and raises what the build raised). The build is compiled code without the GIL:
+        a registration that will need the tree of the full target later builds it while its
+        coarse levels run on the target's levels of detail."""
+        if self.has_tree:
+            return
+        builder = ThreadPoolExecutor(1, thread_name_prefix="o3dreg-tree")
+        self.__dict__["_building"] = builder.submit(TriangleTree, self.vertices, self.faces)
+        builder.shutdown(wait=False)
 
     @cached_property
     def face_normals(self) -> np.ndarray:
@@ -286,6 +302,9 @@ class FramedQuery(SurfaceDistanceQuery):
     @property
     def has_tree(self) -> bool:
         return self._surface.has_tree
+
+    def prefetch_tree(self) -> None:
+        self._surface.prefetch_tree()
 
     @property  # type: ignore[override]
     def open_edges(self) -> tuple[np.ndarray, np.ndarray]:

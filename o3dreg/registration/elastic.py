@@ -326,10 +326,11 @@ def _coarse_to_fine(
     target_points = vt if symmetric_levels else None
 
     surface.build_levels_of_detail(
-        float(size.min()) / lev.resolution / TARGET_VOXELS_PER_CELL
-        for lev in levels_
-        if lev.simplify_target
+        _detail_voxel(size, lev) for lev in levels_ if lev.simplify_target
     )
+    if any(_level_query(surface, size, lev) is query for lev in levels_):
+        # A level measures on the full target: its tree builds while the coarser levels run.
+        query.prefetch_tree()
     orientation = 1.0
     if estimation_method.max_normal_angle is not None:
         orientation = _relative_orientation(points, fs, surface.finest_detail())
@@ -362,9 +363,7 @@ def _coarse_to_fine(
         if target_points is not None and level_weight > 0:
             budget = int(estimation_method.target_points_per_source_point * use.size)
             use_target = surface.subsample(budget)
-        level_query = query
-        if level.simplify_target:
-            level_query = surface.at_detail(float(lattice.cell_size.min()) / TARGET_VOXELS_PER_CELL)
+        level_query = _level_query(surface, size, level)
         robustness = Robustness(
             loss=estimation_method.loss,
             loss_scale=estimation_method.loss_scale,
@@ -452,6 +451,20 @@ def _coarse_to_fine(
         det=float(deformation.jacobian_determinant(points).min()) if deformation.levels else 1.0,
         cell_det=_min_cell_determinant(deformation, points),
     )
+
+
+def _detail_voxel(size: np.ndarray, level: ElasticLevel) -> float:
+    """The voxel of the target's level of detail for ``level`` (lattice box of sides ``size``)."""
+    return float(size.min()) / level.resolution / TARGET_VOXELS_PER_CELL
+
+
+def _level_query(
+    surface: TargetSurface, size: np.ndarray, level: ElasticLevel
+) -> SurfaceDistanceQuery:
+    """What ``level`` measures distances to: the target, or its level of detail."""
+    if not level.simplify_target:
+        return surface.query
+    return surface.at_detail(_detail_voxel(size, level))
 
 
 def _lattice_frame(transformation: np.ndarray) -> np.ndarray | None:
@@ -573,9 +586,10 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (zero for vertices of no non-degenerate triangle)."""
     a, b, c = (vertices[faces[:, k]] for k in range(3))
     fn = np.cross(b - a, c - a)
-    out = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(out, faces[:, k], fn)
+    # Each vertex's triangles summed in order of corner, then of triangle.
+    corners = faces.T.ravel()
+    n = vertices.shape[0]
+    out = np.stack([np.bincount(corners, np.tile(fn[:, d], 3), minlength=n) for d in range(3)], 1)
     length = np.linalg.norm(out, axis=1, keepdims=True)
     return out / np.where(length > 0, length, 1.0)
 

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from .._compiled import library, split
+
 __all__ = ["TrilinearLattice", "corner_offsets"]
 
 
@@ -197,21 +199,44 @@ class TrilinearLattice:
         return sp.csr_matrix((w.ravel(), (rows, nodes.ravel())), shape=(n, self.number_of_nodes))
 
     # -- the field ------------------------------------------------------------------------------
-    def displacement(self, points: np.ndarray) -> np.ndarray:
-        """Displacement at ``points (n, 3)``."""
-        nodes, w = self.weights(points)
-        d = self.displacements.reshape(-1, 3)
-        return np.einsum("nk,nkc->nc", w, d[nodes])
+    def displacement(self, points: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Displacement at ``points (n, 3)``; added to ``out`` (``(n, 3)``) when given."""
+        return self._field(points, False, out)
 
-    def displacement_gradient(self, points: np.ndarray) -> np.ndarray:
-        """Spatial derivative of the displacement, ``(n, 3, 3)`` with ``[p, c, a] = d u_c / d x_a``.
+    def displacement_gradient(
+        self, points: np.ndarray, out: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Spatial derivative of the displacement, ``(n, 3, 3)`` with ``[p, c, a] = d u_c / d x_a``;
+        added to ``out`` when given.
 
         Exact inside each cell; on a cell face it is the one-sided derivative of the cell the point
         is assigned to. Zero along axes where the point lies outside the box (clamped field).
         """
-        nodes, _, grads = self.basis(points)
-        d = self.displacements.reshape(-1, 3)[nodes]  # (n, 8, 3)
-        return np.einsum("nkc,nka->nca", d, grads)
+        return self._field(points, True, out)
+
+    def _field(self, points: np.ndarray, gradient: bool, out: np.ndarray | None) -> np.ndarray:
+        """The displacement or its gradient at ``points``, by the compiled kernel (the same
+        weights as :meth:`basis`, summed over the 8 corners in corner order)."""
+        pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        shape = (pts.shape[0], 3, 3) if gradient else (pts.shape[0], 3)
+        if out is None:
+            out = np.zeros(shape)
+        elif out.shape != shape or out.dtype != np.float64 or not out.flags.c_contiguous:
+            raise ValueError(f"`out` must be a C-contiguous float64 array of shape {shape}")
+        if not np.isfinite(pts).all():
+            raise ValueError("the lattice's field is evaluated at finite points only")
+        split(
+            library.o3dreg_lattice_field,
+            pts.shape[0],
+            np.ascontiguousarray(self.origin, dtype=np.float64),
+            np.ascontiguousarray(self.cell_size, dtype=np.float64),
+            np.asarray(self.shape, dtype=np.int64),
+            np.ascontiguousarray(self.displacements, dtype=np.float64),
+            pts,
+            int(gradient),
+            out,
+        )
+        return out
 
     def with_displacements(self, displacements: np.ndarray) -> TrilinearLattice:
         """A copy of this lattice with other node displacements."""
