@@ -53,6 +53,12 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     ),
     "o3dreg_lattice_field": (None, [_f8, _f8, _i8, _f8, _f8, ctypes.c_int, _f8, _int, _int]),
     "o3dreg_damped_cg": (_int, [_int, _i4, _i4, _f8, _f8, _f8, _double, _int, _f8]),
+    "o3dreg_face_cross": (None, [_f8, _i8, ctypes.c_int, _f8, _int, _int]),
+    "o3dreg_beyond_boundary": (
+        None,
+        [_f8, _i8, _u1, _u1, _u1, _f8, _i8, _f8, _double, _u1, _int, _int],
+    ),
+    "o3dreg_pair_sums": (None, [_int, _i8, _i4, _f8, _f8, _int, _f8]),
     "o3dreg_ply_walk": (
         _int,
         [_u1, _int, _int, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int],

@@ -629,6 +629,102 @@ idx o3dreg_damped_cg(idx nb, const int32_t *indptr, const int32_t *indices, cons
     return result;
 }
 
+/* ---- per-triangle measures and the open boundary ------------------------------------------- */
+
+/* (b - a) x (c - a) of triangle t, with NumPy's operations in NumPy's order
+ * (o3dreg._geometry.face_cross). */
+static inline vec face_cross_of(const double *vertices, const idx *faces, idx t) {
+    const double *a = vertices + 3 * faces[3 * t], *b = vertices + 3 * faces[3 * t + 1],
+                 *c = vertices + 3 * faces[3 * t + 2];
+    double b0 = b[0] - a[0], b1 = b[1] - a[1], b2 = b[2] - a[2];
+    double c0 = c[0] - a[0], c1 = c[1] - a[1], c2 = c[2] - a[2];
+    return (vec){b1 * c2 - b2 * c1, b2 * c0 - b0 * c2, b0 * c1 - b1 * c0};
+}
+
+static inline double norm_of(vec v) { return sqrt(v.x * v.x + v.y * v.y + v.z * v.z); }
+
+/* Triangles begin..end-1: their cross products (out, m x 3), or with `areas` the cross
+ * products' lengths (out, m): twice their areas. */
+void o3dreg_face_cross(const double *vertices, const idx *faces, int areas, double *out,
+                       idx begin, idx end) {
+    for (idx t = begin; t < end; t++) {
+        vec n = face_cross_of(vertices, faces, t);
+        if (areas) {
+            out[t] = norm_of(n);
+        } else {
+            out[3 * t] = n.x;
+            out[3 * t + 1] = n.y;
+            out[3 * t + 2] = n.z;
+        }
+    }
+}
+
+/* Whether points begin..end-1 lie beyond the surface's open boundary
+ * (o3dreg.registration.distance.SurfaceDistanceQuery.beyond_boundary): the closest point
+ * (closest, on triangle face) has a barycentric coordinate <= 1e-9 opposite an open edge, or two
+ * such coordinates at a boundary vertex, and the offset's part tangent to the triangle is longer
+ * than `reach`. Per triangle: open_edge (m x 3), touches (whether it touches the boundary); per
+ * vertex: on_boundary. The barycentric coordinates are o3dreg._geometry.barycentric's. */
+void o3dreg_beyond_boundary(const double *vertices, const idx *faces, const uint8_t *open_edge,
+                            const uint8_t *touches, const uint8_t *on_boundary,
+                            const double *points, const idx *face, const double *closest,
+                            double reach, uint8_t *out, idx begin, idx end) {
+    for (idx i = begin; i < end; i++) {
+        idx t = face[i];
+        out[i] = 0;
+        if (!touches[t]) continue;
+        const idx *corner = faces + 3 * t;
+        vec a = {vertices[3 * corner[0]], vertices[3 * corner[0] + 1], vertices[3 * corner[0] + 2]};
+        vec b = {vertices[3 * corner[1]], vertices[3 * corner[1] + 1], vertices[3 * corner[1] + 2]};
+        vec c = {vertices[3 * corner[2]], vertices[3 * corner[2] + 1], vertices[3 * corner[2] + 2]};
+        vec q = {closest[3 * i], closest[3 * i + 1], closest[3 * i + 2]};
+        vec v0 = sub(b, a), v1 = sub(c, a), v2 = sub(q, a);
+        double d00 = dot(v0, v0), d01 = dot(v0, v1), d11 = dot(v1, v1);
+        double d20 = dot(v2, v0), d21 = dot(v2, v1);
+        double denom = d00 * d11 - d01 * d01;
+        if (denom == 0.0) denom = 1.0;
+        double v = (d11 * d20 - d01 * d21) / denom, w = (d00 * d21 - d01 * d20) / denom;
+        double bary[3] = {1.0 - v - w, v, w}, total;
+        for (int k = 0; k < 3; k++) bary[k] = bary[k] < 0.0 ? 0.0 : bary[k];
+        total = bary[0] + bary[1] + bary[2];
+        int hit = 0, tiny = 0, top = 0;
+        for (int k = 0; k < 3; k++) {
+            bary[k] /= total;
+            if (bary[k] <= 1e-9) {
+                tiny++;
+                hit |= open_edge[3 * t + k];
+            }
+            if (bary[k] > bary[top]) top = k;
+        }
+        if (tiny >= 2) hit |= on_boundary[corner[top]]; /* at a corner: that vertex */
+        if (!hit) continue;
+        vec n = face_cross_of(vertices, faces, t);
+        double length = norm_of(n);
+        if (!(length > 0.0)) length = 1.0;
+        n = (vec){n.x / length, n.y / length, n.z / length};
+        vec diff = sub((vec){points[3 * i], points[3 * i + 1], points[3 * i + 2]}, q);
+        double along_normal = dot(diff, n);
+        vec tangent = sub(diff, (vec){along_normal * n.x, along_normal * n.y, along_normal * n.z});
+        out[i] = norm_of(tangent) > reach;
+    }
+}
+
+/* ---- the normal equations' pair sums -------------------------------------------------------- */
+
+/* out[pair] += factor * metric[point] (columns values) for every (point, pair, factor) of a
+ * row-compressed (points x pairs) matrix: S @ metric with S its transpose, each pair's points
+ * summed in point order (as SciPy's product with the column-compressed S). */
+void o3dreg_pair_sums(idx points, const int64_t *indptr, const int32_t *slot,
+                      const double *factor, const double *metric, idx columns, double *out) {
+    for (idx i = 0; i < points; i++) {
+        const double *m = metric + columns * i;
+        for (idx k = indptr[i]; k < indptr[i + 1]; k++) {
+            double *o = out + columns * (idx)slot[k];
+            for (idx c = 0; c < columns; c++) o[c] += factor[k] * m[c];
+        }
+    }
+}
+
 /* ---- binary PLY face records ------------------------------------------------------------- */
 
 /* Walk `faces` records of a binary PLY list property: a count of `count_size` bytes (1, 2 or 4;

@@ -17,6 +17,7 @@ from o3dreg import (
     load_deformation,
     registration_elastic,
 )
+from o3dreg._geometry import barycentric
 from o3dreg.app.synthetic import SmoothWarp, synthetic_form
 from o3dreg.registration._cost import robust_weights
 from o3dreg.registration._target import canonical_mesh
@@ -56,6 +57,24 @@ def test_boundary_detection_on_a_square():
     assert not SurfaceDistanceQuery(*arrays(closed)).has_boundary
 
 
+def beyond_by_numpy(q, points, face, closest):
+    """The boundary test of ``SurfaceDistanceQuery.beyond_boundary`` written in NumPy for every
+    point (the reference of the compiled test, which looks only at triangles touching the
+    boundary)."""
+    open_edge, on_boundary = q.open_edges
+    corners = q.faces[face]
+    bary = barycentric(q.vertices[corners], closest)
+    tiny = bary <= 1e-9
+    hit = (tiny & open_edge[face]).any(axis=1)
+    vertex_hit = tiny.sum(axis=1) >= 2
+    corner = np.argmax(bary, axis=1)
+    hit |= vertex_hit & on_boundary[corners[np.arange(len(face)), corner]]
+    diff = points - closest
+    n = q.face_normal(face)
+    tangent = diff - (diff * n).sum(axis=1, keepdims=True) * n
+    return hit & (np.linalg.norm(tangent, axis=1) > 0.5 * q.mean_edge)
+
+
 def test_boundary_test_only_looks_at_triangles_touching_the_boundary(bunny_target):
     # The cut bunny: points around it, far and near. Only closest points on triangles with an
     # open edge or corner are tested; the answer must be that of testing every point.
@@ -63,11 +82,16 @@ def test_boundary_test_only_looks_at_triangles_touching_the_boundary(bunny_targe
     q = SurfaceDistanceQuery(v, f)
     rng = np.random.default_rng(0)
     pts = v[rng.choice(len(v), 3000)] + rng.normal(scale=5.0, size=(3000, 3))
+    # Points on boundary vertices, and beside them (their closest points at a corner).
+    rim = np.flatnonzero(q.open_edges[1])[:50]
+    pts = np.concatenate([pts, v[rim] + [3.0, 0.0, 0.0], v[rim]])
     _, face, closest = q.closest(pts)
     beyond = q.beyond_boundary(pts, face, closest)
-    np.testing.assert_array_equal(beyond, q._beyond(pts, face, closest))
+    np.testing.assert_array_equal(beyond, beyond_by_numpy(q, pts, face, closest))
     assert 0 < beyond.sum() < len(pts)  # both answers occur
-    assert q._touches_boundary.mean() < 0.1  # few triangles are tested at all
+    assert q._boundary_flags[1].mean() < 0.1  # few triangles are tested at all
+    with pytest.raises(ValueError, match="face"):
+        q.beyond_boundary(pts[:2], np.array([0, len(f)]), closest[:2])
 
 
 def test_robust_weights_formulas():

@@ -214,6 +214,9 @@ def test_normal_assembly_is_the_sum_over_points():
     # The same products summed in another order: equal to rounding.
     np.testing.assert_allclose(A.toarray(), expected, rtol=0, atol=1e-12 * abs(expected).max())
     np.testing.assert_allclose(assembly.vector(f), (W.T @ f).ravel(), rtol=0, atol=1e-12)
+    # The compiled pair sums read one value (row) per point: anything else is refused.
+    with pytest.raises(ValueError, match="points"):
+        assembly.pair_sums(np.zeros(n + 1))
 
 
 def brute_force_nearest(points: np.ndarray, sites: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -7,15 +7,17 @@ for a point-to-surface row, ``s_i^2 I`` for a barycentre row), its share of ``J^
 ``sum_i W_i^T (x) f_i``. So the pattern of ``J^T J`` (node pairs sharing a cell, plus the
 regulariser's stencils) and the factor ``W_ia W_ib`` of every point in every pair are known when
 the level starts. :class:`NormalAssembly` computes them once; each linearisation is then one
-sparse-times-dense product ``S @ M`` (``S`` the pair factors, ``(pairs, points)``) and a
-3x3-block sparse matrix built on the stored pattern, instead of sparse-times-sparse products
-whose pattern scipy rediscovers at every step.
+pass of sums ``S @ M`` (``S`` the pair factors, ``(pairs, points)``; compiled) and a 3x3-block
+sparse matrix built on the stored pattern, instead of sparse-times-sparse products whose
+pattern scipy rediscovers at every step.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+
+from .._compiled import library
 
 #: The 6 distinct entries of a symmetric 3x3 matrix, as (row, column), in column order of the
 #: ``(n, 6)`` arrays of :meth:`NormalAssembly.matrix`.
@@ -74,18 +76,15 @@ class NormalAssembly:
         self.indptr = np.searchsorted(keys // max(m, 1), np.arange(m + 1)).astype(np.int32)
         self.pairs = keys.size
         cell_slot = np.searchsorted(keys, cell_key)
-        # S[pair, point] = W_ia W_ib: the node-level matrix of per-point scalars c is S @ c.
-        # Built as its transpose, one row of pairs per point, straight into CSR form (no sort):
-        # S = S^T^T is then column-compressed, and S @ c sums each pair's points in point
-        # order, as a row-compressed S would.
+        # S[pair, point] = W_ia W_ib: the node-level matrix of per-point scalars c is S @ c
+        # (:meth:`pair_sums`). Held as its transpose, one row of pairs per point.
         valid = cell_valid[cell_of]
-        factor = (weights[:, :, None] * weights[:, None, :])[valid]
-        per_point = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(cell_valid.sum(axis=(1, 2))[cell_of], out=per_point[1:])
-        transposed = sp.csr_matrix(
-            (factor, cell_slot[cell_of][valid], per_point), shape=(n, self.pairs)
+        self._pair_factor = np.ascontiguousarray(
+            (weights[:, :, None] * weights[:, None, :])[valid], dtype=np.float64
         )
-        self.S = transposed.T
+        self._pair_slot = np.ascontiguousarray(cell_slot[cell_of][valid], dtype=np.int32)
+        self._per_point = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(cell_valid.sum(axis=(1, 2))[cell_of], out=self._per_point[1:])
         # The regulariser's pairs are distinct entries of a sparse product.
         self.gram_values = np.zeros(self.pairs)
         self.gram_values[np.searchsorted(keys, gram_key)] = gram.data
@@ -103,15 +102,29 @@ class NormalAssembly:
         ``metric`` holds the 6 entries of every ``M_i`` (``(n, 6)``, :data:`SYMMETRIC_ENTRIES`);
         ``isotropic`` (``(n,)``) adds ``c_i I`` to ``M_i``.
         """
-        values = self.S @ metric  # (pairs, 6)
+        values = self.pair_sums(metric)  # (pairs, 6)
         diagonal = self.gram_values if with_gram else np.zeros(self.pairs)
         if isotropic is not None:
-            diagonal = diagonal + self.S @ isotropic
+            diagonal = diagonal + self.pair_sums(isotropic)
         blocks = values[:, _FULL]  # (pairs, 3, 3)
         for k in range(3):
             blocks[:, k, k] += diagonal
         m = self.number_of_free_nodes
         return sp.bsr_matrix((blocks, self.indices, self.indptr), shape=(3 * m, 3 * m))
+
+    def pair_sums(self, c: np.ndarray) -> np.ndarray:
+        """``S @ c`` for per-point values ``c`` (``(n,)`` or ``(n, k)``), by the compiled kernel:
+        each pair's points summed in point order, the same numbers as SciPy's product."""
+        values = np.ascontiguousarray(c, dtype=np.float64)
+        n = self._per_point.shape[0] - 1
+        if values.shape[0] != n:
+            raise ValueError(f"expected values for {n} points, got {values.shape}")
+        columns = 1 if values.ndim == 1 else values.shape[1]
+        out = np.zeros((self.pairs,) + values.shape[1:])
+        library.o3dreg_pair_sums(
+            n, self._per_point, self._pair_slot, self._pair_factor, values, columns, out
+        )
+        return out
 
     def vector(self, f: np.ndarray) -> np.ndarray:
         """``sum_i W_i^T (x) f_i`` for per-point vectors ``f`` ``(n, 3)``, flattened node-major."""

@@ -36,6 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from .._geometry import det3
 from ._assembly import NormalAssembly
 from ._robust import (
     LOSS_CONSTANTS,
@@ -291,7 +292,7 @@ class LevelProblem:
         jac = base.copy()
         for a, D in enumerate(ops):
             jac[:, :, a] += D @ U
-        return float(np.linalg.det(jac).min()) if jac.shape[0] else 1.0
+        return float(det3(jac).min()) if jac.shape[0] else 1.0
 
     def moved(self, u: np.ndarray) -> np.ndarray:
         """Template points moved by the coarser levels and the increment ``u``."""

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._geometry import into_frame, rotation_angle
+from .._geometry import det3, into_frame, rotation_angle
 from .._validation import as_points
 from ..io.archive import read_archive, write_archive
 from .lattice import TrilinearLattice
@@ -127,7 +127,7 @@ class LatticeDeformation:
 
     def jacobian_determinant(self, points: Any) -> np.ndarray:
         """``det(dT/dx)`` at ``points``: positive where the map preserves orientation."""
-        return np.linalg.det(self.jacobian(points))
+        return det3(self.jacobian(points))
 
     def min_jacobian_determinant(self, samples_per_cell: int = 3) -> float:
         """Smallest Jacobian determinant over a regular sample of every finest cell.
@@ -377,7 +377,7 @@ class PartitionedDeformation:
 
     def jacobian_determinant(self, points: Any) -> np.ndarray:
         """``det(dT/dx)`` at ``points``."""
-        return np.linalg.det(self.jacobian(points))
+        return det3(self.jacobian(points))
 
     def save(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> str:
         """Write the map (every part, the sites and labels) to a ``.npz`` file (atomically)."""

@@ -10,8 +10,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .._bvh import TriangleTree
+from .._compiled import library, split
 from .._edges import SortedEdges
-from .._geometry import apply_transformation, barycentric, face_cross, into_frame, row_norms
+from .._geometry import apply_transformation, face_cross, into_frame, row_norms
 
 __all__ = ["FramedQuery", "SurfaceDistanceQuery"]
 
@@ -244,36 +245,38 @@ class SurfaceDistanceQuery:
         (k,) bool ndarray
         """
         on_boundary = self.open_edges[1]
-        beyond = np.zeros(points.shape[0], dtype=bool)
-        if points.shape[0] == 0 or not on_boundary.any():
-            return beyond
-        # Only a closest point on a triangle touching the boundary can be on it.
-        near = np.flatnonzero(self._touches_boundary[face])
-        if near.size:
-            beyond[near] = self._beyond(points[near], face[near], closest[near])
-        return beyond
+        k = points.shape[0]
+        if k == 0 or not on_boundary.any():
+            return np.zeros(k, dtype=bool)
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        near = np.ascontiguousarray(closest, dtype=np.float64)
+        found = np.ascontiguousarray(face, dtype=np.int64)
+        if pts.shape != (k, 3) or near.shape != (k, 3) or found.shape != (k,):
+            raise ValueError(
+                f"expected (k, 3) points and closest points and (k,) faces, got {pts.shape}, "
+                f"{near.shape} and {found.shape}"
+            )
+        if found.min() < 0 or found.max() >= self.faces.shape[0]:
+            raise ValueError(f"`face` must index the {self.faces.shape[0]} triangles")
+        open_edge, touches, vertex_on_boundary = self._boundary_flags
+        out = np.empty(k, dtype=np.uint8)
+        split(
+            library.o3dreg_beyond_boundary, k, self.vertices, self.faces, open_edge, touches,
+            vertex_on_boundary, pts, found, near, 0.5 * self.mean_edge, out,
+        )  # fmt: skip
+        return out.view(bool)
 
     @cached_property
-    def _touches_boundary(self) -> np.ndarray:
-        """Per triangle: whether an edge or a corner of it lies on the open boundary."""
+    def _boundary_flags(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """As bytes for the compiled test: per triangle its open edges and whether an edge or a
+        corner of it lies on the open boundary; per vertex whether it does."""
         open_edge, on_boundary = self.open_edges
-        return np.asarray(open_edge.any(axis=1) | on_boundary[self.faces].any(axis=1))
-
-    def _beyond(self, points: np.ndarray, face: np.ndarray, closest: np.ndarray) -> np.ndarray:
-        open_edge, on_boundary = self.open_edges
-        corners = self.faces[face]
-        bary = barycentric(self.vertices[corners], closest)
-        tiny = bary <= 1e-9
-        hit = (tiny & open_edge[face]).any(axis=1)
-        # At a corner (two coordinates ~0) the closest point is that vertex.
-        vertex_hit = tiny.sum(axis=1) >= 2
-        if vertex_hit.any():
-            corner = np.argmax(bary[vertex_hit], axis=1)
-            hit[vertex_hit] |= on_boundary[corners[vertex_hit, corner]]
-        diff = points - closest
-        n = self.face_normal(face)
-        tangent = diff - (diff * n).sum(axis=1, keepdims=True) * n
-        return hit & (np.linalg.norm(tangent, axis=1) > 0.5 * self.mean_edge)
+        touches = open_edge.any(axis=1) | on_boundary[self.faces].any(axis=1)
+        return (
+            np.ascontiguousarray(open_edge, dtype=np.uint8),
+            np.ascontiguousarray(touches, dtype=np.uint8),
+            np.ascontiguousarray(on_boundary, dtype=np.uint8),
+        )
 
 
 class FramedQuery(SurfaceDistanceQuery):

@@ -172,7 +172,7 @@ def moments(vertices: np.ndarray, faces: np.ndarray) -> Moments:
     for start in range(0, faces.shape[0], MOMENTS_BLOCK):
         block = faces[start : start + MOMENTS_BLOCK]
         a, b, c = ([col[block[:, k]] for col in cols] for k in range(3))
-        areas = 0.5 * face_doubled_areas(vertices, block, columns=cols)
+        areas = 0.5 * face_doubled_areas(vertices, block)
         area += float(areas.sum())
         for i in range(3):
             s = a[i] + b[i] + c[i]
