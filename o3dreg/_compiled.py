@@ -58,7 +58,7 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
         None,
         [_f8, _i8, _u1, _u1, _u1, _f8, _i8, _f8, _double, _u1, _int, _int],
     ),
-    "o3dreg_pair_sums": (None, [_int, _i8, _i4, _f8, _f8, _int, _f8]),
+    "o3dreg_pair_sums": (None, [_int, _i8, _i4, _f8, _f8, _int, _int, _i8, _f8, _f8]),
     "o3dreg_ply_walk": (
         _int,
         [_u1, _int, _int, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int],

@@ -711,18 +711,36 @@ void o3dreg_beyond_boundary(const double *vertices, const idx *faces, const uint
 
 /* ---- the normal equations' pair sums -------------------------------------------------------- */
 
-/* out[pair] += factor * metric[point] (columns values) for every (point, pair, factor) of a
- * row-compressed (points x pairs) matrix: S @ metric with S its transpose, each pair's points
- * summed in point order (as SciPy's product with the column-compressed S). */
+/* S @ metric (columns values per point) for S given by its transpose in row-compressed form
+ * (points x pairs: indptr, slot, factor), only its pairs (a, b) with a <= b stored: their sums
+ * go to half (pairs x columns, zeroed by the caller), each pair's points summed in point order
+ * (as SciPy's product with the column-compressed S), and every pair's row of out is then that of
+ * its mirror (b, a) -> (a, b) (the same products: W_ia W_ib = W_ib W_ia). */
 void o3dreg_pair_sums(idx points, const int64_t *indptr, const int32_t *slot,
-                      const double *factor, const double *metric, idx columns, double *out) {
+                      const double *factor, const double *metric, idx columns, idx pairs,
+                      const int64_t *mirror, double *half, double *out) {
     for (idx i = 0; i < points; i++) {
         const double *m = metric + columns * i;
+        if (columns == 6) { /* the metrics' 6 entries, held in registers */
+            double m0 = m[0], m1 = m[1], m2 = m[2], m3 = m[3], m4 = m[4], m5 = m[5];
+            for (idx k = indptr[i]; k < indptr[i + 1]; k++) {
+                double f = factor[k], *o = half + 6 * (idx)slot[k];
+                o[0] += f * m0;
+                o[1] += f * m1;
+                o[2] += f * m2;
+                o[3] += f * m3;
+                o[4] += f * m4;
+                o[5] += f * m5;
+            }
+            continue;
+        }
         for (idx k = indptr[i]; k < indptr[i + 1]; k++) {
-            double *o = out + columns * (idx)slot[k];
+            double *o = half + columns * (idx)slot[k];
             for (idx c = 0; c < columns; c++) o[c] += factor[k] * m[c];
         }
     }
+    for (idx p = 0; p < pairs; p++)
+        memcpy(out + columns * p, half + columns * mirror[p], sizeof(double) * (size_t)columns);
 }
 
 /* ---- binary PLY face records ------------------------------------------------------------- */

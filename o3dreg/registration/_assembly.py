@@ -77,14 +77,18 @@ class NormalAssembly:
         self.pairs = keys.size
         cell_slot = np.searchsorted(keys, cell_key)
         # S[pair, point] = W_ia W_ib: the node-level matrix of per-point scalars c is S @ c
-        # (:meth:`pair_sums`). Held as its transpose, one row of pairs per point.
-        valid = cell_valid[cell_of]
+        # (:meth:`pair_sums`). Held as its transpose, one row of pairs per point, for the pairs
+        # a <= b only: the row of (b, a) is that of (a, b) (the same products, W_ib W_ia).
+        upper = cell_valid & (a <= b)
+        valid = upper[cell_of]
         self._pair_factor = np.ascontiguousarray(
             (weights[:, :, None] * weights[:, None, :])[valid], dtype=np.float64
         )
         self._pair_slot = np.ascontiguousarray(cell_slot[cell_of][valid], dtype=np.int32)
         self._per_point = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(cell_valid.sum(axis=(1, 2))[cell_of], out=self._per_point[1:])
+        np.cumsum(upper.sum(axis=(1, 2))[cell_of], out=self._per_point[1:])
+        row, col = keys // max(m, 1), keys % max(m, 1)
+        self._mirror = np.searchsorted(keys, np.minimum(row, col) * m + np.maximum(row, col))
         # The regulariser's pairs are distinct entries of a sparse product.
         self.gram_values = np.zeros(self.pairs)
         self.gram_values[np.searchsorted(keys, gram_key)] = gram.data
@@ -120,10 +124,12 @@ class NormalAssembly:
         if values.shape[0] != n:
             raise ValueError(f"expected values for {n} points, got {values.shape}")
         columns = 1 if values.ndim == 1 else values.shape[1]
-        out = np.zeros((self.pairs,) + values.shape[1:])
+        half = np.zeros((self.pairs,) + values.shape[1:])
+        out = np.empty_like(half)
         library.o3dreg_pair_sums(
-            n, self._per_point, self._pair_slot, self._pair_factor, values, columns, out
-        )
+            n, self._per_point, self._pair_slot, self._pair_factor, values, columns,
+            self.pairs, self._mirror, half, out,
+        )  # fmt: skip
         return out
 
     def vector(self, f: np.ndarray) -> np.ndarray:

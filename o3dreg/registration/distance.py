@@ -197,10 +197,25 @@ class SurfaceDistanceQuery:
         constructor by a caller that sorted the edges already)."""
         return SortedEdges(self.vertices.shape[0], self.faces).open_edges()
 
-    @property
+    @cached_property
     def mean_edge(self) -> float:
         """Mean length of the triangles' edges (each interior edge counted twice)."""
-        return self.edge_measures[0]
+        lengths = self._edge_lengths
+        return float(np.concatenate(lengths).mean()) if self.faces.size else 0.0
+
+    @cached_property
+    def _edge_lengths(self) -> list[np.ndarray]:
+        """Length of every triangle's edge ``k`` (opposite corner ``k``), for ``k = 0, 1, 2``."""
+        v, f = self.vertices, self.faces
+        # One edge slot and one coordinate at a time: a million-triangle mesh needs no (m, 3)
+        # temporaries of strided arithmetic.
+        cols = [np.ascontiguousarray(v[:, i]) for i in range(3)]
+        lengths = []
+        for k in range(3):
+            a, b = f[:, (k + 1) % 3], f[:, (k + 2) % 3]
+            d = [col[a] - col[b] for col in cols]
+            lengths.append(np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
+        return lengths
 
     @cached_property
     def edge_measures(self) -> tuple[float, np.ndarray]:
@@ -210,18 +225,11 @@ class SurfaceDistanceQuery:
         reach = np.zeros(v.shape[0])
         if not f.size:
             return 0.0, reach
-        # One edge slot and one coordinate at a time: a million-triangle mesh needs no (m, 3)
-        # temporaries of strided arithmetic.
-        cols = [np.ascontiguousarray(v[:, i]) for i in range(3)]
-        lengths = []
-        for k in range(3):
-            a, b = f[:, (k + 1) % 3], f[:, (k + 2) % 3]
-            d = [col[a] - col[b] for col in cols]
-            lengths.append(np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
+        lengths = self._edge_lengths
         longest = np.maximum(np.maximum(lengths[0], lengths[1]), lengths[2]) / np.sqrt(3.0)
         for k in range(3):
             np.maximum.at(reach, f[:, k], longest)
-        return float(np.concatenate(lengths).mean()), reach
+        return self.mean_edge, reach
 
     @property
     def has_boundary(self) -> bool:
@@ -316,6 +324,10 @@ class FramedQuery(SurfaceDistanceQuery):
     @property  # type: ignore[override]
     def edge_measures(self) -> tuple[float, np.ndarray]:
         return self._surface.edge_measures
+
+    @property  # type: ignore[override]
+    def mean_edge(self) -> float:
+        return self._surface.mean_edge
 
     def _there(self, points: np.ndarray) -> np.ndarray:
         return apply_transformation(self._frame, np.asarray(points, dtype=np.float64))

@@ -18,7 +18,7 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from .._geometry import apply_transformation, into_frame
+from .._geometry import apply_transformation, face_cross, into_frame
 from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive, check_referenced
 from ._cost import LevelProblem, Robustness
@@ -584,8 +584,7 @@ def _register_parts(
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (zero for vertices of no non-degenerate triangle)."""
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    fn = np.cross(b - a, c - a)
+    fn = face_cross(vertices, faces)
     # Each vertex's triangles summed in order of corner, then of triangle.
     corners = faces.T.ravel()
     n = vertices.shape[0]
@@ -598,11 +597,7 @@ def flipped_triangles(before: np.ndarray, after: np.ndarray, faces: np.ndarray) 
     """Triangles whose normal reverses (``n_before . n_after <= 0``) between two vertex sets;
     triangles of zero area before are not counted."""
 
-    def normals(v: np.ndarray) -> np.ndarray:
-        a, b, c = (v[faces[:, k]] for k in range(3))
-        return np.cross(b - a, c - a)
-
-    n0, n1 = normals(before), normals(after)
+    n0, n1 = face_cross(before, faces), face_cross(after, faces)
     area0 = np.linalg.norm(n0, axis=1)
     valid = area0 > 1e-12 * max(float(area0.max(initial=0.0)), 1e-300)
     return int(np.count_nonzero(valid & ((n0 * n1).sum(axis=1) <= 0.0)))
