@@ -11,12 +11,21 @@
  * 2. The nearest and second-nearest of a set of sites for many points, on a uniform grid: each
  *    point searches the cells around its own in growing shells and stops once no unsearched
  *    cell can hold a site nearer than its second-nearest.
+ * 3. A level's arithmetic: the trilinear field and its gradient at points, the damped normal
+ *    equations (block-preconditioned conjugate gradients) and their pair sums, per-triangle
+ *    cross products and the open-boundary test. The cross products, the boundary test and the
+ *    pair sums keep the numbers of the NumPy/SciPy code they replace (the same operations in
+ *    the same order; the tests compare them bit for bit); the conjugate gradients take each
+ *    node's 3x3 block as preconditioner where SciPy's took the diagonal.
  *
- * Every query is independent: a call answers the range [begin, end) and the Python side splits
- * one call over threads, so an answer does not depend on the threads. Indices are int64, points
- * float64 and finite, arrays C-contiguous; inputs are checked on the Python side (o3dreg/_bvh.py,
- * o3dreg/_nearest.py): nothing here reads outside its arrays when they hold what they should. Built without
- * floating-point contraction (see setup.py), so results are the same on every x86-64 machine.
+ * Every query is independent: a query kernel answers the range [begin, end) and the Python side
+ * splits one call over threads, so an answer does not depend on the threads (the conjugate
+ * gradients and the pair sums run whole on the calling thread). Indices are int64 (the block
+ * matrices' int32, as SciPy's), points float64 and finite, arrays C-contiguous; inputs are
+ * checked on the Python side (o3dreg/_bvh.py, _nearest.py, _geometry.py,
+ * registration/lattice.py, distance.py, _assembly.py, _solvers.py): nothing here reads outside
+ * its arrays when they hold what they should. Built without floating-point contraction (see
+ * setup.py), so results are the same on every x86-64 machine.
  */
 #include <math.h>
 #include <stdint.h>

@@ -101,6 +101,11 @@ class DampedSystem:
         assert self.A is not None
         d = np.ascontiguousarray(damping, dtype=np.float64)
         rhs = np.ascontiguousarray(b, dtype=np.float64)
+        if d.shape != (self.size,) or rhs.shape != (self.size,):
+            raise ValueError(
+                f"expected a damping and a right-hand side of {self.size} values, got "
+                f"{d.shape} and {rhs.shape}"
+            )
         x = np.empty(self.size)
         done = library.o3dreg_damped_cg(
             self.size // 3, self._indptr, self._indices, self._blocks, d, rhs, CG_RTOL,

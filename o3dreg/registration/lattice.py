@@ -225,11 +225,17 @@ class TrilinearLattice:
             raise ValueError(f"`out` must be a C-contiguous float64 array of shape {shape}")
         if not np.isfinite(pts).all():
             raise ValueError("the lattice's field is evaluated at finite points only")
+        origin = np.ascontiguousarray(self.origin, dtype=np.float64)
+        cell = np.ascontiguousarray(self.cell_size, dtype=np.float64)
+        if origin.shape != (3,) or cell.shape != (3,):
+            raise ValueError(
+                f"a lattice needs a 3-vector origin and size, got {origin.shape} and {cell.shape}"
+            )
         split(
             library.o3dreg_lattice_field,
             pts.shape[0],
-            np.ascontiguousarray(self.origin, dtype=np.float64),
-            np.ascontiguousarray(self.cell_size, dtype=np.float64),
+            origin,
+            cell,
             np.asarray(self.shape, dtype=np.int64),
             np.ascontiguousarray(self.displacements, dtype=np.float64),
             pts,
