@@ -4,6 +4,7 @@ ones are compiled)."""
 import numpy as np
 import pytest
 
+from o3dreg._distinct import distinct
 from o3dreg._geometry import det3, face_cross, face_doubled_areas, row_norms
 
 
@@ -45,3 +46,23 @@ def test_det3_is_the_determinant():
     # Rounding of 9 products of O(1) numbers against LAPACK's factorisation.
     np.testing.assert_allclose(det3(m), np.linalg.det(m), rtol=1e-12, atol=1e-14)
     np.testing.assert_array_equal(det3(m[:5]), 1.0)
+
+
+@pytest.mark.parametrize("bound", [None, 50, 10**9])
+def test_distinct_is_numpys_unique(bound):
+    # A bitmap (small bound), a sort (no bound, or one too large for a bitmap): np.unique's
+    # values and dtype either way, for int32 and int64, with and without repeats.
+    rng = np.random.default_rng(3)
+    for dtype in (np.int32, np.int64):
+        for size in (0, 1, 7, 5000):
+            values = rng.integers(0, 50, size=size).astype(dtype).reshape(-1, 1)
+            found = distinct(values, bound)
+            np.testing.assert_array_equal(found, np.unique(values))
+            assert found.dtype == dtype
+
+
+def test_distinct_refuses_values_outside_its_bound():
+    with pytest.raises(ValueError, match=r"\[0, 10\)"):
+        distinct(np.array([3, 10]), 10)
+    with pytest.raises(ValueError, match="lie in"):
+        distinct(np.array([-1, 3]), 10)

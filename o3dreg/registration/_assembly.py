@@ -18,6 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._compiled import library
+from .._distinct import distinct
 
 #: The 6 distinct entries of a symmetric 3x3 matrix, as (row, column), in column order of the
 #: ``(n, 6)`` arrays of :meth:`NormalAssembly.matrix`.
@@ -71,7 +72,8 @@ class NormalAssembly:
         cell_key = np.where(cell_valid, a.astype(np.int64) * m + b, -1)
         gram = sp.coo_matrix(node_gram)
         gram_key = gram.row.astype(np.int64) * m + gram.col
-        keys = np.union1d(cell_key[cell_valid], gram_key)  # sorted: row-major, the CSR order
+        # Sorted: row-major, the CSR order.
+        keys = distinct(np.concatenate([cell_key[cell_valid], gram_key]))
         self.indices = (keys % m).astype(np.int32) if m else np.zeros(0, np.int32)
         self.indptr = np.searchsorted(keys // max(m, 1), np.arange(m + 1)).astype(np.int32)
         self.pairs = keys.size

@@ -36,6 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from .._distinct import distinct
 from .._geometry import det3
 from ._assembly import NormalAssembly
 from ._robust import (
@@ -173,7 +174,7 @@ class LevelProblem:
         self.target_points = target_points if symmetric_weight > 0 else None
         n = points.shape[0]
         nodes, weights = lattice.weights(points)
-        free_nodes = np.unique(nodes[active].ravel())
+        free_nodes = distinct(nodes[active], lattice.number_of_nodes)
         lookup = np.full(lattice.number_of_nodes, -1, dtype=np.int64)
         lookup[free_nodes] = np.arange(free_nodes.size)
         self.free_nodes = free_nodes
@@ -249,11 +250,7 @@ class LevelProblem:
         operators of the increment (``d u / d x_a = D_a U``)."""
         lat = self.lattice
         f = self.free_nodes
-        cells, _, _ = lat.locate(self._points[active])
-        flat = np.unique(lat.node_index(cells))
-        nz1, ny1 = lat.node_shape[2], lat.node_shape[1]
-        cells = np.stack([flat // (ny1 * nz1), (flat // nz1) % ny1, flat % nz1], axis=1)
-        pts = lat.cell_samples(cells)
+        pts = lat.cell_samples(lat.occupied_cells(self._points[active]))
         base = np.broadcast_to(np.eye(3), (pts.shape[0], 3, 3)).copy()
         if prior is not None:
             base = prior.jacobian(pts)

@@ -18,6 +18,7 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
+from .._distinct import distinct
 from .._geometry import apply_transformation, face_cross, into_frame
 from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive, check_referenced
@@ -546,7 +547,7 @@ def _register_parts(
         if pf.shape[0] == 0 or tf.shape[0] == 0:
             deformations.append(LatticeDeformation(()))
             continue
-        used = np.unique(tf)
+        used = distinct(tf, vt.shape[0])
         tmap = np.full(vt.shape[0], -1, dtype=np.int64)
         tmap[used] = np.arange(used.size)
         # The part's target in canonical order (a subset of a canonical mesh already is), without
@@ -610,8 +611,7 @@ def _min_cell_determinant(deformation: LatticeDeformation, points: np.ndarray) -
         return 1.0
     shape = deformation.common_shape()
     lat = TrilinearLattice.zeros(deformation.levels[0].origin, deformation.levels[0].size, shape)
-    cells, _, _ = lat.locate(points)
-    pts = lat.cell_samples(np.unique(cells, axis=0))
+    pts = lat.cell_samples(lat.occupied_cells(points))
     return float(deformation.jacobian_determinant(pts).min())
 
 
@@ -723,7 +723,7 @@ def _level_sample(
     if per_node is None:
         return np.arange(points.shape[0])
     nodes, _ = lattice.weights(points)
-    budget = max(1000, int(per_node * np.unique(nodes).size))
+    budget = max(1000, int(per_node * distinct(nodes, lattice.number_of_nodes).size))
     return spatial_subsample(points, budget)
 
 

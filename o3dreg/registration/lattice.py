@@ -18,6 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._compiled import library, split
+from .._distinct import distinct
 
 __all__ = ["TrilinearLattice", "corner_offsets"]
 
@@ -142,6 +143,14 @@ class TrilinearLattice:
         s = np.clip(s, 0.0, shape)
         cells = np.minimum(np.floor(s).astype(np.int64), shape - 1)
         return cells, s - cells, inside
+
+    def occupied_cells(self, points: np.ndarray) -> np.ndarray:
+        """The cells holding at least one of ``points`` (clamped to the box), ``(k, 3)`` integer
+        indices in lexicographic order (``np.unique(cells, axis=0)``)."""
+        cells, _, _ = self.locate(points)
+        flat = distinct(self.node_index(cells), self.number_of_nodes)
+        _, ny1, nz1 = self.node_shape
+        return np.stack([flat // (ny1 * nz1), (flat // nz1) % ny1, flat % nz1], axis=1)
 
     def cell_samples(self, cells: np.ndarray) -> np.ndarray:
         """8 interior points of each cell ``(k, 3)`` (integer indices), at local coordinates 1/4

@@ -16,6 +16,7 @@ import open3d as o3d
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components as graph_components
 
+from .._distinct import distinct
 from .._edges import SortedEdges
 from .._geometry import face_doubled_areas
 from .._validation import as_mesh_arrays, as_points, check_positive
@@ -131,7 +132,7 @@ def mesh_components(
         used[faces.ravel()] = True
         vertex_counts = np.array([np.count_nonzero(used)], dtype=np.int64)
     else:
-        pairs = np.unique(np.repeat(raw, 3) * vertices.shape[0] + faces.ravel())
+        pairs = distinct(np.repeat(raw, 3) * vertices.shape[0] + faces.ravel())
         vertex_counts = np.bincount(pairs // vertices.shape[0], minlength=k)
     triangle_counts = np.bincount(raw, minlength=k)
     tri_area = 0.5 * face_doubled_areas(vertices, faces)
