@@ -18,7 +18,7 @@ import igl
 import numpy as np
 
 from .._edges import SortedEdges
-from .._geometry import face_doubled_areas
+from .._geometry import bounds, face_doubled_areas
 from ..volume.cleaning import mesh_components
 from .distance import FramedQuery, SurfaceDistanceQuery
 from .result import SurfaceDistances
@@ -221,7 +221,7 @@ def cluster_vertices(
     """
     lo = np.array([vertices[:, k].min() for k in range(3)]) - 0.5 * voxel
     keys = np.floor((vertices - lo) / voxel).astype(np.int64)
-    dims = keys.max(axis=0) + 1
+    dims = bounds(keys)[1] + 1
     if float(np.prod(dims, dtype=np.float64)) < 2.0**62:
         flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
         _, cluster = np.unique(flat, return_inverse=True)

@@ -181,13 +181,18 @@ class SurfaceDistanceQuery:
         """
         dist, face, closest = found if found is not None else self.closest(points)
         diff = np.ascontiguousarray(points) - closest
-        on_surface = dist <= 1e-12 * max(1.0, float(np.abs(self.vertices).max()))
+        on_surface = dist <= 1e-12 * max(1.0, self._largest_coordinate)
         safe = np.where(on_surface, 1.0, dist)
         grad = diff / safe[:, None]
         grad[on_surface] = self.face_normal(face[on_surface])
         if return_faces:
             return dist, closest, grad, face
         return dist, closest, grad
+
+    @cached_property
+    def _largest_coordinate(self) -> float:
+        """``max |x|`` over the vertices: the scale of "on the surface" in :meth:`gradient`."""
+        return float(np.abs(self.vertices).max()) if self.vertices.size else 0.0
 
     # -- open boundaries (partial targets) ------------------------------------------------------
     @cached_property
@@ -279,7 +284,9 @@ class SurfaceDistanceQuery:
         """As bytes for the compiled test: per triangle its open edges and whether an edge or a
         corner of it lies on the open boundary; per vertex whether it does."""
         open_edge, on_boundary = self.open_edges
-        touches = open_edge.any(axis=1) | on_boundary[self.faces].any(axis=1)
+        corner = on_boundary[self.faces]
+        touches = open_edge[:, 0] | open_edge[:, 1] | open_edge[:, 2]
+        touches |= corner[:, 0] | corner[:, 1] | corner[:, 2]
         return (
             np.ascontiguousarray(open_edge, dtype=np.uint8),
             np.ascontiguousarray(touches, dtype=np.uint8),

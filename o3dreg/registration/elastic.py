@@ -19,7 +19,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from .._distinct import distinct
-from .._geometry import apply_transformation, face_cross, into_frame
+from .._geometry import apply_transformation, bounds, face_cross, into_frame
 from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive, check_referenced
 from ._cost import LevelProblem, Robustness
@@ -67,8 +67,9 @@ def lattice_box(
     size : (3,) ndarray
         Equal sides (cubic cells, as the paper's elementary cubes).
     """
-    allpts = np.concatenate([np.asarray(p) for p in points], axis=0)
-    lo, hi = allpts.min(axis=0), allpts.max(axis=0)
+    corners = [bounds(np.asarray(p)) for p in points if len(p)]
+    lo = np.min([c[0] for c in corners], axis=0)
+    hi = np.max([c[1] for c in corners], axis=0)
     side = float((hi - lo).max())
     side = side if side > 0 else 1.0
     full = side * (1.0 + 2.0 * padding)

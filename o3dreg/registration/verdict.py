@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .._geometry import apply_transformation, face_doubled_areas
+from .._geometry import apply_transformation, bounds, face_doubled_areas
 from .._validation import as_mesh_arrays
 from .distance import SurfaceDistanceQuery
 from .result import RigidStart
@@ -189,7 +189,10 @@ MOMENTS_BLOCK = 1 << 18
 
 
 def _diagonal(vertices: np.ndarray) -> float:
-    return float(np.linalg.norm(np.ptp(vertices, axis=0))) if vertices.shape[0] else 0.0
+    if not vertices.shape[0]:
+        return 0.0
+    lo, hi = bounds(vertices)
+    return float(np.linalg.norm(hi - lo))
 
 
 def _degenerate_target(source: Moments, target: Moments, ft: np.ndarray) -> list[tuple[str, str]]:
