@@ -357,25 +357,29 @@ def _stencil_matrix(
     lattice: TrilinearLattice, lookup: np.ndarray, number_of_free_nodes: int, energy: str
 ) -> sp.csr_matrix:
     """Finite-difference operator over the lattice, one row per stencil touching a free node
-    (``lookup``: free-node index of every lattice node, -1 where fixed)."""
+    (``lookup``: free-node index of every lattice node, -1 where fixed), stencil by stencil,
+    anchors in node order."""
     node_shape = np.asarray(lattice.node_shape)
-    all_ijk = np.stack(
-        np.meshgrid(*[np.arange(s) for s in lattice.node_shape], indexing="ij"), axis=-1
-    ).reshape(-1, 3)
     rows, cols, vals = [], [], []
     count = 0
     for offsets, coefs in _STENCILS[energy]:
+        # The anchors whose stencil fits in the lattice, in node order; node numbers are linear
+        # in the node coordinates, so a stencil's nodes are its anchor's number plus offsets.
         span = offsets.max(axis=0)
-        anchors = all_ijk[np.all(all_ijk + span < node_shape, axis=1)]
-        local = lookup[lattice.node_index(anchors[:, None, :] + offsets[None, :, :])]
-        keep = np.any(local >= 0, axis=1)
-        local = local[keep]
+        axes = [np.arange(int(n - s)) for n, s in zip(node_shape, span)]
+        grid = np.meshgrid(*axes, indexing="ij")
+        anchors = lattice.node_index(np.stack([g.ravel() for g in grid], axis=1))
+        local = lookup[anchors[:, None] + lattice.node_index(offsets)[None, :]]
+        free = local >= 0
+        keep = free[:, 0].copy()
+        for j in range(1, free.shape[1]):
+            keep |= free[:, j]
+        local, free = local[keep], free[keep]
         e = count + np.arange(local.shape[0])
         for j, c in enumerate(coefs):
-            free = local[:, j] >= 0
-            rows.append(e[free])
-            cols.append(local[free, j])
-            vals.append(np.full(int(free.sum()), c))
+            rows.append(e[free[:, j]])
+            cols.append(local[free[:, j], j])
+            vals.append(np.full(rows[-1].size, c))
         count += local.shape[0]
     return sp.csr_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
