@@ -53,6 +53,17 @@ def test_a_tree_built_ahead_answers_as_one_built_on_use(sphere):
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_forked_child_builds_the_tree_it_was_waiting_for(sphere, monkeypatch):
+    # In a child forked while the parent's build ran, that build's thread does not exist: the
+    # child builds its own (the same tree) instead of waiting for ever.
+    query = SurfaceDistanceQuery(*sphere)
+    query.prefetch_tree()
+    parent = query.__dict__["_building"][0]
+    monkeypatch.setattr(distance.os, "getpid", lambda: parent + 1)
+    found = query.closest(np.zeros((1, 3)))
+    assert found[0][0] == pytest.approx(SurfaceDistanceQuery(*sphere).distance(np.zeros((1, 3)))[0])
+
+
 def test_a_tree_built_ahead_raises_its_failure_at_first_use(sphere):
     v, f = sphere
     v = v.copy()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from concurrent.futures import ThreadPoolExecutor
 from functools import cached_property
 from typing import Any
@@ -53,8 +54,9 @@ class SurfaceDistanceQuery:
     @cached_property
     def _tree(self) -> TriangleTree:
         pending = self.__dict__.pop("_building", None)
-        if pending is not None:
-            return pending.result()  # type: ignore[no-any-return]
+        # A process forked while the tree was being built has no thread to wait for.
+        if pending is not None and pending[0] == os.getpid():
+            return pending[1].result()  # type: ignore[no-any-return]
         return TriangleTree(self.vertices, self.faces)
 
     @property
@@ -71,7 +73,8 @@ class SurfaceDistanceQuery:
         if self.has_tree:
             return
         builder = ThreadPoolExecutor(1, thread_name_prefix="o3dreg-tree")
-        self.__dict__["_building"] = builder.submit(TriangleTree, self.vertices, self.faces)
+        future = builder.submit(TriangleTree, self.vertices, self.faces)
+        self.__dict__["_building"] = (os.getpid(), future)
         builder.shutdown(wait=False)
 
     @cached_property
