@@ -1,20 +1,45 @@
-"""Sorted distinct values of integer arrays: ``np.unique(values)``, at a fraction of its cost.
+"""Integer keys: their stable order and their distinct values, faster than NumPy's general sorts.
 
 NumPy 2's ``np.unique`` without ``return_*`` collects the values in a hash table and sorts them
-afterwards; on the integer arrays o3dreg meets (node numbers, node-pair keys, vertex keys) it was
-measured 10 to 45 times slower than one sort (80k int64: 16 ms against 1.4 ms; 1M: 860 ms against
-19 ms). Values known to lie in a small range are marked on a bitmap instead (no sort at all).
+afterwards; on the integer arrays o3dreg meets (node numbers, node-pair keys, vertex and edge
+keys) it was measured 10 to 45 times slower than one sort (80k int64: 16 ms against 1.4 ms; 1M:
+860 ms against 19 ms). Values known to lie in a small range are marked on a bitmap instead (no
+sort at all). The stable order of non-negative keys comes from one sort of values (the same
+answer as ``np.argsort(kind="stable")``: a stable order is unique).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["distinct"]
+__all__ = ["distinct", "sort_keys"]
 
 #: A bitmap of up to this many entries per value (or this floor) beats a sort.
 _BITMAP_PER_VALUE = 16
 _BITMAP_FLOOR = 1 << 16
+
+
+def sort_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stable order of non-negative integer ``keys`` (flattened) and the keys in that order:
+    ``(np.argsort(keys, kind="stable"), np.sort(keys))``.
+
+    Where key and index fit in 63 bits together, one sort of ``key << b | index`` (``b`` bits
+    for the indices) gives both, the ties in index order: NumPy's vectorised sort of values is
+    2.5-5 times faster than its stable argsort (timsort) on 10^5-10^6 keys.
+    """
+    k = np.asarray(keys).ravel().astype(np.int64, copy=False)
+    n = k.size
+    if n == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    if k.min() < 0:
+        raise ValueError(f"keys must be non-negative, got {k.min()}")
+    b = max(int(n - 1).bit_length(), 1)
+    if int(k.max()).bit_length() + b > 63:
+        order = np.argsort(k, kind="stable")
+        return order, k[order]
+    composite = (k << b) | np.arange(n, dtype=np.int64)
+    composite.sort()
+    return composite & ((1 << b) - 1), composite >> b
 
 
 def distinct(values: np.ndarray, bound: int | None = None) -> np.ndarray:

@@ -4,7 +4,7 @@ ones are compiled)."""
 import numpy as np
 import pytest
 
-from o3dreg._distinct import distinct
+from o3dreg._distinct import distinct, sort_keys
 from o3dreg._geometry import det3, face_cross, face_doubled_areas, row_norms
 
 
@@ -66,3 +66,17 @@ def test_distinct_refuses_values_outside_its_bound():
         distinct(np.array([3, 10]), 10)
     with pytest.raises(ValueError, match="lie in"):
         distinct(np.array([-1, 3]), 10)
+
+
+def test_sort_keys_is_numpys_stable_argsort():
+    # Keys of 1 to 62 bits (one radix pass to six), with ties: the stable order is unique.
+    rng = np.random.default_rng(4)
+    for top in (1, 2**11, 2**20, 2**40, 2**62):
+        keys = rng.integers(0, top, size=3001, dtype=np.int64)
+        keys[::7] = keys[0]  # ties
+        order, ordered = sort_keys(keys)
+        np.testing.assert_array_equal(order, np.argsort(keys, kind="stable"))
+        np.testing.assert_array_equal(ordered, np.sort(keys))
+    assert sort_keys(np.zeros(0, dtype=np.int64))[0].shape == (0,)
+    with pytest.raises(ValueError, match="non-negative"):
+        sort_keys(np.array([3, -1]))

@@ -17,6 +17,7 @@ from functools import cached_property
 import igl
 import numpy as np
 
+from .._distinct import sort_keys
 from .._edges import SortedEdges
 from .._geometry import bounds, face_doubled_areas
 from ..volume.cleaning import mesh_components
@@ -224,7 +225,13 @@ def cluster_vertices(
     dims = bounds(keys)[1] + 1
     if float(np.prod(dims, dtype=np.float64)) < 2.0**62:
         flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-        _, cluster = np.unique(flat, return_inverse=True)
+        # The rank of each key among the distinct keys (np.unique's inverse).
+        order, ordered = sort_keys(flat)
+        new = np.empty(ordered.size, dtype=bool)
+        new[:1] = True
+        np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
+        cluster = np.empty(flat.size, dtype=np.int64)
+        cluster[order] = np.cumsum(new) - 1
     else:  # a voxel tiny for the extent: rows of keys
         _, cluster = np.unique(keys, axis=0, return_inverse=True)
     cluster = cluster.ravel()
