@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._distinct import sort_keys
 from .._geometry import bounds
 
 __all__ = ["lexicographic_order", "morton_order", "spatial_subsample"]
@@ -50,8 +51,7 @@ def spatial_subsample(points: np.ndarray, count: int) -> np.ndarray:
     offset = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
     # Per cell, the point nearest its centre: the cells by one sort of their keys, the nearest by
     # a minimum over each run of equal keys.
-    order = np.argsort(flat)
-    sorted_flat = flat[order]
+    order, sorted_flat = sort_keys(flat)
     first = np.ones(n, dtype=bool)
     first[1:] = sorted_flat[1:] != sorted_flat[:-1]
     starts = np.flatnonzero(first)
@@ -106,7 +106,7 @@ def morton_order(points: np.ndarray, bits: int = 10) -> np.ndarray:
     cells = np.minimum(((points - lo) / extent * (1 << bits)).astype(np.int64), (1 << bits) - 1)
     spread = _SPREAD_10 if bits == 10 else _spread_bits(bits)
     code = spread[cells[:, 0]] | (spread[cells[:, 1]] << 1) | (spread[cells[:, 2]] << 2)
-    return _break_ties(np.argsort(code), code, (points[:, 2], points[:, 1], points[:, 0]))
+    return _break_ties(sort_keys(code)[0], code, (points[:, 2], points[:, 1], points[:, 0]))
 
 
 def lexicographic_order(points: np.ndarray) -> np.ndarray:
