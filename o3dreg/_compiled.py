@@ -26,6 +26,11 @@ __all__ = ["library", "split"]
 #: cost more than a few hundred queries).
 MIN_PER_THREAD = 512
 
+#: The same for kernels of a few arithmetic operations per item (cross products, the trilinear
+#: field, the boundary test): a thread's hand-over costs tens of microseconds, and on a loaded
+#: machine milliseconds, more than tens of thousands of such items.
+MIN_PER_THREAD_CHEAP = 1 << 15
+
 _int = ctypes.c_int64
 _double = ctypes.c_double
 
@@ -118,9 +123,11 @@ def _executor() -> ThreadPoolExecutor:
         return _pool
 
 
-def split(kernel: Callable[..., Any], count: int, *args: Any) -> None:
-    """Run ``kernel(*args, begin, end)`` over ``[0, count)``, in one range per core."""
-    parts = min(_threads(), count // MIN_PER_THREAD)
+def split(kernel: Callable[..., Any], count: int, *args: Any, cheap: bool = False) -> None:
+    """Run ``kernel(*args, begin, end)`` over ``[0, count)``, in one range per core, each of at
+    least :data:`MIN_PER_THREAD` items (:data:`MIN_PER_THREAD_CHEAP` for a ``cheap`` kernel)."""
+    least = MIN_PER_THREAD_CHEAP if cheap else MIN_PER_THREAD
+    parts = min(_threads(), count // max(least, 1))
     if parts <= 1:
         kernel(*args, 0, count)
         return

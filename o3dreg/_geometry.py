@@ -91,7 +91,7 @@ def _per_triangle(vertices: np.ndarray, faces: np.ndarray, areas: bool) -> np.nd
         raise ValueError(f"expected (n, 3) vertices and (m, 3) faces, got {v.shape} and {f.shape}")
     if f.min() < 0 or f.max() >= v.shape[0]:
         raise ValueError(f"face indices must lie in [0, {v.shape[0]}), got {f.min()}..{f.max()}")
-    split(library.o3dreg_face_cross, m, v, f, int(areas), out)
+    split(library.o3dreg_face_cross, m, v, f, int(areas), out, cheap=True)
     return out
 
 

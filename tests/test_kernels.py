@@ -11,8 +11,11 @@ import pytest
 
 from o3dreg import _compiled
 from o3dreg._bvh import TriangleTree
+from o3dreg._geometry import face_cross
 from o3dreg._nearest import nearest_two
 from o3dreg.app.synthetic import synthetic_form
+from o3dreg.registration.distance import SurfaceDistanceQuery
+from o3dreg.registration.lattice import TrilinearLattice
 
 
 def random_soup(rng, triangles=400, degenerate=40):
@@ -119,12 +122,29 @@ def test_the_answers_do_not_depend_on_the_threads(monkeypatch):
     rng = np.random.default_rng(4)
     v, f = random_soup(rng, 2000, 0)
     pts = rng.uniform(-12, 12, size=(5000, 3))
+    lattice = TrilinearLattice.zeros((-12, -12, -12), (24, 24, 24), (4, 4, 4))
+    lattice = lattice.with_displacements(rng.normal(size=lattice.displacements.shape))
+    query = SurfaceDistanceQuery(v, f[:1500])  # open edges: the boundary test has work
+
+    def answers():
+        _, face, closest = query.closest(pts)
+        return (
+            *TriangleTree(v, f).closest(pts),
+            *nearest_two(v, pts),
+            lattice.displacement(pts),
+            lattice.displacement_gradient(pts),
+            face_cross(v, f),
+            query.beyond_boundary(pts, face, closest),
+        )
+
     monkeypatch.setattr(_compiled, "MIN_PER_THREAD", 10**9)
-    one = TriangleTree(v, f).closest(pts), nearest_two(v, pts)
+    monkeypatch.setattr(_compiled, "MIN_PER_THREAD_CHEAP", 10**9)
+    one = answers()
     monkeypatch.setattr(_compiled, "MIN_PER_THREAD", 1)
+    monkeypatch.setattr(_compiled, "MIN_PER_THREAD_CHEAP", 1)
     monkeypatch.setattr(_compiled, "_threads", lambda: 7)
-    many = TriangleTree(v, f).closest(pts), nearest_two(v, pts)
-    for a, b in zip(one[0] + one[1], many[0] + many[1]):
+    many = answers()
+    for a, b in zip(one, many):
         np.testing.assert_array_equal(a, b)
 
 

@@ -279,6 +279,7 @@ class SurfaceDistanceQuery:
         split(
             library.o3dreg_beyond_boundary, k, self.vertices, self.faces, open_edge, touches,
             vertex_on_boundary, pts, found, near, 0.5 * self.mean_edge, out,
+            cheap=True,
         )  # fmt: skip
         return out.view(bool)
 

@@ -250,6 +250,7 @@ class TrilinearLattice:
             pts,
             int(gradient),
             out,
+            cheap=True,
         )
         return out
 
