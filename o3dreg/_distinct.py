@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["distinct", "sort_keys"]
+__all__ = ["distinct", "distinct_ranks", "sort_keys"]
 
 #: A bitmap of up to this many entries per value (or this floor) beats a sort.
 _BITMAP_PER_VALUE = 16
@@ -42,6 +42,23 @@ def sort_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return composite & ((1 << b) - 1), composite >> b
 
 
+def distinct_ranks(keys: np.ndarray) -> np.ndarray:
+    """The rank of each non-negative integer key (flattened) among the distinct keys: the
+    inverse of ``np.unique(keys, return_inverse=True)``."""
+    order, ordered = sort_keys(keys)
+    ranks = np.empty(ordered.size, dtype=np.int64)
+    ranks[order] = np.cumsum(_run_starts(ordered)) - 1
+    return ranks
+
+
+def _run_starts(ordered: np.ndarray) -> np.ndarray:
+    """Whether each value of a sorted array differs from the one before it (the first does)."""
+    starts = np.empty(ordered.size, dtype=bool)
+    starts[:1] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=starts[1:])
+    return starts
+
+
 def distinct(values: np.ndarray, bound: int | None = None) -> np.ndarray:
     """The sorted distinct values of ``values`` (flattened), as ``np.unique(values)`` gives them.
 
@@ -58,7 +75,4 @@ def distinct(values: np.ndarray, bound: int | None = None) -> np.ndarray:
         seen[v] = True
         return np.flatnonzero(seen).astype(v.dtype, copy=False)
     s = np.sort(v)
-    first = np.empty(s.size, dtype=bool)
-    first[0] = True
-    np.not_equal(s[1:], s[:-1], out=first[1:])
-    return s[first]
+    return s[_run_starts(s)]

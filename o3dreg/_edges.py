@@ -40,8 +40,8 @@ class SortedEdges:
             key[:, k] = np.minimum(a, b) * n + np.maximum(a, b)
             forward[:, k] = a < b
         self._forward = forward.ravel()
-        # Stable (a radix sort): ties keep the entries' order, so the result does not depend
-        # on the sort's internals.
+        # Stable: ties keep the entries' order, so the result does not depend on the sort's
+        # internals.
         self.order, ordered = sort_keys(key)
         #: ``same[i]``: sorted entries ``i`` and ``i + 1`` are the same edge.
         self.same = ordered[1:] == ordered[:-1]

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._compiled import library, split
+from ._geometry import bounds
 
 __all__ = ["Assignment", "SiteGrid", "nearest_two"]
 
@@ -32,8 +33,8 @@ class SiteGrid:
         # The compiled search turns coordinates into cell numbers: they must be finite.
         if s.ndim != 2 or s.shape[1] != 3 or n == 0 or not np.isfinite(s).all():
             raise ValueError(f"sites must be (n >= 1, 3) finite coordinates, got {s.shape}")
-        lo = np.ascontiguousarray(s.min(axis=0))
-        extent = np.maximum(s.max(axis=0) - lo, 0.0)
+        lo, hi = bounds(s)
+        extent = np.maximum(hi - lo, 0.0)
         # Cells about as wide as the spacing of sites on a surface filling half its box's area.
         box_area = 2.0 * (extent[0] * extent[1] + extent[1] * extent[2] + extent[2] * extent[0])
         size = float(np.sqrt(box_area / n)) if box_area > 0 else float(extent.max())

@@ -4,7 +4,7 @@ ones are compiled)."""
 import numpy as np
 import pytest
 
-from o3dreg._distinct import distinct, sort_keys
+from o3dreg._distinct import distinct, distinct_ranks, sort_keys
 from o3dreg._geometry import det3, face_cross, face_doubled_areas, row_norms
 
 
@@ -80,3 +80,12 @@ def test_sort_keys_is_numpys_stable_argsort():
     assert sort_keys(np.zeros(0, dtype=np.int64))[0].shape == (0,)
     with pytest.raises(ValueError, match="non-negative"):
         sort_keys(np.array([3, -1]))
+
+
+def test_distinct_ranks_are_numpys_unique_inverse():
+    rng = np.random.default_rng(5)
+    for top in (1, 40, 2**40):
+        keys = rng.integers(0, top, size=2000)
+        _, inverse = np.unique(keys, return_inverse=True)
+        np.testing.assert_array_equal(distinct_ranks(keys), inverse.ravel())
+    assert distinct_ranks(np.zeros(0, dtype=np.int64)).shape == (0,)

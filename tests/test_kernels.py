@@ -124,17 +124,21 @@ def test_the_answers_do_not_depend_on_the_threads(monkeypatch):
     pts = rng.uniform(-12, 12, size=(5000, 3))
     lattice = TrilinearLattice.zeros((-12, -12, -12), (24, 24, 24), (4, 4, 4))
     lattice = lattice.with_displacements(rng.normal(size=lattice.displacements.shape))
-    query = SurfaceDistanceQuery(v, f[:1500])  # open edges: the boundary test has work
+    # A half sphere around the points: about half of them lie beyond its open boundary.
+    sphere = synthetic_form("sphere", 3000)
+    sv, sf = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    query = SurfaceDistanceQuery(sv, sf[sv[sf].mean(axis=1)[:, 2] < 0.0])
+    around = pts * (np.abs(sv).max() / 8.0)
 
     def answers():
-        _, face, closest = query.closest(pts)
+        _, face, closest = query.closest(around)
         return (
             *TriangleTree(v, f).closest(pts),
             *nearest_two(v, pts),
             lattice.displacement(pts),
             lattice.displacement_gradient(pts),
             face_cross(v, f),
-            query.beyond_boundary(pts, face, closest),
+            query.beyond_boundary(around, face, closest),
         )
 
     monkeypatch.setattr(_compiled, "MIN_PER_THREAD", 10**9)
@@ -144,6 +148,7 @@ def test_the_answers_do_not_depend_on_the_threads(monkeypatch):
     monkeypatch.setattr(_compiled, "MIN_PER_THREAD_CHEAP", 1)
     monkeypatch.setattr(_compiled, "_threads", lambda: 7)
     many = answers()
+    assert 0 < one[-1].sum() < pts.shape[0]  # both answers of the boundary test occur
     for a, b in zip(one, many):
         np.testing.assert_array_equal(a, b)
 

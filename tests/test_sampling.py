@@ -2,8 +2,8 @@
 
 import numpy as np
 
+from o3dreg import _distinct
 from o3dreg.app.synthetic import synthetic_form
-from o3dreg.registration import sampling
 from o3dreg.registration.sampling import lexicographic_order, morton_order, spatial_subsample
 
 
@@ -55,8 +55,8 @@ def test_occupied_cells_counted_on_a_bitmap_or_by_sorting_agree(monkeypatch):
     # count, so the same cell size and the same subsample.
     pts = np.asarray(synthetic_form("sphere", 5000).vertices)
     bitmap = spatial_subsample(pts, 700)
-    monkeypatch.setattr(sampling, "_BITMAP_CELLS_PER_POINT", 0)
-    monkeypatch.setattr(sampling, "_BITMAP_CELLS_FLOOR", 0)
+    monkeypatch.setattr(_distinct, "_BITMAP_PER_VALUE", 0)
+    monkeypatch.setattr(_distinct, "_BITMAP_FLOOR", 0)
     np.testing.assert_array_equal(spatial_subsample(pts, 700), bitmap)
 
 

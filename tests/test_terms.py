@@ -214,6 +214,21 @@ def test_normal_assembly_is_the_sum_over_points():
     # The same products summed in another order: equal to rounding.
     np.testing.assert_allclose(A.toarray(), expected, rtol=0, atol=1e-12 * abs(expected).max())
     np.testing.assert_allclose(assembly.vector(f), (W.T @ f).ravel(), rtol=0, atol=1e-12)
+    # The compiled pair sums are SciPy's product with S[pair(a, b), i] = W_ia W_ib, column-
+    # compressed (each pair's points summed in point order), bit for bit.
+    keys = np.repeat(np.arange(m), np.diff(assembly.indptr)) * m + assembly.indices
+    pair, point = [], []
+    for i in range(n):
+        free = nodes[i][nodes[i] >= 0]
+        a, b = np.repeat(free, free.size), np.tile(free, free.size)
+        pair.append(np.searchsorted(keys, a * m + b))
+        point.append(np.full(a.size, i))
+    pair, point = np.concatenate(pair), np.concatenate(point)
+    S = sp.csc_matrix((W[point, keys[pair] // m] * W[point, keys[pair] % m], (pair, point)))
+    S.resize(keys.size, n)
+    metric = symmetric_outer(v)
+    np.testing.assert_array_equal(assembly.pair_sums(metric), S @ metric)
+    np.testing.assert_array_equal(assembly.pair_sums(iso), S @ iso)
     # The compiled pair sums read one value (row) per point: anything else is refused.
     with pytest.raises(ValueError, match="points"):
         assembly.pair_sums(np.zeros(n + 1))

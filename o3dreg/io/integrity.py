@@ -13,6 +13,8 @@ import os
 
 import numpy as np
 
+from .._compiled import library
+
 __all__ = ["check_ply_complete"]
 
 _PLY_TYPE_SIZES = {
@@ -162,8 +164,6 @@ def _check_polygon_records(
     """``OSError`` when a binary PLY's face records (polygons) do not each hold at least three
     corners within the file: Open3D's reader crashes the process on a polygon of fewer
     corners (a flipped count byte)."""
-    from .._compiled import library  # the compiled walk: millions of records in milliseconds
-
     data = np.fromfile(path, dtype=np.uint8, offset=offset)
     count = np.dtype(count_type)
     walked = library.o3dreg_ply_walk(

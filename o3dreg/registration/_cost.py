@@ -178,6 +178,7 @@ class LevelProblem:
         lookup = np.full(lattice.number_of_nodes, -1, dtype=np.int64)
         lookup[free_nodes] = np.arange(free_nodes.size)
         self.free_nodes = free_nodes
+        self._lookup = lookup
         local = lookup[nodes]
         self.number_of_unknowns = 3 * free_nodes.size
         self.regulariser = RegulariserTerm(
@@ -254,10 +255,8 @@ class LevelProblem:
         base = np.broadcast_to(np.eye(3), (pts.shape[0], 3, 3)).copy()
         if prior is not None:
             base = prior.jacobian(pts)
-        lookup = np.full(lat.number_of_nodes, -1, dtype=np.int64)
-        lookup[f] = np.arange(f.size)
         nodes, _, grads = lat.basis(pts)
-        local_nodes = lookup[nodes]
+        local_nodes = self._lookup[nodes]
         keep = local_nodes >= 0
         rows = np.broadcast_to(np.arange(pts.shape[0])[:, None], nodes.shape)[keep]
         ops = [

@@ -17,7 +17,7 @@ from functools import cached_property
 import igl
 import numpy as np
 
-from .._distinct import sort_keys
+from .._distinct import distinct_ranks
 from .._edges import SortedEdges
 from .._geometry import bounds, face_doubled_areas
 from ..volume.cleaning import mesh_components
@@ -220,18 +220,12 @@ def cluster_vertices(
     sorts them) and with each mean summed in input order (Open3D sums in the order of a hash
     set, which the platform's standard library decides).
     """
-    lo = np.array([vertices[:, k].min() for k in range(3)]) - 0.5 * voxel
+    lo = bounds(vertices)[0] - 0.5 * voxel
     keys = np.floor((vertices - lo) / voxel).astype(np.int64)
     dims = bounds(keys)[1] + 1
     if float(np.prod(dims, dtype=np.float64)) < 2.0**62:
         flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-        # The rank of each key among the distinct keys (np.unique's inverse).
-        order, ordered = sort_keys(flat)
-        new = np.empty(ordered.size, dtype=bool)
-        new[:1] = True
-        np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
-        cluster = np.empty(flat.size, dtype=np.int64)
-        cluster[order] = np.cumsum(new) - 1
+        cluster = distinct_ranks(flat)
     else:  # a voxel tiny for the extent: rows of keys
         _, cluster = np.unique(keys, axis=0, return_inverse=True)
     cluster = cluster.ravel()

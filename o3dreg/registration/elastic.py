@@ -19,7 +19,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from .._distinct import distinct
-from .._geometry import apply_transformation, bounds, face_cross, into_frame
+from .._geometry import apply_transformation, bounds, face_cross, face_doubled_areas, into_frame
 from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive, check_referenced
 from ._cost import LevelProblem, Robustness
@@ -684,8 +684,7 @@ def _surface_samples(
     )
     corners = vertices[faces]  # (m, 3, 3)
     samples = np.einsum("gk,mkd->mgd", grid, corners).reshape(-1, 3)
-    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    area = 0.5 * face_doubled_areas(vertices, faces)
     weights = np.repeat(area / grid.shape[0], grid.shape[0])
     return samples, weights
 

@@ -118,7 +118,7 @@ def surface_moments(
         ``1/A int (x - c)(x - c)^T dA``.
     """
     a, b, c = (vertices[faces[:, k]] for k in range(3))
-    areas = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    areas = 0.5 * face_doubled_areas(vertices, faces)
     area = float(areas.sum())
     if area <= 0:
         raise ValueError("the surface has zero area")

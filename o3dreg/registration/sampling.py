@@ -4,15 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._distinct import sort_keys
+from .._distinct import distinct, sort_keys
 from .._geometry import bounds
 
 __all__ = ["lexicographic_order", "morton_order", "spatial_subsample"]
-
-#: Cell grids up to this many cells per point (plus a floor) count their occupied cells on a
-#: bitmap; larger ones by sorting the cell keys.
-_BITMAP_CELLS_PER_POINT = 16
-_BITMAP_CELLS_FLOOR = 1 << 22
 
 
 def spatial_subsample(points: np.ndarray, count: int) -> np.ndarray:
@@ -42,7 +37,7 @@ def spatial_subsample(points: np.ndarray, count: int) -> np.ndarray:
         # monotone): no reduction over the keys.
         dims = np.floor((hi - lo) / cell).astype(np.int64) + 1
         flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-        occupied = _distinct(flat, int(np.prod(dims, dtype=np.float64)), n)
+        occupied = distinct(flat, int(np.prod(dims, dtype=np.float64))).size
         ratio = occupied / count
         if 0.7 <= ratio <= 1.4 or attempt == 7:
             break
@@ -64,16 +59,6 @@ def spatial_subsample(points: np.ndarray, count: int) -> np.ndarray:
         order = np.lexsort((points[:, 2], points[:, 1], points[:, 0], offset, flat))
         return np.sort(order[first])
     return np.sort(order[best])
-
-
-def _distinct(keys: np.ndarray, cells: float, n: int) -> int:
-    """How many distinct values ``keys`` (in ``[0, cells)``) holds."""
-    if cells <= max(_BITMAP_CELLS_PER_POINT * n, _BITMAP_CELLS_FLOOR):
-        seen = np.zeros(int(cells), dtype=bool)
-        seen[keys] = True
-        return int(np.count_nonzero(seen))
-    s = np.sort(keys)
-    return 1 + int(np.count_nonzero(s[1:] != s[:-1]))
 
 
 def _spread_bits(bits: int) -> np.ndarray:
