@@ -11,10 +11,7 @@ need_apt=()
 for pkg in libusb-1.0-0 libgomp1 libgl1 libvulkan1 mesa-vulkan-drivers chromium; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt+=("$pkg")
 done
-# The C compiler Python builds extensions with, for o3dreg's kernels (o3dreg/_kernels.c).
 PY=${PYTHON:-python3}
-compiler=$("$PY" -c "import sysconfig; print((sysconfig.get_config_var('CC') or 'cc').split()[0])" 2>/dev/null || echo cc)
-command -v "$compiler" >/dev/null 2>&1 || need_apt+=(gcc libc6-dev)
 if [ ${#need_apt[@]} -gt 0 ]; then
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
   $SUDO apt-get update -qq
@@ -25,8 +22,7 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 stamp=.venv/.o3dreg-installed
-if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ setup.py -nt "$stamp" ] \
-  || [ o3dreg/_kernels.c -nt "$stamp" ]; then
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   .venv/bin/python -m pip install -q --upgrade pip
   .venv/bin/python -m pip install -q -e ".[test]"
   touch "$stamp"

@@ -39,7 +39,7 @@ STAGES = [
     ("read the two meshes (io.mesh.read_triangle_mesh)", "mesh.py:read_triangle_mesh"),
     ("target preparation (TargetSurface.from_mesh)", "_target.py:from_mesh"),
     # Below 200k target vertices, the rigid step's first score builds the target's AABB tree
-    # (o3dreg._bvh), which the elastic levels use afterwards.
+    # (libigl's AABB), which the elastic levels use afterwards.
     ("rigid step (rigid.default_start)", "rigid.py:default_start"),
     ("elastic levels (elastic._coarse_to_fine)", "elastic.py:_coarse_to_fine"),
     ("verdict (verdict.judge)", "verdict.py:judge"),

@@ -36,12 +36,75 @@ def rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run_one(method: str, magnitude: str, template_vertices: int) -> dict:
+class _Clock:
+    """Seconds spent inside the libraries o3dreg calls, by kind, while a registration runs.
+
+    The wrappers replace the names o3dreg's modules look up at call time (libigl's ``AABB``,
+    SciPy's ``cKDTree``, ``cg``, ``spsolve`` and the dense factorisations); everything else
+    is o3dreg's own Python and NumPy glue.
+    """
+
+    KINDS = ("libigl closest points", "k-d tree queries", "tree builds", "SciPy solves")
+
+    def __init__(self) -> None:
+        self.seconds = dict.fromkeys(self.KINDS, 0.0)
+
+    def timed(self, kind: str, fn):
+        def call(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.seconds[kind] += time.perf_counter() - start
+
+        return call
+
+    def install(self) -> None:
+        import types
+
+        import igl
+        import scipy.linalg
+        import scipy.sparse.linalg
+        from scipy.spatial import cKDTree
+
+        from o3dreg.registration import _terms, distance, rigid
+
+        clock = self
+
+        class AABB:
+            def __init__(self) -> None:
+                self._tree = igl.AABB()
+                self.init = clock.timed("tree builds", self._tree.init)
+                self.squared_distance = clock.timed(
+                    "libigl closest points", self._tree.squared_distance
+                )
+
+        class KDTree:
+            def __init__(self, *args, **kwargs) -> None:
+                self._tree = clock.timed("tree builds", cKDTree)(*args, **kwargs)
+                self.query = clock.timed("k-d tree queries", self._tree.query)
+                self.query_ball_point = clock.timed("k-d tree queries", self._tree.query_ball_point)
+
+        distance.igl = types.SimpleNamespace(AABB=AABB)
+        for module in (_terms, distance, rigid):
+            module.cKDTree = KDTree
+        for module, names in (
+            (scipy.sparse.linalg, ("cg", "spsolve")),
+            (scipy.linalg, ("cho_factor", "cho_solve", "solve")),
+        ):
+            for name in names:
+                setattr(module, name, self.timed("SciPy solves", getattr(module, name)))
+
+
+def run_one(method: str, magnitude: str, template_vertices: int, shares: bool = False) -> dict:
     from _cases import bunny_case
 
     import o3dreg
 
     case = bunny_case(magnitude, template_vertices)
+    clock = _Clock()
+    if shares and method.startswith("o3dreg"):
+        clock.install()
     baseline = rss_mb()
     start = time.perf_counter()
     if method.startswith("o3dreg"):
@@ -87,6 +150,7 @@ def run_one(method: str, magnitude: str, template_vertices: int) -> dict:
         "s2t_mean": d.source_to_target_mean,
         "t2s_mean": d.target_to_source_mean,
         "profile": profile,
+        "library_seconds": clock.seconds if shares else {},
     }
 
 
@@ -103,9 +167,10 @@ def main() -> None:
     parser.add_argument(
         "--repeat", type=int, default=3, help="o3dreg runs per method (best time kept)"
     )
+    parser.add_argument("--shares", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.method:
-        print(json.dumps(run_one(args.method, args.magnitude, args.template_vertices)))
+        print(json.dumps(run_one(args.method, args.magnitude, args.template_vertices, args.shares)))
         return
     methods = [m for m in METHODS if not (args.skip_peers and not m.startswith("o3dreg"))]
     rows = []
@@ -152,6 +217,31 @@ def main() -> None:
         print(f"  {r['method']}: {METHODS[r['method']]}")
     if ref["profile"]:
         print(f"  o3dreg per level: {ref['profile']}")
+    print_shares(args, [m for m in methods if m.startswith("o3dreg")])
+
+
+def print_shares(args: argparse.Namespace, methods: list[str]) -> None:
+    """Where each o3dreg method's time goes: one more run of each with the library calls timed
+    (the wrappers cost microseconds a call; this run's total is not the one in the table)."""
+    print("\nwhere the time goes (one timed run each; the rest is o3dreg's Python and NumPy glue):")
+    print(
+        f"  {'method':<15}{'total s':>8}"
+        + "".join(f"{k:>23}" for k in _Clock.KINDS)
+        + f"{'glue':>10}"
+    )
+    for method in methods:
+        out = subprocess.run(
+            [sys.executable, __file__, "--method", method, "--magnitude", args.magnitude,
+             "--template-vertices", str(args.template_vertices), "--shares"],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        total, parts = r["seconds"], r["library_seconds"]
+        glue = total - sum(parts.values())
+        cells = "".join(
+            f"{parts[k]:>10.3f} s {100 * parts[k] / total:>4.0f}% " for k in _Clock.KINDS
+        )
+        print(f"  {method:<15}{total:>8.3f}{cells}{glue:>5.3f} s {100 * glue / total:.0f}%")
 
 
 if __name__ == "__main__":

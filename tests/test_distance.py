@@ -40,40 +40,6 @@ def test_the_tree_is_built_on_first_use(sphere):
     assert not TargetSurface.from_mesh(*sphere).query.has_tree
 
 
-def test_a_tree_built_ahead_answers_as_one_built_on_use(sphere):
-    rng = np.random.default_rng(0)
-    pts = rng.uniform(-2, 2, size=(2000, 3))
-    ahead = SurfaceDistanceQuery(*sphere)
-    ahead.prefetch_tree()
-    assert ahead.has_tree  # being built: closest_few will not build a tree of its own
-    ahead.prefetch_tree()  # a second call starts nothing
-    found = ahead.closest(pts)
-    expected = SurfaceDistanceQuery(*sphere).closest(pts)
-    for a, b in zip(found, expected):
-        np.testing.assert_array_equal(a, b)
-
-
-def test_a_forked_child_builds_the_tree_it_was_waiting_for(sphere, monkeypatch):
-    # In a child forked while the parent's build ran, that build's thread does not exist: the
-    # child builds its own (the same tree) instead of waiting for ever.
-    query = SurfaceDistanceQuery(*sphere)
-    query.prefetch_tree()
-    parent = query.__dict__["_building"][0]
-    monkeypatch.setattr(distance.os, "getpid", lambda: parent + 1)
-    found = query.closest(np.zeros((1, 3)))
-    assert found[0][0] == pytest.approx(SurfaceDistanceQuery(*sphere).distance(np.zeros((1, 3)))[0])
-
-
-def test_a_tree_built_ahead_raises_its_failure_at_first_use(sphere):
-    v, f = sphere
-    v = v.copy()
-    v[5] = np.nan  # the tree refuses non-finite vertices
-    query = SurfaceDistanceQuery(v, f)
-    query.prefetch_tree()
-    with pytest.raises(ValueError, match="finite"):
-        query.closest(np.zeros((1, 3)))
-
-
 def test_few_queries_without_the_tree_find_the_same_points(sphere, monkeypatch):
     v, f = sphere
     monkeypatch.setattr(distance, "CLOSEST_FEW_MIN_FACES", 0)

@@ -86,9 +86,9 @@ def test_displacement_gradient_matches_finite_differences():
     np.testing.assert_allclose(lat.displacement_gradient(pts), fd, atol=1e-6)
 
 
-def test_the_compiled_field_is_the_trilinear_basis_summed():
-    # The kernel against the NumPy formula of the basis (``basis``: nodes, weights and their
-    # derivatives), inside the box, on its faces and outside it (clamped).
+def test_the_field_is_the_trilinear_basis_summed():
+    # The field and its gradient against the basis (``basis``: nodes, weights and their
+    # derivatives) summed by hand, inside the box, on its faces and outside it (clamped).
     lat = random_lattice(shape=(3, 4, 2))
     pts = points_in(lat, n=400, margin=1.5)
     pts[:20] = lat.node_positions()[:20]  # exactly on nodes and faces

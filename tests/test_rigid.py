@@ -301,17 +301,25 @@ def test_a_near_tie_refines_both_poses(monkeypatch):
 
 def count_aabb_trees(monkeypatch):
     """A list that gets the vertex count of every surface a closest-point tree is built for."""
-    from o3dreg._bvh import TriangleTree
+    import igl
+
     from o3dreg.registration import distance
 
     sizes = []
+    real = igl.AABB
 
-    class Counted(TriangleTree):
-        def __init__(self, vertices, faces):
+    class Counted:
+        def __init__(self):
+            self._tree = real()
+
+        def init(self, vertices, faces):
             sizes.append(len(vertices))
-            super().__init__(vertices, faces)
+            self._tree.init(vertices, faces)
 
-    monkeypatch.setattr(distance, "TriangleTree", Counted)
+        def squared_distance(self, *args):
+            return self._tree.squared_distance(*args)
+
+    monkeypatch.setattr(distance.igl, "AABB", Counted)
     return sizes
 
 

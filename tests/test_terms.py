@@ -214,8 +214,8 @@ def test_normal_assembly_is_the_sum_over_points():
     # The same products summed in another order: equal to rounding.
     np.testing.assert_allclose(A.toarray(), expected, rtol=0, atol=1e-12 * abs(expected).max())
     np.testing.assert_allclose(assembly.vector(f), (W.T @ f).ravel(), rtol=0, atol=1e-12)
-    # The compiled pair sums are SciPy's product with S[pair(a, b), i] = W_ia W_ib, column-
-    # compressed (each pair's points summed in point order), bit for bit.
+    # The pair sums are the product with S[pair(a, b), i] = W_ia W_ib built by hand, point by
+    # point.
     keys = np.repeat(np.arange(m), np.diff(assembly.indptr)) * m + assembly.indices
     pair, point = [], []
     for i in range(n):
@@ -227,9 +227,13 @@ def test_normal_assembly_is_the_sum_over_points():
     S = sp.csc_matrix((W[point, keys[pair] // m] * W[point, keys[pair] % m], (pair, point)))
     S.resize(keys.size, n)
     metric = symmetric_outer(v)
-    np.testing.assert_array_equal(assembly.pair_sums(metric), S @ metric)
-    np.testing.assert_array_equal(assembly.pair_sums(iso), S @ iso)
-    # The compiled pair sums read one value (row) per point: anything else is refused.
+    # The same products summed in another order: equal to rounding.
+    scale = 1e-12 * abs(metric).max()
+    np.testing.assert_allclose(assembly.pair_sums(metric), S @ metric, rtol=0, atol=scale)
+    np.testing.assert_allclose(
+        assembly.pair_sums(iso), S @ iso, rtol=0, atol=1e-12 * abs(iso).max()
+    )
+    # One value (row) per point: anything else is refused.
     with pytest.raises(ValueError, match="points"):
         assembly.pair_sums(np.zeros(n + 1))
 

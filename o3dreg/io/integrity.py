@@ -13,8 +13,6 @@ import os
 
 import numpy as np
 
-from .._compiled import library
-
 __all__ = ["check_ply_complete"]
 
 _PLY_TYPE_SIZES = {
@@ -163,18 +161,35 @@ def _check_polygon_records(
 ) -> None:
     """``OSError`` when a binary PLY's face records (polygons) do not each hold at least three
     corners within the file: Open3D's reader crashes the process on a polygon of fewer
-    corners (a flipped count byte)."""
+    corners (a flipped count byte).
+
+    Polygons of one corner count (all quads, say) are checked at a fixed stride in one read;
+    mixed counts are walked record by record.
+    """
+    order = "<" if fmt == "binary_little_endian" else ">"
+    count = np.dtype(order + count_type)
+    index_size = np.dtype(index_type).itemsize
     data = np.fromfile(path, dtype=np.uint8, offset=offset)
-    count = np.dtype(count_type)
-    walked = library.o3dreg_ply_walk(
-        data, data.size, faces, count.itemsize, int(count.kind == "i"),
-        int(fmt == "binary_big_endian"), np.dtype(index_type).itemsize,
-    )  # fmt: skip
-    if walked < 0:
-        raise OSError(
-            f"`{name}`: {path!r} is malformed: face {-walked - 1} of its {faces} is not a "
-            "polygon of at least 3 corners within the file (a corrupted corner count)"
-        )
+    if faces == 0:
+        return
+    if data.size >= count.itemsize:
+        first = int(data[: count.itemsize].view(count)[0])
+        stride = count.itemsize + first * index_size
+        if first >= 3 and data.size >= faces * stride:
+            starts = np.arange(faces, dtype=np.int64)[:, None] * stride
+            raw = data[starts + np.arange(count.itemsize)].reshape(-1).view(count)
+            if (raw == first).all():
+                return
+    at = 0
+    for k in range(faces):
+        end = at + count.itemsize
+        corners = int(data[at:end].view(count)[0]) if end <= data.size else -1
+        at = end + max(corners, 0) * index_size
+        if corners < 3 or at > data.size:
+            raise OSError(
+                f"`{name}`: {path!r} is malformed: face {k} of its {faces} is not a "
+                "polygon of at least 3 corners within the file (a corrupted corner count)"
+            )
 
 
 def _count_lines(path: str, start: int) -> int:

@@ -7,7 +7,7 @@ for a point-to-surface row, ``s_i^2 I`` for a barycentre row), its share of ``J^
 ``sum_i W_i^T (x) f_i``. So the pattern of ``J^T J`` (node pairs sharing a cell, plus the
 regulariser's stencils) and the factor ``W_ia W_ib`` of every point in every pair are known when
 the level starts. :class:`NormalAssembly` computes them once; each linearisation is then one
-pass of sums ``S @ M`` (``S`` the pair factors, ``(pairs, points)``; compiled) and a 3x3-block
+sparse product ``S @ M`` (``S`` the pair factors, ``(pairs, points)``) and a 3x3-block
 sparse matrix built on the stored pattern, instead of sparse-times-sparse products whose
 pattern scipy rediscovers at every step.
 """
@@ -17,7 +17,6 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .._compiled import library
 from .._distinct import distinct
 
 #: The 6 distinct entries of a symmetric 3x3 matrix, as (row, column), in column order of the
@@ -79,16 +78,15 @@ class NormalAssembly:
         self.pairs = keys.size
         cell_slot = np.searchsorted(keys, cell_key)
         # S[pair, point] = W_ia W_ib: the node-level matrix of per-point scalars c is S @ c
-        # (:meth:`pair_sums`). Held as its transpose, one row of pairs per point, for the pairs
-        # a <= b only: the row of (b, a) is that of (a, b) (the same products, W_ib W_ia).
+        # (:meth:`pair_sums`). Held for the pairs a <= b only (``_half``): the row of (b, a) is
+        # that of (a, b) (the same products, W_ib W_ia), copied by ``_mirror``.
         upper = cell_valid & (a <= b)
         valid = upper[cell_of]
-        self._pair_factor = np.ascontiguousarray(
-            (weights[:, :, None] * weights[:, None, :])[valid], dtype=np.float64
+        point = np.broadcast_to(np.arange(n)[:, None, None], (n, 8, 8))[valid]
+        factor = (weights[:, :, None] * weights[:, None, :])[valid]
+        self._half = sp.csr_matrix(
+            (factor, (cell_slot[cell_of][valid], point)), shape=(self.pairs, n)
         )
-        self._pair_slot = np.ascontiguousarray(cell_slot[cell_of][valid], dtype=np.int32)
-        self._per_point = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(upper.sum(axis=(1, 2))[cell_of], out=self._per_point[1:])
         row, col = keys // max(m, 1), keys % max(m, 1)
         self._mirror = np.searchsorted(keys, np.minimum(row, col) * m + np.maximum(row, col))
         # The regulariser's pairs are distinct entries of a sparse product.
@@ -119,20 +117,13 @@ class NormalAssembly:
         return sp.bsr_matrix((blocks, self.indices, self.indptr), shape=(3 * m, 3 * m))
 
     def pair_sums(self, c: np.ndarray) -> np.ndarray:
-        """``S @ c`` for per-point values ``c`` (``(n,)`` or ``(n, k)``), by the compiled kernel:
-        each pair's points summed in point order, the same numbers as SciPy's product."""
-        values = np.ascontiguousarray(c, dtype=np.float64)
-        n = self._per_point.shape[0] - 1
-        if values.shape[0] != n:
-            raise ValueError(f"expected values for {n} points, got {values.shape}")
-        columns = 1 if values.ndim == 1 else values.shape[1]
-        half = np.zeros((self.pairs,) + values.shape[1:])
-        out = np.empty_like(half)
-        library.o3dreg_pair_sums(
-            n, self._per_point, self._pair_slot, self._pair_factor, values, columns,
-            self.pairs, self._mirror, half, out,
-        )  # fmt: skip
-        return out
+        """``S @ c`` for per-point values ``c`` (``(n,)`` or ``(n, k)``)."""
+        values = np.asarray(c, dtype=np.float64)
+        if values.shape[0] != self._half.shape[1]:
+            raise ValueError(
+                f"expected values for {self._half.shape[1]} points, got {values.shape}"
+            )
+        return np.asarray(self._half @ values)[self._mirror]
 
     def vector(self, f: np.ndarray) -> np.ndarray:
         """``sum_i W_i^T (x) f_i`` for per-point vectors ``f`` ``(n, 3)``, flattened node-major."""

@@ -2,8 +2,8 @@
 
 * ``'lm'``: Levenberg-Marquardt on the sparse normal equations ``(J^T J + mu D) delta = -J^T r``
   with Marquardt's diagonal scaling ``D = diag(J^T J)`` and Nielsen's damping update. The system
-  is symmetric positive definite and sparse (27-node stencil); it is solved by Jacobi-preconditioned
-  conjugate gradients (SuperLU as a fallback), the coarsest level's by a dense Cholesky
+  is symmetric positive definite and sparse (27-node stencil); it is solved by SciPy's conjugate
+  gradients, preconditioned by each node's 3x3 diagonal block (SuperLU as a fallback), the coarsest level's by a dense Cholesky
   factorisation (:class:`DampedSystem`).
 * ``'trf'``: :func:`scipy.optimize.least_squares` ``method='trf'`` with the sparse Jacobian.
 * ``'lm-dense'``: :func:`scipy.optimize.least_squares` ``method='lm'`` (MINPACK, dense Jacobian).
@@ -21,7 +21,6 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.optimize import least_squares
 
-from .._compiled import library
 from ._cost import Evaluation, LevelProblem
 from .options import ElasticCriteria
 
@@ -66,12 +65,11 @@ class DampedSystem:
     dampings ``d`` (the retries of one Levenberg-Marquardt iteration).
 
     Tiny systems are factorised densely (Cholesky; ``A`` is made dense once). Others are solved
-    by conjugate gradients preconditioned by the inverse of each node's 3x3 diagonal block
-    (``o3dreg_damped_cg`` in the compiled kernels, on ``A``'s 3x3 blocks): the damping
-    ``mu diag(A)`` keeps the system well conditioned, so CG needs a few dozen products, far
-    cheaper than a sparse LU, which is the fallback if CG does not converge. The block
-    preconditioner takes each node's point-to-plane coupling of x, y, z whole (a plain Jacobi
-    preconditioner sees only its diagonal).
+    by :func:`scipy.sparse.linalg.cg`, preconditioned by the inverse of each node's 3x3 diagonal
+    block of ``A + diag(d)``: the damping ``mu diag(A)`` keeps the system well conditioned, so
+    CG needs a few dozen products, far cheaper than a sparse LU, which is the fallback if CG
+    does not converge. The block preconditioner takes each node's point-to-plane coupling of
+    x, y, z whole (a plain Jacobi preconditioner sees only its diagonal).
     """
 
     def __init__(self, A: sp.spmatrix) -> None:
@@ -81,13 +79,35 @@ class DampedSystem:
         if self.dense is None:
             if self.size % 3:
                 raise ValueError(f"the normal equations hold 3 unknowns per node, got {self.size}")
-            bsr = sp.bsr_matrix(A, blocksize=(3, 3))
-            bsr.sum_duplicates()
+            # Every diagonal block stored (the assembly's matrices have them all; explicit
+            # zeros are added otherwise): the damping is written into the blocks in place.
+            nodes = self.size // 3
+            bsr = A if sp.issparse(A) and A.format == "bsr" else sp.bsr_matrix(A)
+            if bsr.blocksize != (3, 3):
+                bsr = sp.bsr_matrix(A, blocksize=(3, 3))
             bsr.sort_indices()
+            diagonal = self._diagonal_blocks(bsr)
+            if diagonal.size != nodes:
+                coo = bsr.tocoo()
+                every = np.arange(self.size)
+                csr = sp.csr_matrix(
+                    (
+                        np.concatenate([coo.data, np.zeros(self.size)]),
+                        (np.concatenate([coo.row, every]), np.concatenate([coo.col, every])),
+                    ),
+                    shape=A.shape,
+                )
+                bsr = csr.tobsr(blocksize=(3, 3))
+                bsr.sort_indices()
+                diagonal = self._diagonal_blocks(bsr)
             self.A = bsr
-            self._blocks = np.ascontiguousarray(bsr.data, dtype=np.float64)
-            self._indptr = np.ascontiguousarray(bsr.indptr, dtype=np.int32)
-            self._indices = np.ascontiguousarray(bsr.indices, dtype=np.int32)
+            self._diagonal = diagonal
+
+    @staticmethod
+    def _diagonal_blocks(bsr: sp.bsr_matrix) -> np.ndarray:
+        """Positions of the diagonal blocks among ``bsr``'s stored blocks."""
+        rows = np.repeat(np.arange(bsr.shape[0] // 3), np.diff(bsr.indptr))
+        return np.flatnonzero(bsr.indices == rows)
 
     def solve_damped(self, damping: np.ndarray, b: np.ndarray) -> np.ndarray:
         if self.dense is not None:
@@ -99,23 +119,30 @@ class DampedSystem:
             except (np.linalg.LinAlgError, ValueError):
                 return np.asarray(scipy.linalg.solve(M, b, assume_a="sym"))
         assert self.A is not None
-        d = np.ascontiguousarray(damping, dtype=np.float64)
-        rhs = np.ascontiguousarray(b, dtype=np.float64)
-        if d.shape != (self.size,) or rhs.shape != (self.size,):
+        d = np.asarray(damping, dtype=np.float64)
+        if d.shape != (self.size,) or np.shape(b) != (self.size,):
             raise ValueError(
                 f"expected a damping and a right-hand side of {self.size} values, got "
-                f"{d.shape} and {rhs.shape}"
+                f"{d.shape} and {np.shape(b)}"
             )
-        x = np.empty(self.size)
-        done = library.o3dreg_damped_cg(
-            self.size // 3, self._indptr, self._indices, self._blocks, d, rhs, CG_RTOL,
-            CG_MAXITER, x,
-        )  # fmt: skip
-        if done == -2:
-            raise MemoryError(f"no memory for conjugate gradients on {self.size} unknowns")
-        if done < 0:
-            M = (self.A.tocsr() + sp.diags(d, format="csr")).tocsc()
-            x = spla.spsolve(M, rhs)
+        blocks = self.A.data.copy()
+        diagonal = blocks[self._diagonal]  # (nodes, 3, 3)
+        diagonal[:, [0, 1, 2], [0, 1, 2]] += d.reshape(-1, 3)
+        blocks[self._diagonal] = diagonal
+        M = sp.bsr_matrix((blocks, self.A.indices, self.A.indptr), shape=self.A.shape)
+        nodes = self.size // 3
+        try:
+            inverse = np.linalg.inv(diagonal)
+        except np.linalg.LinAlgError:
+            inverse = None
+        x, info = (None, -1)
+        if inverse is not None:
+            preconditioner = sp.bsr_matrix(
+                (inverse, np.arange(nodes), np.arange(nodes + 1)), shape=self.A.shape
+            )
+            x, info = spla.cg(M, b, rtol=CG_RTOL, atol=0.0, M=preconditioner, maxiter=CG_MAXITER)
+        if info != 0:
+            x = spla.spsolve(M.tocsc(), b)
         return np.asarray(x)
 
 

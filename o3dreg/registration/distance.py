@@ -1,19 +1,16 @@
-"""Point-to-surface distances on an AABB tree (``o3dreg._bvh``), built once per surface."""
+"""Point-to-surface distances with libigl's AABB tree, built once per surface."""
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from functools import cached_property
 from typing import Any
 
+import igl
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._bvh import TriangleTree
-from .._compiled import library, split
 from .._edges import SortedEdges
-from .._geometry import apply_transformation, face_cross, into_frame, row_norms
+from .._geometry import apply_transformation, barycentric, face_cross, into_frame, row_norms
 
 __all__ = ["FramedQuery", "SurfaceDistanceQuery"]
 
@@ -52,30 +49,15 @@ class SurfaceDistanceQuery:
             self.__dict__["open_edges"] = open_edges  # the cached property, known already
 
     @cached_property
-    def _tree(self) -> TriangleTree:
-        pending = self.__dict__.pop("_building", None)
-        # A process forked while the tree was being built has no thread to wait for.
-        if pending is not None and pending[0] == os.getpid():
-            return pending[1].result()  # type: ignore[no-any-return]
-        return TriangleTree(self.vertices, self.faces)
+    def _tree(self) -> Any:
+        tree = igl.AABB()
+        tree.init(self.vertices, self.faces)
+        return tree
 
     @property
     def has_tree(self) -> bool:
-        """Whether the AABB tree is built (by the first :meth:`closest`) or being built (see
-        :meth:`prefetch_tree`)."""
-        return "_tree" in self.__dict__ or "_building" in self.__dict__
-
-    def prefetch_tree(self) -> None:
-        """Start building the AABB tree on a thread of its own; the first :meth:`closest` waits
-        for it (and raises what the build raised). The build is compiled code without the GIL:
-        a registration that will need the tree of the full target later builds it while its
-        coarse levels run on the target's levels of detail."""
-        if self.has_tree:
-            return
-        builder = ThreadPoolExecutor(1, thread_name_prefix="o3dreg-tree")
-        future = builder.submit(TriangleTree, self.vertices, self.faces)
-        self.__dict__["_building"] = (os.getpid(), future)
-        builder.shutdown(wait=False)
+        """Whether the AABB tree is built (by the first :meth:`closest`)."""
+        return "_tree" in self.__dict__
 
     @cached_property
     def face_normals(self) -> np.ndarray:
@@ -100,14 +82,8 @@ class SurfaceDistanceQuery:
             f"SurfaceDistanceQuery(vertices={self.vertices.shape[0]}, faces={self.faces.shape[0]})"
         )
 
-    def closest(
-        self, points: np.ndarray, hint: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Closest surface point of each query point.
-
-        ``hint``: per point a triangle to start the search from (the one found for it last
-        time, say; -1 for none). It makes the search shorter, not its answer other, up to which
-        of several equally close triangles is named.
+    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Closest surface point of each query point (libigl's ``AABB.squared_distance``).
 
         Returns
         -------
@@ -121,8 +97,8 @@ class SurfaceDistanceQuery:
         pts = np.ascontiguousarray(points, dtype=np.float64)
         if pts.shape[0] == 0:
             return np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 3))
-        sqr, face, closest = self._tree.closest(pts, hint)
-        return np.sqrt(sqr), face, closest
+        sqr, face, closest = self._tree.squared_distance(self.vertices, self.faces, pts)
+        return np.sqrt(sqr), np.asarray(face, dtype=np.int64).ravel(), closest
 
     def closest_few(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`closest` for a few points on a large surface whose tree is not built yet.
@@ -261,41 +237,36 @@ class SurfaceDistanceQuery:
         (k,) bool ndarray
         """
         on_boundary = self.open_edges[1]
-        k = points.shape[0]
-        if k == 0 or not on_boundary.any():
-            return np.zeros(k, dtype=bool)
-        pts = np.ascontiguousarray(points, dtype=np.float64)
-        near = np.ascontiguousarray(closest, dtype=np.float64)
-        found = np.ascontiguousarray(face, dtype=np.int64)
-        if pts.shape != (k, 3) or near.shape != (k, 3) or found.shape != (k,):
-            raise ValueError(
-                f"expected (k, 3) points and closest points and (k,) faces, got {pts.shape}, "
-                f"{near.shape} and {found.shape}"
-            )
-        if found.min() < 0 or found.max() >= self.faces.shape[0]:
-            raise ValueError(f"`face` must index the {self.faces.shape[0]} triangles")
-        open_edge, touches, vertex_on_boundary = self._boundary_flags
-        out = np.empty(k, dtype=np.uint8)
-        split(
-            library.o3dreg_beyond_boundary, k, self.vertices, self.faces, open_edge, touches,
-            vertex_on_boundary, pts, found, near, 0.5 * self.mean_edge, out,
-            cheap=True,
-        )  # fmt: skip
-        return out.view(bool)
+        beyond = np.zeros(points.shape[0], dtype=bool)
+        if points.shape[0] == 0 or not on_boundary.any():
+            return beyond
+        # Only a closest point on a triangle touching the boundary can be on it.
+        near = np.flatnonzero(self._touches_boundary[face])
+        if near.size:
+            beyond[near] = self._beyond(points[near], face[near], closest[near])
+        return beyond
 
     @cached_property
-    def _boundary_flags(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """As bytes for the compiled test: per triangle its open edges and whether an edge or a
-        corner of it lies on the open boundary; per vertex whether it does."""
+    def _touches_boundary(self) -> np.ndarray:
+        """Per triangle: whether an edge or a corner of it lies on the open boundary."""
         open_edge, on_boundary = self.open_edges
-        corner = on_boundary[self.faces]
-        touches = open_edge[:, 0] | open_edge[:, 1] | open_edge[:, 2]
-        touches |= corner[:, 0] | corner[:, 1] | corner[:, 2]
-        return (
-            np.ascontiguousarray(open_edge, dtype=np.uint8),
-            np.ascontiguousarray(touches, dtype=np.uint8),
-            np.ascontiguousarray(on_boundary, dtype=np.uint8),
-        )
+        return np.asarray(open_edge.any(axis=1) | on_boundary[self.faces].any(axis=1))
+
+    def _beyond(self, points: np.ndarray, face: np.ndarray, closest: np.ndarray) -> np.ndarray:
+        open_edge, on_boundary = self.open_edges
+        corners = self.faces[face]
+        bary = barycentric(self.vertices[corners], closest)
+        tiny = bary <= 1e-9
+        hit = (tiny & open_edge[face]).any(axis=1)
+        # At a corner (two coordinates ~0) the closest point is that vertex.
+        vertex_hit = tiny.sum(axis=1) >= 2
+        if vertex_hit.any():
+            corner = np.argmax(bary[vertex_hit], axis=1)
+            hit[vertex_hit] |= on_boundary[corners[vertex_hit, corner]]
+        diff = points - closest
+        n = self.face_normal(face)
+        tangent = diff - (diff * n).sum(axis=1, keepdims=True) * n
+        return hit & (row_norms(tangent) > 0.5 * self.mean_edge)
 
 
 class FramedQuery(SurfaceDistanceQuery):
@@ -325,9 +296,6 @@ class FramedQuery(SurfaceDistanceQuery):
     def has_tree(self) -> bool:
         return self._surface.has_tree
 
-    def prefetch_tree(self) -> None:
-        self._surface.prefetch_tree()
-
     @property  # type: ignore[override]
     def open_edges(self) -> tuple[np.ndarray, np.ndarray]:
         return self._surface.open_edges
@@ -347,10 +315,8 @@ class FramedQuery(SurfaceDistanceQuery):
         dist, face, closest = found
         return dist, face, into_frame(self._frame, closest)
 
-    def closest(
-        self, points: np.ndarray, hint: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self._here(self._surface.closest(self._there(points), hint))  # type: ignore[no-any-return]
+    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self._here(self._surface.closest(self._there(points)))  # type: ignore[no-any-return]
 
     def closest_few(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return self._here(self._surface.closest_few(self._there(points)))  # type: ignore[no-any-return]

@@ -20,7 +20,6 @@ from scipy.spatial import cKDTree
 
 from .._distinct import distinct
 from .._geometry import apply_transformation, bounds, face_cross, face_doubled_areas, into_frame
-from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive, check_referenced
 from ._cost import LevelProblem, Robustness
 from ._robust import (
@@ -97,7 +96,6 @@ def _check_levels(levels: Any) -> list[ElasticLevel]:
     return list(levels)
 
 
-@small_pages()
 def registration_elastic(
     source: Any,
     target: Any,
@@ -330,9 +328,6 @@ def _coarse_to_fine(
     surface.build_levels_of_detail(
         _detail_voxel(size, lev) for lev in levels_ if lev.simplify_target
     )
-    if any(_level_query(surface, size, lev) is query for lev in levels_):
-        # A level measures on the full target: its tree builds while the coarser levels run.
-        query.prefetch_tree()
     orientation = 1.0
     if estimation_method.max_normal_angle is not None:
         orientation = _relative_orientation(points, fs, surface.finest_detail())

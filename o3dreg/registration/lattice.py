@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .._compiled import library, split
 from .._distinct import distinct
 
 __all__ = ["TrilinearLattice", "corner_offsets"]
@@ -224,34 +223,24 @@ class TrilinearLattice:
         return self._field(points, True, out)
 
     def _field(self, points: np.ndarray, gradient: bool, out: np.ndarray | None) -> np.ndarray:
-        """The displacement or its gradient at ``points``, by the compiled kernel (the same
-        weights as :meth:`basis`, summed over the 8 corners in corner order)."""
-        pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        """The displacement or its gradient at ``points`` (the weights of :meth:`weights` or
+        :meth:`basis` summed over the 8 corners)."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         shape = (pts.shape[0], 3, 3) if gradient else (pts.shape[0], 3)
-        if out is None:
-            out = np.zeros(shape)
-        elif out.shape != shape or out.dtype != np.float64 or not out.flags.c_contiguous:
-            raise ValueError(f"`out` must be a C-contiguous float64 array of shape {shape}")
+        if out is not None and out.shape != shape:
+            raise ValueError(f"`out` must have shape {shape}, got {out.shape}")
         if not np.isfinite(pts).all():
             raise ValueError("the lattice's field is evaluated at finite points only")
-        origin = np.ascontiguousarray(self.origin, dtype=np.float64)
-        cell = np.ascontiguousarray(self.cell_size, dtype=np.float64)
-        if origin.shape != (3,) or cell.shape != (3,):
-            raise ValueError(
-                f"a lattice needs a 3-vector origin and size, got {origin.shape} and {cell.shape}"
-            )
-        split(
-            library.o3dreg_lattice_field,
-            pts.shape[0],
-            origin,
-            cell,
-            np.asarray(self.shape, dtype=np.int64),
-            np.ascontiguousarray(self.displacements, dtype=np.float64),
-            pts,
-            int(gradient),
-            out,
-            cheap=True,
-        )
+        d = self.displacements.reshape(-1, 3)
+        if gradient:
+            nodes, _, grads = self.basis(pts)
+            field = np.einsum("nkc,nka->nca", d[nodes], grads)
+        else:
+            nodes, w = self.weights(pts)
+            field = np.einsum("nk,nkc->nc", w, d[nodes])
+        if out is None:
+            return np.asarray(field)
+        out += field
         return out
 
     def with_displacements(self, displacements: np.ndarray) -> TrilinearLattice:

@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
+from collections.abc import Iterator
 from concurrent.futures import Executor, ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -21,8 +24,6 @@ from scipy.spatial import cKDTree
 
 from .._edges import SortedEdges
 from .._geometry import apply_transformation, face_doubled_areas, rotation_angle, row_norms
-from .._held import HeldSetting
-from .._pages import small_pages
 from .._validation import as_mesh_arrays, as_transformation, check_positive
 from .distance import SurfaceDistanceQuery
 from .sampling import spatial_subsample
@@ -319,7 +320,6 @@ class RigidRegistrationResult(reg.RegistrationResult):  # type: ignore[misc]
         )
 
 
-@small_pages()
 def registration_rigid(
     source: Any,
     target: Any,
@@ -548,19 +548,29 @@ def _check_sizes(covs: np.ndarray, covt: np.ndarray) -> None:
         )
 
 
-def _one_open3d_thread() -> int:
-    previous = o3d.utility.get_max_threads()
-    o3d.utility.set_max_threads(1)
-    return int(previous)
-
-
 #: Open3D on one thread while any rigid step runs (``with _single_thread():``): its ICP sums over
 #: threads in no fixed order, so two runs on the same input could differ in the last bits and,
-#: through the candidate ranking, pick different poses. The thread count is process-wide, so it
-#: is held (re-entrant, thread-safe): an overlapping registration in another thread does not
-#: restore it under this one's ICPs; the caller's count comes back when the last one leaves.
-_OPEN3D_THREADS = HeldSetting(_one_open3d_thread, o3d.utility.set_max_threads)
-_single_thread = _OPEN3D_THREADS.held
+#: through the candidate ranking, pick different poses. The thread count is process-wide, so
+#: overlapping rigid steps (nested, or in two threads) share one hold: the first to enter saves
+#: the caller's count and the last to leave restores it.
+_open3d_threads_lock = threading.Lock()
+_open3d_threads_held = [0, 0]  # [holders, the caller's count]
+
+
+@contextmanager
+def _single_thread() -> Iterator[None]:
+    with _open3d_threads_lock:
+        if _open3d_threads_held[0] == 0:
+            _open3d_threads_held[1] = o3d.utility.get_max_threads()
+            o3d.utility.set_max_threads(1)
+        _open3d_threads_held[0] += 1
+    try:
+        yield
+    finally:
+        with _open3d_threads_lock:
+            _open3d_threads_held[0] -= 1
+            if _open3d_threads_held[0] == 0:
+                o3d.utility.set_max_threads(_open3d_threads_held[1])
 
 
 class _CandidateSearch:
