@@ -699,6 +699,64 @@ def test_sigterm_is_one_line_exit_143_and_nothing_half_written(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.ply", "t.ply"]
 
 
+#: Interruptions of a registration: during the rigid step (after the command's first line) and
+#: at a level boundary (after the first level's line), at varied delays: enough tries that a
+#: race between the signal and a library call (threads unwound under a running query, threads
+#: at interpreter shutdown) would show as a signal death (a negative return code).
+INTERRUPTIONS = [
+    (sig, stage, delay)
+    for sig in (signal.SIGINT, signal.SIGTERM)
+    for stage, delays in (
+        ("rigid", (0.0, 0.1, 0.25, 0.4, 0.6)),
+        ("level", (0.0, 0.01, 0.05, 0.1, 0.2, 0.4, 0.8)),
+    )
+    for delay in delays
+]
+
+
+def test_interrupts_during_a_registration_never_kill_by_signal(tmp_path):
+    write_triangle_mesh(tmp_path / "t.ply", sphere(40))
+    write_triangle_mesh(tmp_path / "p.ply", sphere(80))
+    code = "import sys; from o3dreg.cli import main; sys.exit(main(sys.argv[1:]))"
+    expected = {signal.SIGINT: (130, "interrupted"), signal.SIGTERM: (143, "terminated")}
+    outcomes = []
+    for k, (sig, stage, delay) in enumerate(INTERRUPTIONS):
+        out = tmp_path / f"run{k}"
+        out.mkdir()
+        proc = subprocess.Popen(
+            [sys.executable, "-c", code, "-v", "register", str(tmp_path / "t.ply"),
+             str(tmp_path / "p.ply"), "-o", str(out / "r.ply"), "--report", str(out / "r.json"),
+             "--levels", "2,4,8,16,24"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )  # fmt: skip
+        assert proc.stdout is not None and proc.stderr is not None
+        assert proc.stdout.readline().startswith("source")  # printed before the registration
+        lines = []
+        if stage == "level":
+            for line in proc.stderr:  # until the first level's line (logged at -v)
+                lines.append(line)
+                if "level 1/5" in line:
+                    break
+        time.sleep(delay)
+        proc.send_signal(sig)
+        err = "".join(lines) + proc.communicate(timeout=120)[1]
+        outcomes.append((sig.name, stage, delay, proc.returncode))
+        # A run that finished before the signal arrived exits by its verdict (0 or 1).
+        if proc.returncode in (0, 1):
+            continue
+        code_expected, word = expected[sig]
+        assert proc.returncode == code_expected, (outcomes, err[-2000:])
+        # One line of ours, the last thing on its line (a progress bar may stand before it,
+        # ended by a carriage return on a terminal).
+        ours = [line for line in err.splitlines() if "o3dreg register:" in line]
+        assert len(ours) == 1 and ours[0].endswith(f"o3dreg register: {word}"), err[-2000:]
+        assert "Traceback" not in err
+        assert list(out.iterdir()) == [], sorted(p.name for p in out.iterdir())
+    # Most tries must land inside the registration, or the test tests nothing.
+    assert sum(o[3] in (130, 143) for o in outcomes) >= 20, outcomes
+
+
 def test_native_output_stays_off_stdout_so_json_is_valid(tmp_path):
     # Open3D and RPly print on file descriptor 1; inside the CLI that goes to stderr.
     done = python(

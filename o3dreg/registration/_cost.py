@@ -231,7 +231,7 @@ class LevelProblem:
                     self._start_assignment = e, _ = self.barycentre.measure(self.base)
                 else:
                     e, _ = cKDTree(self.base[keep] if keep.any() else self.base).query(
-                        self.barycentre.target_points, workers=-1
+                        self.barycentre.target_points
                     )
                 self.sigma_symmetric = rb.loss_scale or robust_scale(e, floor)
         if rb.max_distance_factor is not None:

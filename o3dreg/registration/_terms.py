@@ -242,17 +242,20 @@ class BarycentreTerm:
             search = own + (self._moved - self._mark) >= self._gap
         self._last = y.copy()
         if search.any():
+            # One thread (SciPy's default): a threaded query is joined from Python, and an
+            # interrupt (Ctrl-C, SIGTERM) during the join unwinds while its threads still read
+            # the tree, a crash at exit.
             tree = cKDTree(y, leafsize=32)
             points = t[search]
             k = min(2, y.shape[0])
-            e, nearest = tree.query(points, k=k, workers=-1, distance_upper_bound=self._nn_bound)
+            e, nearest = tree.query(points, k=k, distance_upper_bound=self._nn_bound)
             e, nearest = e.reshape(-1, k), nearest.reshape(-1, k)
             # The radius each point was searched within (a second neighbour beyond it is at
             # least that far): the bound, or none for the points searched again unbounded.
             bound = np.full(e.shape[0], self._nn_bound)
             missed = ~np.isfinite(e[:, 0])
             if missed.any():
-                e2, n2 = tree.query(points[missed], k=k, workers=-1)
+                e2, n2 = tree.query(points[missed], k=k)
                 e[missed], nearest[missed] = e2.reshape(-1, k), n2.reshape(-1, k)
                 bound[missed] = np.inf
             first = nearest[:, 0]

@@ -165,12 +165,6 @@ def registration_elastic(
     TypeError, ValueError
         For invalid meshes or options, naming the parameter.
 
-    Notes
-    -----
-    NumPy's transparent-huge-page advice is switched off while the call runs and the caller's
-    setting restored afterwards (on a million-vertex target it cost a third of the run on a
-    kernel that compacts memory for huge pages; see ``docs/benchmarks.md``).
-
     References
     ----------
     .. [1] M. Berar, M. Desvignes, G. Bailly, Y. Payan, "3D meshes registration: application to
@@ -524,7 +518,7 @@ def _register_parts(
     """``parts='connected'``: the levels for each source component (``points``: the source
     rigidly aligned), and the result's part fields."""
     vt, ft = surface.mesh
-    _, nearest = cKDTree(points).query(vt, workers=-1)
+    _, nearest = cKDTree(points).query(vt)
     target_labels = labels[nearest]
     face_labels = target_labels[ft]
     moved = points.copy()
@@ -699,7 +693,7 @@ def _barycentre_offsets(
     to ``b_i`` keeps the spreading effect of eq. (3) without the drift.
     """
     moved = deformation.transform(samples) if deformation.levels else samples
-    _, nearest = cKDTree(used).query(moved, workers=-1)
+    _, nearest = cKDTree(used).query(moved)
     n = used.shape[0]
     total = np.bincount(nearest, weights, minlength=n)
     centroid = np.stack(

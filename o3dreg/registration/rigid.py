@@ -381,12 +381,6 @@ def registration_rigid(
         :data:`MAX_SIZE_RATIO` (different units): convert one of them, or pass
         ``with_scaling=True`` for a similarity start.
 
-    Notes
-    -----
-    NumPy's transparent-huge-page advice is switched off while the call runs and the caller's
-    setting restored afterwards (on a million-vertex target it cost a third of the run on a
-    kernel that compacts memory for huge pages; see ``docs/benchmarks.md``).
-
     Examples
     --------
     >>> import open3d as o3d, numpy as np
