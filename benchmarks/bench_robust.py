@@ -135,7 +135,7 @@ def scenarios(case) -> list[tuple[str, str, o3d.geometry.TriangleMesh, np.ndarra
                 truth[:, 0] < np.inf,
             )
         )
-    from o3dreg.volume.cleaning import remove_small_components
+    from o3dreg.mesh.cleaning import remove_small_components
 
     cleaned = remove_small_components(with_debris(case.target, 0.20), 100)
     out.append(("outliers 20% + clean", "cleaned", cleaned, truth[:, 0] < np.inf))

@@ -6,7 +6,9 @@ parameter, the expectation and what was received.
 
 from __future__ import annotations
 
+import importlib
 import os
+import warnings
 from typing import Any
 
 import numpy as np
@@ -22,6 +24,8 @@ __all__ = [
     "check_output_path",
     "check_positive",
     "check_probability",
+    "moved_name",
+    "to_open3d",
 ]
 
 
@@ -296,3 +300,30 @@ def check_output_path(path: Any, name: str, *, overwrite: bool) -> str:
     if os.path.exists(path) and not overwrite:
         raise OSError(f"`{name}`: {path!r} exists; pass overwrite=True (--overwrite) to replace it")
     return path
+
+
+def to_open3d(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.TriangleMesh:
+    """Build an Open3D mesh from ``(n, 3)`` vertices and ``(m, 3)`` faces (copied)."""
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.ascontiguousarray(vertices, dtype=np.float64)),
+        o3d.utility.Vector3iVector(np.ascontiguousarray(faces, dtype=np.int32)),
+    )
+    return mesh
+
+
+def moved_name(old_module: str, name: str, new_module: str) -> Any:
+    """``new_module.name`` looked up through ``old_module``, which no longer holds it, with a
+    ``DeprecationWarning``; ``AttributeError`` for a name ``new_module`` does not export.
+
+    A package's ``__getattr__`` calls it for the public names that moved to another room, so
+    user code keeps working while it learns the new path.
+    """
+    module = importlib.import_module(new_module)
+    if name not in getattr(module, "__all__", ()):
+        raise AttributeError(f"module {old_module!r} has no attribute {name!r}")
+    warnings.warn(
+        f"{old_module}.{name} is deprecated: import it from {new_module}",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    return getattr(module, name)

@@ -424,7 +424,7 @@ def test_resume_registers_again_when_template_patient_or_options_change(tmp_path
 def test_a_record_never_leads_outside_the_output_folder(tmp_path):
     import json
 
-    from o3dreg.registration.batch import BatchResult
+    from o3dreg.app.batch import BatchResult
 
     template = sphere(6)
     write_triangle_mesh(tmp_path / "a.ply", sphere(10))

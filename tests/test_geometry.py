@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from o3dreg import _geometry
-from o3dreg._distinct import distinct, distinct_ranks, sort_keys
 from o3dreg._geometry import det3, face_cross, face_doubled_areas, row_norms
+from o3dreg.mesh.distinct import distinct, distinct_ranks, sort_keys
 
 
 def test_face_cross_and_row_norms_are_numpys_bit_for_bit():

@@ -35,12 +35,12 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from .. import _json as json_text
 from .._validation import as_mesh_arrays, as_transformation, check_referenced
+from ..io import json_text
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
-from .options import DistanceEstimation, ElasticCriteria, default_levels
+from ..registration.options import DistanceEstimation, ElasticCriteria, default_levels
+from ..registration.verdict import STATUSES
 from .settings import RegistrationSettings, resolve_settings
-from .verdict import STATUSES
 
 __all__ = ["BatchResult", "PatientRecord", "register_batch", "resume_key"]
 

@@ -33,17 +33,17 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from ..io.mesh import write_triangle_mesh
-from ..registration.batch import BatchResult, register_batch, resume_key, save_registered
+from ..mesh.cleaning import decimate, keep_largest_components, smooth_taubin
 from ..registration.elastic import evaluate_elastic, registration_elastic
 from ..registration.options import DistanceEstimation
 from ..shape.build import build_shape_model
-from ..shape.landmarks import TemplateLandmarks, landmark_errors, predict_landmarks
+from ..shape.landmark_transfer import TemplateLandmarks, landmark_errors, predict_landmarks
 from ..shape.model import ShapeModel
 from ..shape.quality import compactness, generalization, specificity
-from ..volume.cleaning import decimate, keep_largest_components, smooth_taubin
 from ..volume.isosurface import isosurface
 from ..volume.readers import read_volume
 from ..volume.volume import Volume
+from .batch import BatchResult, register_batch, resume_key, save_registered
 from .datasets import headsq_path
 from .population import check_population
 from .report import write_report

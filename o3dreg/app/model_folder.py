@@ -23,18 +23,18 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from .. import _json as json_text
+from ..io import json_text
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
-from ..registration.batch import BatchResult, register_batch
 from ..registration.options import ElasticLevel
-from ..registration.settings import RegistrationSettings
 from ..shape.build import build_shape_model
 from ..shape.model import ShapeModel
 from ..shape.quality import QualityCurve, compactness, generalization, specificity
 from ..shape.sliding import SlidingResult, slide_semilandmarks
 from ..shape.statismo import write_statismo
+from .batch import BatchResult, register_batch
 from .explorer import write_model_explorer
 from .population import check_population
+from .settings import RegistrationSettings
 
 logger = logging.getLogger("o3dreg")
 

@@ -14,9 +14,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..registration.batch import BatchResult
 from ..registration.verdict import OUTLIER_Z, population_outliers, worst_status
 from ..shape.procrustes import generalized_procrustes
+from .batch import BatchResult
 
 __all__ = ["check_population", "population_findings"]
 

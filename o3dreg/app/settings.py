@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from .elastic import registration_elastic
-from .landmarks import registration_landmarks
-from .options import DistanceEstimation, ElasticCriteria, ElasticLevel
+from ..registration.elastic import registration_elastic
+from ..registration.landmark_start import registration_landmarks
+from ..registration.options import DistanceEstimation, ElasticCriteria, ElasticLevel
 
 __all__ = ["STARTS", "RegistrationSettings"]
 

@@ -13,7 +13,7 @@ import sys
 from collections.abc import Iterator, Sequence
 from typing import Any
 
-from .. import _json as json_text
+from ..io import json_text
 from ..io.mesh import atomic_write_text
 
 

@@ -14,12 +14,12 @@ import sys
 from collections.abc import Iterator
 from typing import Any
 
-from .. import _json as json_text
 from ..app.explorer import write_model_explorer
 from ..app.model_folder import build_model_folder, check_inputs_outside, existing_model_files
-from ..io.landmarks import LANDMARK_SUFFIXES
+from ..io import json_text
+from ..io.landmark_files import LANDMARK_SUFFIXES
 from ..io.mesh import read_triangle_mesh
-from ..shape.landmarks import (
+from ..shape.landmark_transfer import (
     landmark_errors,
     load_template_landmarks,
     predict_landmarks,

@@ -11,10 +11,10 @@ from typing import Any
 
 import numpy as np
 
-from .. import _json as json_text
 from .._validation import check_positive
+from ..io import json_text
 from ..io.mesh import MESH_SUFFIXES, write_triangle_mesh
-from ..volume.cleaning import (
+from ..mesh.cleaning import (
     connected_components,
     crop_mesh,
     decimate,

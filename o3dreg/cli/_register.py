@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from ..app.explorer import write_registration_explorer
 from ..io.mesh import MESH_SUFFIXES, read_triangle_mesh, write_triangle_mesh
-from ..registration.landmarks import registration_landmarks
+from ..registration.landmark_start import registration_landmarks
 from ..registration.options import default_levels
 from ..registration.result import ElasticRegistrationResult, LevelReport
 from ._common import all_or_nothing, check_outputs, emit, emit_json, write_json

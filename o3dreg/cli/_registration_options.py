@@ -11,8 +11,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from ..app.settings import RegistrationSettings
 from ..registration.options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
-from ..registration.settings import RegistrationSettings
 from ._common import float_list, int_list
 
 #: DistanceEstimation fields set by the options below (option dest -> field).

@@ -40,6 +40,8 @@ from xml.etree import ElementTree
 import numpy as np
 import open3d as o3d
 
+from .._validation import to_open3d
+
 __all__ = [
     "merge_identical_vertices",
     "read_obj",
@@ -717,7 +719,6 @@ OWN_SUFFIXES = (".vtk", ".vtp")
 def read_mesh(path: str, suffix: str, name: str = "path") -> Any:
     """Read ``path`` as an ``open3d.geometry.TriangleMesh`` (empty when Open3D finds nothing;
     ``name``: the parameter the path came from, for the OBJ reader's messages)."""
-    from .mesh import to_open3d  # io.mesh imports this module: not at module level (a cycle)
 
     if suffix == ".vtk":
         return to_open3d(*read_vtk(path))

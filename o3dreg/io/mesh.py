@@ -11,10 +11,9 @@ import tempfile
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import open3d as o3d
 
-from .._validation import as_mesh_arrays, check_output_path
+from .._validation import as_mesh_arrays, check_output_path, to_open3d
 from . import formats
 from .integrity import check_ply_complete
 
@@ -110,15 +109,6 @@ def read_triangle_mesh(
             f"{faces} faces, {len(mesh.vertices)} vertices and {len(mesh.triangles)} triangles "
             "could be read"
         )
-    return mesh
-
-
-def to_open3d(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.TriangleMesh:
-    """Build an Open3D mesh from ``(n, 3)`` vertices and ``(m, 3)`` faces (copied)."""
-    mesh = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(np.ascontiguousarray(vertices, dtype=np.float64)),
-        o3d.utility.Vector3iVector(np.ascontiguousarray(faces, dtype=np.int32)),
-    )
     return mesh
 
 

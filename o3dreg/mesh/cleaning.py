@@ -16,11 +16,11 @@ import open3d as o3d
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components as graph_components
 
-from .._distinct import distinct
-from .._edges import SortedEdges
 from .._geometry import face_doubled_areas
 from .._validation import as_mesh_arrays, as_points, check_positive
 from ..io.mesh import to_open3d
+from .distinct import distinct
+from .edges import SortedEdges
 
 __all__ = [
     "Components",
@@ -409,3 +409,25 @@ def decimate(mesh: Any, number_of_vertices: int) -> o3d.geometry.TriangleMesh:
         )
     logger.info("decimated %d -> %d vertices", vertices.shape[0], best_count)
     return best
+
+
+def drop_small_components(
+    vertices: np.ndarray, faces: np.ndarray, fraction: float, edges: SortedEdges | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh without its connected components smaller than ``fraction`` of the largest (the
+    arrays themselves when none is; ``edges``: the faces' sorted edges, where known)."""
+    components = mesh_components(vertices, faces, edges)
+    big = components.vertex_counts >= fraction * components.vertex_counts[0]
+    keep = big[components.labels]
+    if keep.all():
+        return vertices, faces
+    kept = faces[keep]
+    used = np.zeros(vertices.shape[0], dtype=bool)
+    used[kept.ravel()] = True
+    remap = np.cumsum(used) - 1
+    logger.info(
+        "ignoring %d small target component(s) (%d vertices)",
+        int((~big).sum()),
+        int((~used).sum()),
+    )
+    return vertices[used], remap[kept]

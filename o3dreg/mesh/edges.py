@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._distinct import sort_keys
+from .distinct import sort_keys
 
 
 class SortedEdges:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._distinct import distinct, sort_keys
 from .._geometry import bounds
+from .distinct import distinct, sort_keys
 
 __all__ = ["lexicographic_order", "morton_order", "spatial_subsample"]
 

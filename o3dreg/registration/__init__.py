@@ -1,18 +1,18 @@
 """Stage 2: a template registered onto each patient (rigid start, trilinear lattices, eq. (3))."""
 
-from .batch import BatchResult, PatientRecord, register_batch
+from typing import Any
+
+from .._validation import moved_name
 from .deformation import LatticeDeformation, PartitionedDeformation, load_deformation
 from .elastic import evaluate_elastic, registration_elastic
-from .landmarks import LandmarkRegistrationResult, registration_landmarks
+from .landmark_start import LandmarkRegistrationResult, registration_landmarks
 from .lattice import TrilinearLattice
 from .options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
 from .result import ElasticRegistrationResult, LevelReport, RigidStart, SurfaceDistances
 from .rigid import RigidRegistrationResult, registration_rigid
-from .settings import RegistrationSettings
 from .verdict import assess_registration, population_outliers
 
 __all__ = [
-    "BatchResult",
     "DistanceEstimation",
     "ElasticCriteria",
     "ElasticLevel",
@@ -21,8 +21,6 @@ __all__ = [
     "LatticeDeformation",
     "LevelReport",
     "PartitionedDeformation",
-    "PatientRecord",
-    "RegistrationSettings",
     "RigidRegistrationResult",
     "RigidStart",
     "SurfaceDistances",
@@ -32,8 +30,21 @@ __all__ = [
     "evaluate_elastic",
     "load_deformation",
     "population_outliers",
-    "register_batch",
     "registration_elastic",
     "registration_landmarks",
     "registration_rigid",
 ]
+
+#: Names that moved to the applications (o3dreg.app): batches and their settings.
+_MOVED = {
+    "BatchResult": "o3dreg.app.batch",
+    "PatientRecord": "o3dreg.app.batch",
+    "register_batch": "o3dreg.app.batch",
+    "RegistrationSettings": "o3dreg.app.settings",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _MOVED:
+        return moved_name(__name__, name, _MOVED[name])
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

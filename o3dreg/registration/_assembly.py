@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .._distinct import distinct
+from ..mesh.distinct import distinct
 
 #: The 6 distinct entries of a symmetric 3x3 matrix, as (row, column), in column order of the
 #: ``(n, 6)`` arrays of :meth:`NormalAssembly.matrix`.

@@ -36,8 +36,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .._distinct import distinct
 from .._geometry import det3
+from ..mesh.distinct import distinct
 from ._assembly import NormalAssembly
 from ._robust import (
     LOSS_CONSTANTS,

@@ -9,8 +9,8 @@ import igl
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._edges import SortedEdges
 from .._geometry import apply_transformation, barycentric, face_cross, into_frame, row_norms
+from ..mesh.edges import SortedEdges
 
 __all__ = ["FramedQuery", "SurfaceDistanceQuery"]
 

@@ -18,9 +18,10 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from .._distinct import distinct
 from .._geometry import apply_transformation, bounds, face_cross, face_doubled_areas, into_frame
 from .._validation import as_mesh_arrays, as_transformation, check_positive, check_referenced
+from ..mesh.distinct import distinct
+from ..mesh.sampling import spatial_subsample
 from ._cost import LevelProblem, Robustness
 from ._robust import (
     BoundaryChecker,
@@ -43,7 +44,6 @@ from .options import (
 )
 from .result import ElasticRegistrationResult, LevelReport, RigidStart, SurfaceDistances
 from .rigid import default_start
-from .sampling import spatial_subsample
 from .verdict import judge, with_rigid_start
 
 __all__ = ["evaluate_elastic", "registration_elastic"]

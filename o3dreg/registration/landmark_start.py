@@ -17,7 +17,7 @@ import numpy as np
 
 from .._geometry import apply_transformation
 from .._validation import as_points
-from ..io.landmarks import read_landmarks
+from ..io.landmark_files import read_landmarks
 
 __all__ = ["LandmarkRegistrationResult", "registration_landmarks"]
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .._distinct import distinct
+from ..mesh.distinct import distinct
 
 __all__ = ["TrilinearLattice", "corner_offsets"]
 

@@ -22,11 +22,12 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from .._edges import SortedEdges
 from .._geometry import apply_transformation, face_doubled_areas, rotation_angle, row_norms
 from .._validation import as_mesh_arrays, as_transformation, check_positive
+from ..mesh.canonical import cluster_vertices
+from ..mesh.edges import SortedEdges
+from ..mesh.sampling import spatial_subsample
 from .distance import SurfaceDistanceQuery
-from .sampling import spatial_subsample
 
 __all__ = [
     "RigidRegistrationResult",
@@ -841,11 +842,7 @@ def _cloud(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.PointCloud:
 
 def _simplified(vt: np.ndarray, ft: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
     """A copy of a large surface with about ``count`` vertices (vertex clustering)."""
-    # The elastic step's own clustering (Open3D's, in NumPy: 3-4x faster on a million vertices,
-    # in an order independent of the input's). Imported here: _target imports the verdict,
-    # which imports this module.
-    from ._target import cluster_vertices
-
+    # The elastic step's own clustering: the copy does not depend on the input's numbering.
     v, f = cluster_vertices(vt, ft, _voxel_for(vt, count))
     logger.debug("registration_rigid: target of %d vertices simplified to %d", len(vt), len(v))
     return as_mesh_arrays((v, f), "target", drop_degenerate=True)

@@ -2,7 +2,7 @@
 
 from .build import build_shape_model
 from .fit import ModelFit, fit_shape_model
-from .landmarks import (
+from .landmark_transfer import (
     LandmarkPrediction,
     TemplateLandmarks,
     landmark_errors,

@@ -20,7 +20,7 @@ import numpy as np
 
 from .._geometry import barycentric
 from .._validation import as_mesh_arrays, as_points, check_positive
-from ..io.landmarks import check_landmark_suffix, read_landmarks, write_landmarks
+from ..io.landmark_files import check_landmark_suffix, read_landmarks, write_landmarks
 from ..registration.distance import SurfaceDistanceQuery
 from .fit import fit_shape_model
 from .model import ShapeModel

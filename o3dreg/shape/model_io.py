@@ -1,6 +1,9 @@
 """Files of a shape model: the ``.npz`` archive of :meth:`ShapeModel.save` and the PLY meshes of
 the mean and the modes (:meth:`ShapeModel.write_meshes`).
 
+The functions take the model as ``Any``: :class:`~o3dreg.ShapeModel` calls them, and this module
+does not import the value type back (no import circle).
+
 The statismo HDF5 layout is in :mod:`.statismo`.
 """
 
@@ -8,15 +11,12 @@ from __future__ import annotations
 
 import json
 import os
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..io.archive import read_archive, write_archive
 from ..io.mesh import write_triangle_mesh
-
-if TYPE_CHECKING:  # the value type imports this module
-    from .model import ShapeModel
 
 __all__ = ["read_model_archive", "write_model_archive", "write_model_meshes"]
 
@@ -25,7 +25,7 @@ _VERSION = 1
 
 
 def write_model_archive(
-    model: ShapeModel, path: str | os.PathLike[str], *, overwrite: bool = False
+    model: Any, path: str | os.PathLike[str], *, overwrite: bool = False
 ) -> str:
     """Write the whole model (with the template triangles) to a ``.npz`` file, atomically."""
     arrays: dict[str, Any] = {
@@ -65,7 +65,7 @@ def read_model_archive(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def write_model_meshes(
-    model: ShapeModel,
+    model: Any,
     folder: str | os.PathLike[str],
     *,
     modes: Any = None,

@@ -11,7 +11,7 @@ import pytest
 from _helpers import FAST, population
 
 from o3dreg import register_batch, registration_elastic, write_triangle_mesh
-from o3dreg.registration.batch import resume_key, save_registered
+from o3dreg.app.batch import resume_key, save_registered
 
 
 @pytest.fixture(scope="module")

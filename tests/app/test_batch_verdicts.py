@@ -11,9 +11,9 @@ from _helpers import population
 from o3dreg import read_triangle_mesh, write_landmarks, write_triangle_mesh
 from o3dreg.app.model_folder import build_model_folder, patient_landmark_file
 from o3dreg.app.population import population_findings
+from o3dreg.app.settings import RegistrationSettings
 from o3dreg.cli import main
 from o3dreg.registration.options import ElasticLevel
-from o3dreg.registration.settings import RegistrationSettings
 
 
 def test_population_findings_mark_the_outlier():

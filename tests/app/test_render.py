@@ -13,7 +13,7 @@ import pytest
 from o3dreg.app.render import mode_displacements, render_mesh, render_shape_modes, view_rotation
 from o3dreg.app.synthetic import synthetic_form
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _png_size(path) -> tuple[int, int]:

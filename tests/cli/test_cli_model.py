@@ -14,7 +14,7 @@ from _helpers import population
 from o3dreg import write_landmarks, write_triangle_mesh
 from o3dreg.cli import main
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ import SimpleITK as sitk
 from o3dreg.app.datasets import headsq_path
 from o3dreg.cli import main
 
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 HEADSQ = headsq_path().parent  # bundled with the package (o3dreg/data)
 
 

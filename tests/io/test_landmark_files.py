@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from o3dreg import read_landmarks, write_landmarks
-from o3dreg.io.landmarks import LANDMARK_SUFFIXES
+from o3dreg.io.landmark_files import LANDMARK_SUFFIXES
 
 LABELS = ("nasion", "gonion, left", 'menton "M"')
 LPS = np.array([[1.5, -20.25, 30.0], [-40.0, 5.5, -7.125], [0.0, 0.0, 12.0]])

@@ -2,9 +2,9 @@
 
 import numpy as np
 
-from o3dreg import _distinct
 from o3dreg.app.synthetic import synthetic_form
-from o3dreg.registration.sampling import lexicographic_order, morton_order, spatial_subsample
+from o3dreg.mesh import distinct as _distinct
+from o3dreg.mesh.sampling import lexicographic_order, morton_order, spatial_subsample
 
 
 def test_count_and_order_independence():

@@ -407,7 +407,7 @@ def test_a_turned_ct_mandible_gets_nearly_the_turned_registration(shared_data):
     masks = shared_data / "mandibles" / "masks"
     if not masks.is_dir():
         pytest.skip("mandible masks absent from the shared data")
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "examples"))
     from mandible_model import reconstruct
 
     files = sorted(masks.glob("*.nrrd"))

@@ -122,8 +122,8 @@ def demo_population():
     """The demo's template and its first nine patients (seed 0), as `o3dreg demo` makes them."""
     from o3dreg.app.datasets import headsq_path
     from o3dreg.app.demo import bone_mesh, make_population
+    from o3dreg.mesh.cleaning import decimate
     from o3dreg.volume import read_volume
-    from o3dreg.volume.cleaning import decimate
 
     reference = bone_mesh(read_volume(headsq_path()))
     return decimate(reference, 2500), make_population(reference, 9, seed=0)

@@ -19,8 +19,8 @@ from o3dreg import (
 )
 from o3dreg._geometry import barycentric
 from o3dreg.app.synthetic import SmoothWarp, synthetic_form
+from o3dreg.mesh.canonical import canonical_mesh
 from o3dreg.registration._cost import robust_weights
-from o3dreg.registration._target import canonical_mesh
 from o3dreg.registration.distance import SurfaceDistanceQuery
 from o3dreg.registration.elastic import flipped_triangles
 

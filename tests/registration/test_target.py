@@ -4,10 +4,11 @@ of detail and its nested subsamples."""
 import numpy as np
 import open3d as o3d
 
-from o3dreg._edges import SortedEdges
-from o3dreg.registration._target import TargetSurface, canonical_mesh, oriented_faces
+from o3dreg.mesh.canonical import canonical_mesh, oriented_faces
+from o3dreg.mesh.cleaning import mesh_components
+from o3dreg.mesh.edges import SortedEdges
+from o3dreg.registration._target import TargetSurface
 from o3dreg.registration.distance import SurfaceDistanceQuery
-from o3dreg.volume.cleaning import mesh_components
 
 
 def sphere(radius: float, resolution: int, centre=(0.0, 0.0, 0.0)):
@@ -99,7 +100,7 @@ def test_vertex_clustering_is_open3ds():
     # (Average) followed by remove_degenerate_triangles and remove_unreferenced_vertices, in
     # canonical order. The means are summed in another order: equal to rounding.
     from o3dreg.io.mesh import to_open3d
-    from o3dreg.registration._target import cluster_vertices
+    from o3dreg.mesh.canonical import cluster_vertices
 
     v, f = canonical_mesh(*sphere(10.0, 60))
     v = v + np.array([3.0, -7.0, 1.0])  # off the origin: the grid starts at the data

@@ -12,7 +12,9 @@ from _helpers import population
 
 from o3dreg import build_shape_model, read_statismo, write_statismo
 
-REFERENCE = os.path.join(os.path.dirname(__file__), "data", "statismo", "scalismo-asm-model.h5")
+REFERENCE = os.path.join(
+    os.path.dirname(os.path.dirname(__file__)), "data", "statismo", "scalismo-asm-model.h5"
+)
 
 
 @pytest.fixture(scope="module")

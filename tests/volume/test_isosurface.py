@@ -14,7 +14,7 @@ from o3dreg import Volume, connected_components, isosurface, keep_largest_compon
 from o3dreg.app.datasets import headsq_path
 from o3dreg.registration.distance import SurfaceDistanceQuery
 
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 HEADSQ = headsq_path().parent  # bundled with the package (o3dreg/data)
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0])
 

@@ -16,7 +16,7 @@ from _helpers import write_dicom_series
 from o3dreg import Volume, read_raw_slices, read_volume
 from o3dreg.app.datasets import headsq_path
 
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 HEADSQ = headsq_path().parent  # bundled with the package (o3dreg/data)
 
 # Rotation about x by 20 degrees then about z by 30 degrees: a non-trivial direction.
