@@ -3,28 +3,48 @@
 from typing import Any
 
 from .._validation import moved_name
+from .checkers import (
+    BoundaryChecker,
+    CorrespondenceChecker,
+    DistanceChecker,
+    NormalAngleChecker,
+)
 from .deformation import LatticeDeformation, PartitionedDeformation, load_deformation
 from .elastic import evaluate_elastic, registration_elastic
 from .landmark_start import LandmarkRegistrationResult, registration_landmarks
 from .lattice import TrilinearLattice
+from .losses import CauchyLoss, HuberLoss, L2Loss, RobustLoss, TukeyLoss
 from .options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
 from .result import ElasticRegistrationResult, LevelReport, RigidStart, SurfaceDistances
 from .rigid import RigidRegistrationResult, registration_rigid
+from .terms import Barycentre, DistanceTerm, PointToSurface
 from .verdict import assess_registration, population_outliers
 
 __all__ = [
+    "Barycentre",
+    "BoundaryChecker",
+    "CauchyLoss",
+    "CorrespondenceChecker",
+    "DistanceChecker",
     "DistanceEstimation",
+    "DistanceTerm",
     "ElasticCriteria",
     "ElasticLevel",
     "ElasticRegistrationResult",
+    "HuberLoss",
+    "L2Loss",
     "LandmarkRegistrationResult",
     "LatticeDeformation",
     "LevelReport",
+    "NormalAngleChecker",
     "PartitionedDeformation",
+    "PointToSurface",
     "RigidRegistrationResult",
     "RigidStart",
+    "RobustLoss",
     "SurfaceDistances",
     "TrilinearLattice",
+    "TukeyLoss",
     "assess_registration",
     "default_levels",
     "evaluate_elastic",

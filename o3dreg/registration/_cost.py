@@ -29,7 +29,8 @@ the unsupported part of the template into the covered part.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -39,17 +40,7 @@ from scipy.spatial import cKDTree
 from .._geometry import det3
 from ..mesh.distinct import distinct
 from ._assembly import NormalAssembly
-from ._robust import (
-    LOSS_CONSTANTS,
-    BoundaryChecker,
-    CorrespondenceChecker,
-    DistanceChecker,
-    NormalChecker,
-    RobustKernel,
-    robust_scale,
-    robust_weights,
-    support,
-)
+from ._robust import CorrespondenceMask, robust_scale, support
 from ._terms import (
     BarycentreTerm,
     Geometry,
@@ -59,18 +50,12 @@ from ._terms import (
     TermBlock,
     Weights,
 )
+from .checkers import CheckerContext, CorrespondenceChecker
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
+from .losses import L2Loss, RobustLoss
 
-__all__ = [
-    "LOSS_CONSTANTS",
-    "SCALE_FLOOR",
-    "Evaluation",
-    "LevelProblem",
-    "Robustness",
-    "robust_scale",
-    "robust_weights",
-]
+__all__ = ["SCALE_FLOOR", "Evaluation", "LevelProblem", "bound_masks"]
 
 #: Smallest robust scale ``sigma``, as a fraction of the level's cell size. A level that starts
 #: nearly converged (the finest ones on a clean target) has a tiny median residual; a scale
@@ -81,18 +66,6 @@ __all__ = [
 #: still keeps a 40% cut within 1.42x (0.1: 3.5x) and 5% debris without the island filter within
 #: 1.12x.
 SCALE_FLOOR = 0.05
-
-
-@dataclass(frozen=True)
-class Robustness:
-    """Per-level robustness settings of :class:`LevelProblem` (see DistanceEstimation)."""
-
-    loss: str = "linear"
-    loss_scale: float | None = None
-    max_distance_factor: float | None = None
-    reject_boundary: bool = True
-    max_normal_angle: float | None = None
-    min_jacobian_determinant: float | None = None
 
 
 @dataclass
@@ -161,13 +134,17 @@ class LevelProblem:
         regularization: float,
         energy: str = "bending",
         *,
-        robustness: Robustness | None = None,
+        loss: RobustLoss | None = None,
+        checkers: Sequence[CorrespondenceChecker] = (),
+        target_has_boundary: bool = True,
+        min_jacobian_determinant: float | None = None,
         normals: np.ndarray | None = None,
         prior: Any = None,
         barycentre_offsets: np.ndarray | None = None,
     ) -> None:
         self.lattice = lattice
-        self.robust = robustness or Robustness()
+        self.loss = loss or L2Loss()
+        self.min_jacobian_determinant = min_jacobian_determinant
         self.base = points + previous
         self._points = points
         self.target = target
@@ -203,44 +180,45 @@ class LevelProblem:
         if self.barycentre is not None:
             self.terms.append(self.barycentre)
         self.terms.append(self.regulariser)
-        rb = self.robust
-        # Correspondence checkers, in the order their masks are combined.
-        self.checkers: list[CorrespondenceChecker] = []
-        if rb.reject_boundary and target.has_boundary:
-            self.checkers.append(BoundaryChecker(target))
-        if rb.max_normal_angle is not None and normals is not None:
-            # Normals of the triangles found only (a level checks a few thousand of them a few
-            # times; the target may have millions).
-            self.checkers.append(NormalChecker(normals, target.face_normal, rb.max_normal_angle))
-        self._robust = rb.loss != "linear" or rb.max_distance_factor is not None
+        context = CheckerContext(target, target_has_boundary, normals)
+        # The masks of the checkers, in the order they are combined; those measured in robust
+        # scales are bound once the scales are known.
+        self.checkers: list[CorrespondenceMask] = bound_masks(
+            [c for c in checkers if not c.needs_scale], context
+        )
+        scaled = [c for c in checkers if c.needs_scale]
+        self._robust = not isinstance(self.loss, L2Loss) or bool(scaled)
         self.sigma = self.sigma_symmetric = 1.0
         # The closest points (and barycentre assignment) at the level start, shared by the scales
         # and the first evaluation.
         self._start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._start_assignment: tuple[np.ndarray, np.ndarray] | None = None
         if self._robust:
-            # Scales from the data at the level start (u = 0), over the correspondences the
-            # other checkers accept (the distance checker itself is measured in these scales).
-            floor = SCALE_FLOOR * float(lattice.cell_size.min())
-            self._start = dist, face, closest = target.closest(self.base)
-            keep = support(self.checkers, self.base, dist, face, closest)
-            self.sigma = rb.loss_scale or robust_scale(dist[keep], floor)
-            if self.barycentre is not None:
-                if keep.all():
-                    # Every point supported: the scale's assignment is the first evaluation's.
-                    self._start_assignment = e, _ = self.barycentre.measure(self.base)
-                else:
-                    e, _ = cKDTree(self.base[keep] if keep.any() else self.base).query(
-                        self.barycentre.target_points
-                    )
-                self.sigma_symmetric = rb.loss_scale or robust_scale(e, floor)
-        if rb.max_distance_factor is not None:
-            self.checkers.append(DistanceChecker(rb.max_distance_factor, self.sigma))
-        self.kernel = RobustKernel.scaled(rb.loss, self.sigma)
-        self.target_kernel = RobustKernel.scaled(rb.loss, self.sigma_symmetric)
+            self._estimate_scales(lattice)
+        self.checkers += bound_masks(scaled, replace(context, sigma=self.sigma))
+        # The scaled checkers also judge the barycentre term's target -> template distances.
+        self.target_checkers = bound_masks(scaled, replace(context, sigma=self.sigma_symmetric))
         self._fold = None
-        if rb.min_jacobian_determinant is not None and self.number_of_unknowns:
+        if min_jacobian_determinant is not None and self.number_of_unknowns:
             self._fold = self._fold_samples(prior, active)
+
+    def _estimate_scales(self, lattice: TrilinearLattice) -> None:
+        """The robust scales ``sigma`` of both distance terms from the data at the level start
+        (``u = 0``), over the correspondences the other checkers accept (the distance checker
+        itself is measured in these scales)."""
+        floor = SCALE_FLOOR * float(lattice.cell_size.min())
+        self._start = dist, face, closest = self.target.closest(self.base)
+        keep = support(self.checkers, self.base, dist, face, closest)
+        self.sigma = self.loss.scale or robust_scale(dist[keep], floor)
+        if self.barycentre is not None:
+            if keep.all():
+                # Every point supported: the scale's assignment is the first evaluation's.
+                self._start_assignment = e, _ = self.barycentre.measure(self.base)
+            else:
+                e, _ = cKDTree(self.base[keep] if keep.any() else self.base).query(
+                    self.barycentre.target_points
+                )
+            self.sigma_symmetric = self.loss.scale or robust_scale(e, floor)
 
     # -- folding ----------------------------------------------------------------------------------
     def _fold_samples(
@@ -363,15 +341,13 @@ class LevelProblem:
         if not (self.checkers or self._robust):
             return Weights()
         mask = support(self.checkers, g.moved, g.distances, g.faces, g.closest)
-        w = self.kernel.weight(g.distances) * mask
+        w = self.loss.weight(g.distances, self.sigma) * mask
         v = None
         if self._robust and g.target_distances is not None:
             e = g.target_distances
-            v = self.target_kernel.weight(e)
-            if self.robust.max_distance_factor is not None:
-                v = v * DistanceChecker(
-                    self.robust.max_distance_factor, self.sigma_symmetric
-                ).check(g.moved, e, g.faces, g.closest)
+            v = self.loss.weight(e, self.sigma_symmetric)
+            for checker in self.target_checkers:
+                v = v * checker.check(g.moved, e, g.faces, g.closest)
         return Weights(w, mask, v)
 
     def _assemble(
@@ -427,3 +403,11 @@ class LevelProblem:
         assert regulariser is not None
         g = self.assembly.vector(rhs) + regulariser
         return A, g
+
+
+def bound_masks(
+    checkers: Sequence[CorrespondenceChecker], context: CheckerContext
+) -> list[CorrespondenceMask]:
+    """The masks of ``checkers`` at a level (those that reject something there)."""
+    masks = (checker.bind(context) for checker in checkers)
+    return [mask for mask in masks if mask is not None]

@@ -204,7 +204,7 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
     mu = None
     nu = 2.0
     cell = _cell(problem)
-    threshold = problem.robust.min_jacobian_determinant
+    threshold = problem.min_jacobian_determinant
     guard = threshold is not None and problem.guards_folding
     det = problem.min_determinant(u) if guard else 1.0
     folds_rejected = 0

@@ -22,16 +22,11 @@ from .._geometry import apply_transformation, bounds, face_cross, face_doubled_a
 from .._validation import as_mesh_arrays, as_transformation, check_positive, check_referenced
 from ..mesh.distinct import distinct
 from ..mesh.sampling import spatial_subsample
-from ._cost import LevelProblem, Robustness
-from ._robust import (
-    BoundaryChecker,
-    CorrespondenceChecker,
-    DistanceChecker,
-    NormalChecker,
-    support,
-)
+from ._cost import LevelProblem, bound_masks
+from ._robust import support
 from ._solvers import solve
 from ._target import TARGET_VOXELS_PER_CELL, TargetSurface
+from .checkers import CheckerContext
 from .deformation import LatticeDeformation, PartitionedDeformation
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
@@ -315,6 +310,7 @@ def _coarse_to_fine(
     vt = surface.vertices
     query = surface.query
     origin, size = lattice_box([points, vt], padding)
+    loss, checkers = estimation_method.robust_loss, estimation_method.checkers
     weight = estimation_method.symmetric_weight if estimation_method.symmetric else 0.0
     symmetric_levels = weight > 0 and any(lev.symmetric_scale > 0 for lev in levels_)
     target_points = vt if symmetric_levels else None
@@ -355,18 +351,6 @@ def _coarse_to_fine(
             budget = int(estimation_method.target_points_per_source_point * use.size)
             use_target = surface.subsample(budget)
         level_query = _level_query(surface, size, level)
-        robustness = Robustness(
-            loss=estimation_method.loss,
-            loss_scale=estimation_method.loss_scale,
-            max_distance_factor=estimation_method.max_distance_factor,
-            # Whether the target has open edges is a property of the full target: a simplified
-            # copy of a closed surface can have spurious ones.
-            reject_boundary=estimation_method.reject_boundary and query.has_boundary,
-            max_normal_angle=estimation_method.max_normal_angle,
-            min_jacobian_determinant=level.min_jacobian_determinant
-            if level.solver == "lm"
-            else None,
-        )
         normals = None
         if estimation_method.max_normal_angle is not None:
             normals = orientation * vertex_normals(points + previous, fs)[use]
@@ -386,7 +370,14 @@ def _coarse_to_fine(
             level_weight,
             level.regularization,
             level.energy,
-            robustness=robustness,
+            loss=loss,
+            checkers=checkers,
+            # Whether the target has open edges is a property of the full target: a simplified
+            # copy of a closed surface can have spurious ones.
+            target_has_boundary=query.has_boundary,
+            min_jacobian_determinant=level.min_jacobian_determinant
+            if level.solver == "lm"
+            else None,
             normals=normals,
             prior=deformation if deformation.levels else None,
             barycentre_offsets=offsets,
@@ -648,16 +639,12 @@ def _supported(
 ) -> np.ndarray:
     """Whether each template vertex has data: the masks of the last level, on all vertices and
     the full target at the final positions. ``found`` is ``query.closest(moved)``."""
-    checkers: list[CorrespondenceChecker] = []
-    if method.reject_boundary:
-        checkers.append(BoundaryChecker(query))
+    normals = None
     if method.max_normal_angle is not None:
         normals = orientation * vertex_normals(moved, faces)
-        # Only the normals of the triangles found: a million-vertex target has 2M triangles.
-        checkers.append(NormalChecker(normals, query.face_normal, method.max_normal_angle))
-    if method.max_distance_factor is not None and problem is not None:
-        checkers.append(DistanceChecker(method.max_distance_factor, problem.sigma))
-    return support(checkers, moved, *found)
+    sigma = None if problem is None else problem.sigma
+    context = CheckerContext(query, normals=normals, sigma=sigma)
+    return support(bound_masks(method.checkers, context), moved, *found)
 
 
 def _surface_samples(

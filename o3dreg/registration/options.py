@@ -6,6 +6,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from .._validation import check_positive, check_probability
+from .checkers import BoundaryChecker, CorrespondenceChecker, DistanceChecker, NormalAngleChecker
+from .losses import RobustLoss, loss_named
+from .terms import Barycentre, DistanceTerm, PointToSurface
 
 ENERGIES = ("bending", "membrane")
 
@@ -321,6 +324,108 @@ class DistanceEstimation:
         }
         fields.update(changes)
         return cls(**fields)
+
+    # -- the strategies these settings stand for (translated once per registration) -------------
+    @property
+    def robust_loss(self) -> RobustLoss:
+        """The loss of both distance terms (``loss`` and ``loss_scale``), e.g. ``CauchyLoss()``."""
+        return loss_named(self.loss, self.loss_scale)
+
+    @property
+    def checkers(self) -> tuple[CorrespondenceChecker, ...]:
+        """The correspondence checkers (``reject_boundary``, ``max_normal_angle``,
+        ``max_distance_factor``)."""
+        found: list[CorrespondenceChecker] = []
+        if self.reject_boundary:
+            found.append(BoundaryChecker())
+        if self.max_normal_angle is not None:
+            found.append(NormalAngleChecker(self.max_normal_angle))
+        if self.max_distance_factor is not None:
+            found.append(DistanceChecker(self.max_distance_factor))
+        return tuple(found)
+
+    @property
+    def terms(self) -> tuple[DistanceTerm, ...]:
+        """The distance terms: :class:`~o3dreg.PointToSurface`, and :class:`~o3dreg.Barycentre`
+        when ``symmetric``."""
+        if not self.symmetric:
+            return (PointToSurface(),)
+        barycentre = Barycentre(
+            self.symmetric_weight,
+            self.barycentre_correction,
+            self.target_points_per_source_point,
+        )
+        return (PointToSurface(), barycentre)
+
+    @classmethod
+    def compose(
+        cls,
+        *,
+        terms: Any = None,
+        loss: RobustLoss | None = None,
+        checkers: Any = None,
+        min_target_component: float | None = 0.01,
+    ) -> DistanceEstimation:
+        """The estimation of the given strategy objects (Open3D's way of composing them).
+
+        Parameters
+        ----------
+        terms : sequence of DistanceTerm
+            :class:`~o3dreg.PointToSurface` (required) and optionally one
+            :class:`~o3dreg.Barycentre`. Default both (eq. 3).
+        loss : RobustLoss, optional
+            Default ``CauchyLoss()``.
+        checkers : sequence of CorrespondenceChecker
+            At most one of each kind. Default boundary and normal angle (90 degrees).
+        min_target_component : float or None
+            As the attribute. Default 0.01.
+
+        Examples
+        --------
+        >>> from o3dreg import Barycentre, DistanceEstimation, PointToSurface, TukeyLoss
+        >>> DistanceEstimation.compose(
+        ...     terms=[PointToSurface(), Barycentre(weight=0.5)], loss=TukeyLoss(), checkers=[]
+        ... ).terms[1].weight
+        0.5
+        """
+        terms = (PointToSurface(), Barycentre()) if terms is None else tuple(terms)
+        if checkers is None:
+            checkers = (BoundaryChecker(), NormalAngleChecker())
+        checkers = tuple(checkers)
+        kinds = [type(t) for t in terms]
+        if kinds not in ([PointToSurface], [PointToSurface, Barycentre]):
+            raise ValueError(
+                "`terms` must be (PointToSurface(),) or (PointToSurface(), Barycentre(...)), "
+                f"got {terms!r}"
+            )
+        if loss is None:
+            loss = loss_named("cauchy")
+        if not isinstance(loss, RobustLoss):
+            raise TypeError(f"`loss` must be a RobustLoss, got {type(loss).__name__}")
+        by_kind = {type(c): c for c in checkers}
+        if len(by_kind) != len(checkers) or not all(
+            isinstance(c, (BoundaryChecker, NormalAngleChecker, DistanceChecker)) for c in checkers
+        ):
+            raise ValueError(
+                "`checkers` must hold at most one each of BoundaryChecker, NormalAngleChecker "
+                f"and DistanceChecker, got {checkers!r}"
+            )
+        angle = by_kind.get(NormalAngleChecker)
+        distance = by_kind.get(DistanceChecker)
+        barycentre = terms[1] if len(terms) == 2 else Barycentre()
+        assert isinstance(barycentre, Barycentre)
+        return cls(
+            symmetric=len(terms) == 2,
+            symmetric_weight=barycentre.weight,
+            barycentre_correction=barycentre.correction,
+            target_points_per_source_point=barycentre.target_points_per_source_point,
+            loss=loss.name,
+            loss_scale=loss.scale,
+            max_distance_factor=None if distance is None else distance.factor,  # type: ignore[attr-defined]
+            reject_boundary=BoundaryChecker in by_kind,
+            max_normal_angle=None if angle is None else angle.max_angle,  # type: ignore[attr-defined]
+            min_target_component=min_target_component,
+        )
 
     def __repr__(self) -> str:
         extra = f", loss={self.loss!r}"

@@ -5,7 +5,7 @@ import pytest
 from _helpers import level_problem
 
 from o3dreg.app.synthetic import synthetic_form
-from o3dreg.registration._cost import Robustness
+from o3dreg.registration import BoundaryChecker, CauchyLoss, DistanceChecker, NormalAngleChecker
 from o3dreg.registration.elastic import lattice_box, vertex_normals
 from o3dreg.registration.lattice import TrilinearLattice
 
@@ -96,7 +96,13 @@ def test_bending_energy_is_free_for_affine_motion(meshes):
 
 @pytest.mark.parametrize(
     "robustness",
-    [None, Robustness(loss="cauchy", max_distance_factor=3.0, max_normal_angle=60.0)],
+    [
+        dict(checkers=(BoundaryChecker(),)),
+        dict(
+            loss=CauchyLoss(),
+            checkers=(BoundaryChecker(), NormalAngleChecker(60.0), DistanceChecker(3.0)),
+        ),
+    ],
     ids=["plain", "robust"],
 )
 def test_normal_equations_are_those_of_the_jacobian(meshes, robustness):
@@ -107,7 +113,7 @@ def test_normal_equations_are_those_of_the_jacobian(meshes, robustness):
     origin, size = lattice_box([points, target[0]])
     lattice = TrilinearLattice.zeros(origin, size, (4, 4, 4))
     normals = vertex_normals(points, source[1])
-    problem = level_problem(points, target, lattice, robustness=robustness, normals=normals)
+    problem = level_problem(points, target, lattice, **robustness, normals=normals)
     u = np.random.default_rng(2).normal(scale=0.5, size=problem.number_of_unknowns)
     ev = problem.evaluate(u)
     A, g = problem.normal_equations(ev)

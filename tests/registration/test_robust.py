@@ -20,9 +20,9 @@ from o3dreg import (
 from o3dreg._geometry import barycentric
 from o3dreg.app.synthetic import SmoothWarp, synthetic_form
 from o3dreg.mesh.canonical import canonical_mesh
-from o3dreg.registration._cost import robust_weights
 from o3dreg.registration.distance import SurfaceDistanceQuery
 from o3dreg.registration.elastic import flipped_triangles
+from o3dreg.registration.losses import loss_named
 
 
 def arrays(mesh):
@@ -92,13 +92,15 @@ def test_boundary_test_only_looks_at_triangles_touching_the_boundary(bunny_targe
 
 
 def test_robust_weights_formulas():
+    def weights(name, r, threshold):  # the loss whose k sigma is ``threshold``
+        loss = loss_named(name)
+        return loss.weight(r, threshold / loss.constant)
+
     r = np.array([0.0, 0.5, 1.0, 2.0, 4.0])
-    np.testing.assert_allclose(robust_weights(r, "huber", 1.0), [1, 1, 1, 0.5, 0.25])
-    np.testing.assert_allclose(robust_weights(r, "cauchy", 1.0), 1 / (1 + r**2))
-    np.testing.assert_allclose(
-        robust_weights(r, "tukey", 2.0), [1, (1 - 1 / 16) ** 2, 0.5625, 0, 0]
-    )
-    np.testing.assert_array_equal(robust_weights(r, "linear", 1.0), 1.0)
+    np.testing.assert_allclose(weights("huber", r, 1.0), [1, 1, 1, 0.5, 0.25])
+    np.testing.assert_allclose(weights("cauchy", r, 1.0), 1 / (1 + r**2))
+    np.testing.assert_allclose(weights("tukey", r, 2.0), [1, (1 - 1 / 16) ** 2, 0.5625, 0, 0])
+    np.testing.assert_array_equal(weights("linear", r, 1.0), 1.0)
 
 
 def test_partial_target_leaves_the_unsupported_part_alone(bunny_warped):

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from o3dreg.app.synthetic import synthetic_form
-from o3dreg.registration import _solvers
-from o3dreg.registration._cost import LevelProblem, Robustness
+from o3dreg.registration import BoundaryChecker, CauchyLoss, _solvers
+from o3dreg.registration._cost import LevelProblem
 from o3dreg.registration.distance import SurfaceDistanceQuery
 from o3dreg.registration.elastic import lattice_box
 from o3dreg.registration.lattice import TrilinearLattice
@@ -28,7 +28,8 @@ def small_problem(
         tv,
         1.0,
         0.1,
-        robustness=Robustness(min_jacobian_determinant=0.05),
+        checkers=(BoundaryChecker(),),
+        min_jacobian_determinant=0.05,
     )
 
 
@@ -109,7 +110,9 @@ def lloyd_problem() -> LevelProblem:
         tv,
         1.0,
         0.1,
-        robustness=Robustness(loss="cauchy", min_jacobian_determinant=0.05),
+        loss=CauchyLoss(),
+        checkers=(BoundaryChecker(),),
+        min_jacobian_determinant=0.05,
     )
 
 

@@ -12,23 +12,21 @@ import scipy.sparse as sp
 from _helpers import level_problem
 
 from o3dreg.app.synthetic import synthetic_form
+from o3dreg.registration import BoundaryChecker, CauchyLoss, DistanceChecker, NormalAngleChecker
 from o3dreg.registration._assembly import NormalAssembly, symmetric_outer
-from o3dreg.registration._cost import Robustness
-from o3dreg.registration._robust import (
-    BoundaryChecker,
-    DistanceChecker,
-    NormalChecker,
-    RobustKernel,
-    support,
-)
+from o3dreg.registration._robust import BoundaryMask, DistanceMask, NormalMask, support
 from o3dreg.registration.distance import SurfaceDistanceQuery
 from o3dreg.registration.elastic import lattice_box, vertex_normals
 from o3dreg.registration.lattice import TrilinearLattice
+from o3dreg.registration.losses import loss_named
 
 TERMS = ["point-to-surface", "barycentre", "regulariser"]
 ROBUSTNESS = {
-    "plain": None,
-    "robust": Robustness(loss="cauchy", max_distance_factor=3.0, max_normal_angle=60.0),
+    "plain": dict(checkers=(BoundaryChecker(),)),
+    "robust": dict(
+        loss=CauchyLoss(),
+        checkers=(BoundaryChecker(), NormalAngleChecker(60.0), DistanceChecker(3.0)),
+    ),
 }
 
 
@@ -43,7 +41,7 @@ def problems():
     lattice = TrilinearLattice.zeros(origin, size, (4, 4, 4))
     normals = vertex_normals(points, fs)
     return {
-        key: level_problem(points, target, lattice, robustness=rb, normals=normals)
+        key: level_problem(points, target, lattice, **rb, normals=normals)
         for key, rb in ROBUSTNESS.items()
     }
 
@@ -117,7 +115,7 @@ def test_kernel_weight_is_the_derivative_of_its_loss_over_r(loss):
         "tukey": lambda r: np.where(abs(r) < c, c**2 / 6 * (1 - (1 - (r / c) ** 2) ** 3), c**2 / 6),
     }[loss]
     r = np.linspace(0.0, 4.0, 40001)
-    integrand = RobustKernel(loss, c).weight(r) * r
+    integrand = loss_named(loss).weight(r, c / loss_named(loss).constant) * r
     integral = np.concatenate([[0.0], np.cumsum((integrand[1:] + integrand[:-1]) / 2 * np.diff(r))])
     # Trapezoid rule with step 1e-4 on a piecewise-smooth integrand: error ~1e-8.
     np.testing.assert_allclose(integral, rho(r), atol=1e-7)
@@ -125,13 +123,13 @@ def test_kernel_weight_is_the_derivative_of_its_loss_over_r(loss):
 
 def test_no_kernel_and_scaled_kernel():
     r = np.array([0.0, 1.0, 100.0])
-    np.testing.assert_array_equal(RobustKernel().weight(r), 1.0)
-    # The Cauchy kernel at the scale sigma: its constant 2.3849 (95% efficiency) times sigma.
-    k = RobustKernel.scaled("cauchy", 2.0)
-    assert k.threshold == pytest.approx(2.3849 * 2.0)
-    assert k.weight(np.array([k.threshold]))[0] == pytest.approx(0.5)
+    np.testing.assert_array_equal(loss_named("linear").weight(r, 1.0), 1.0)
+    # The Cauchy loss at the scale sigma: its constant 2.3849 (95% efficiency) times sigma.
+    k = CauchyLoss()
+    assert k.threshold(2.0) == pytest.approx(2.3849 * 2.0)
+    assert k.weight(np.array([k.threshold(2.0)]), 2.0)[0] == pytest.approx(0.5)
     with pytest.raises(ValueError, match="`loss`"):
-        RobustKernel("l1", 1.0)
+        loss_named("l1")
 
 
 def test_checkers_alone():
@@ -141,15 +139,15 @@ def test_checkers_alone():
     )
     pts = np.array([[0.5, 0.5, 0.2], [2.0, 0.5, 0.0], [0.5, 0.5, -3.0]])
     dist, face, closest = square.closest(pts)
-    boundary = BoundaryChecker(square).check(pts, dist, face, closest)
+    boundary = BoundaryMask(square).check(pts, dist, face, closest)
     np.testing.assert_array_equal(boundary, [True, False, True])
     normals = np.array([[0.0, 0, 1], [0, 0, 1], [0, np.sin(1.0), np.cos(1.0)]])  # 1 rad = 57.3 deg
     for angle, expected in ((60.0, [True, True, True]), (50.0, [True, True, False])):
-        checker = NormalChecker(normals, square.face_normals, angle)
+        checker = NormalMask(normals, square.face_normals, angle)
         np.testing.assert_array_equal(checker.check(pts, dist, face, closest), expected)
-    distance = DistanceChecker(factor=2.0, sigma=1.0).check(pts, dist, face, closest)
+    distance = DistanceMask(factor=2.0, sigma=1.0).check(pts, dist, face, closest)
     np.testing.assert_array_equal(distance, [True, True, False])
-    both = support([BoundaryChecker(square), DistanceChecker(2.0, 1.0)], pts, dist, face, closest)
+    both = support([BoundaryMask(square), DistanceMask(2.0, 1.0)], pts, dist, face, closest)
     np.testing.assert_array_equal(both, [True, False, False])
     assert support([], pts, dist, face, closest).all()
 
@@ -172,9 +170,9 @@ def test_the_normal_checker_looks_up_only_the_normals_it_needs():
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     lazy_query, other = SurfaceDistanceQuery(v, f), SurfaceDistanceQuery(v, f)
     found = other.closest(pts)
-    lazy = NormalChecker(normals, lazy_query.face_normal, 45.0).check(pts, *found)
+    lazy = NormalMask(normals, lazy_query.face_normal, 45.0).check(pts, *found)
     assert "face_normals" not in lazy_query.__dict__
-    full = NormalChecker(normals, SurfaceDistanceQuery(v, f).face_normals, 45.0)
+    full = NormalMask(normals, SurfaceDistanceQuery(v, f).face_normals, 45.0)
     np.testing.assert_array_equal(lazy, full.check(pts, *found))
     assert 0 < lazy.sum() < lazy.size  # both verdicts occur
     method = DistanceEstimation(reject_boundary=False, max_normal_angle=45.0)
