@@ -251,15 +251,6 @@ def code_lines(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
     return (fn.end_lineno or start) - start + 1
 
 
-#: Functions of registration/ still above the limit, to be split (remove an entry when it is).
-LONG_PENDING: set[str] = {
-    "registration/_solvers.py:_levenberg_marquardt",
-    "registration/elastic.py:registration_elastic",
-    "registration/elastic.py:_coarse_to_fine",
-    "registration/rigid.py:_run",
-}
-
-
 def test_registration_functions_are_short():
     found = set()
     for path, tree in _modules().items():
@@ -269,7 +260,7 @@ def test_registration_functions_are_short():
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 if code_lines(node) > MAX_FUNCTION_LINES:
                     found.add(f"{path}:{node.name}")
-    assert found == LONG_PENDING
+    assert found == set()
 
 
 def test_the_check_sees_a_crossing(tmp_path, monkeypatch):

@@ -1,4 +1,4 @@
-"""Solvers for one level, behind one interface: ``solve(problem, criteria, method)``.
+"""Solvers for one level, behind one interface (:class:`LevelSolver`): ``solve(problem, criteria)``.
 
 * ``'lm'``: Levenberg-Marquardt on the sparse normal equations ``(J^T J + mu D) delta = -J^T r``
   with Marquardt's diagonal scaling ``D = diag(J^T J)`` and Nielsen's damping update. The system
@@ -14,6 +14,7 @@ Non-convergence is reported (``success=False`` and a message), never raised.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import scipy.linalg
@@ -40,9 +41,7 @@ def solve(problem: LevelProblem, criteria: ElasticCriteria, method: str = "lm") 
     if problem.number_of_unknowns == 0:
         ev = problem.evaluate(np.zeros(0))
         return SolveInfo(ev, ev.cost, 0, 1, True, "no free node at this level")
-    if method == "lm":
-        return _levenberg_marquardt(problem, criteria)
-    return _scipy(problem, criteria, method)
+    return solver_named(method).solve(problem, criteria)
 
 
 #: Largest system solved by a dense Cholesky factorisation (the coarsest level: 81 unknowns at 2
@@ -196,46 +195,96 @@ def _extrapolation(step: np.ndarray, previous: np.ndarray | None) -> np.ndarray 
     return step * (ratio / (1.0 - ratio))
 
 
-def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> SolveInfo:
-    u = np.zeros(problem.number_of_unknowns)
-    ev = problem.evaluate(u)
-    initial = ev.cost
-    evaluations = 1
-    mu = None
-    nu = 2.0
-    cell = _cell(problem)
-    threshold = problem.min_jacobian_determinant
-    guard = threshold is not None and problem.guards_folding
-    det = problem.min_determinant(u) if guard else 1.0
-    folds_rejected = 0
-    previous_step: np.ndarray | None = None
-    extrapolate = problem.reassigns
-    refused = 0
-    message = f"reached max_iteration={criteria.max_iteration}"
-    success = False
-    iterations = 0
-    while iterations < criteria.max_iteration:
-        A, g = problem.normal_equations(ev)
-        diag = A.diagonal()
-        if not (np.all(np.isfinite(g)) and np.all(np.isfinite(diag))):
-            message = "non-finite gradient or normal equations: stopped"
-            success = False
-            break
-        diag = np.maximum(diag, 1e-12 * max(float(diag.max()), 1e-300))
-        if mu is None:
-            mu = 1e-3
-        accepted = False
+class LevelSolver(Protocol):
+    """What minimises one level's cost from ``u = 0``: the solvers are interchangeable."""
+
+    def solve(self, problem: LevelProblem, criteria: ElasticCriteria) -> SolveInfo: ...
+
+
+class LevenbergMarquardt:
+    """``'lm'``: Levenberg-Marquardt on the sparse normal equations (see the module docstring),
+    with the folding guard and the extrapolation of linearly converging steps."""
+
+    def solve(self, problem: LevelProblem, criteria: ElasticCriteria) -> SolveInfo:
+        return _LevenbergMarquardtRun(problem, criteria).run()
+
+
+@dataclass(frozen=True)
+class ScipyLeastSquares:
+    """``'trf'`` and ``'lm-dense'``: :func:`scipy.optimize.least_squares` on the same residuals
+    and Jacobian (no folding guard)."""
+
+    method: str = "trf"
+
+    def solve(self, problem: LevelProblem, criteria: ElasticCriteria) -> SolveInfo:
+        return _scipy(problem, criteria, self.method)
+
+
+def solver_named(method: str) -> LevelSolver:
+    """The solver of :attr:`~o3dreg.ElasticLevel.solver` ``method``."""
+    return LevenbergMarquardt() if method == "lm" else ScipyLeastSquares(method)
+
+
+class _LevenbergMarquardtRun:
+    """The state of one Levenberg-Marquardt minimisation: the point ``u`` with its evaluation,
+    the damping ``mu`` (and its growth ``nu``), the folding guard's determinant and the counts
+    the report gives."""
+
+    def __init__(self, problem: LevelProblem, criteria: ElasticCriteria) -> None:
+        self.problem, self.criteria = problem, criteria
+        self.u = np.zeros(problem.number_of_unknowns)
+        self.ev = problem.evaluate(self.u)
+        self.initial = self.ev.cost
+        self.evaluations = 1
+        self.iterations = 0
+        self.mu, self.nu = 1e-3, 2.0
+        self.cell = _cell(problem)
+        self.threshold = problem.min_jacobian_determinant
+        self.guard = self.threshold is not None and problem.guards_folding
+        self.det = problem.min_determinant(self.u) if self.guard else 1.0
+        self.folds_rejected = 0
+        self.previous_step: np.ndarray | None = None
+        self.extrapolate = problem.reassigns
+        self.refused = 0
+        self.message = f"reached max_iteration={criteria.max_iteration}"
+        self.success = False
+
+    def run(self) -> SolveInfo:
+        while self.iterations < self.criteria.max_iteration:
+            A, g = self.problem.normal_equations(self.ev)
+            diag = A.diagonal()
+            if not (np.all(np.isfinite(g)) and np.all(np.isfinite(diag))):
+                self._stop("non-finite gradient or normal equations: stopped", False)
+                break
+            diag = np.maximum(diag, 1e-12 * max(float(diag.max()), 1e-300))
+            found = self._damped_step(A, g, diag)
+            if found is None or self._accept(*found):
+                break
+        if self.folds_rejected:
+            self.message += f" ({self.folds_rejected} folding step(s) rejected)"
+        return SolveInfo(
+            self.ev, self.initial, self.iterations, self.evaluations, self.success, self.message
+        )
+
+    def _stop(self, message: str, success: bool) -> None:
+        self.message, self.success = message, success
+
+    def _damped_step(
+        self, A: sp.spmatrix, g: np.ndarray, diag: np.ndarray
+    ) -> tuple[Evaluation, np.ndarray, float] | None:
+        """The first damped step that lowers the cost (the damping grows after each refusal):
+        its evaluation, the step and the determinant there; ``None`` (the stopping message set)
+        when none does."""
+        problem, criteria, ev = self.problem, self.criteria, self.ev
         non_finite = 0
         system = DampedSystem(A)
-        while not accepted:
-            delta = system.solve_damped(mu * diag, -g)
+        while True:
+            delta = system.solve_damped(self.mu * diag, -g)
             if not np.all(np.isfinite(delta)):
                 # A stronger damping makes the system better conditioned; past mu_max the
                 # problem itself is broken: stop and say so (never loop, never raise).
                 non_finite += 1
-                mu *= nu
-                nu *= 2.0
-                if mu > _MU_MAX:
+                if self._damp_more():
                     break
                 continue
             predicted = -(g @ delta) - 0.5 * delta @ (A @ delta)
@@ -244,79 +293,83 @@ def _levenberg_marquardt(problem: LevelProblem, criteria: ElasticCriteria) -> So
                 break
             # The trial is measured under the current weights and masks (see
             # LevelProblem.evaluate): the same weighted least-squares cost as ``ev``.
-            trial = problem.evaluate(u + delta, weights_of=ev)
-            evaluations += 1
+            trial = problem.evaluate(self.u + delta, weights_of=ev)
+            self.evaluations += 1
             actual = 0.5 * (ev.cost - trial.cost)
             rho = actual / predicted if predicted > 0 and np.isfinite(trial.cost) else -1.0
             if not np.isfinite(trial.cost):
                 non_finite += 1
-            trial_det = det
-            if guard and rho > 0:
+            trial_det = self.det
+            if self.guard and rho > 0:
                 # Folding guard: a step that brings det(dT/dx) below the threshold (and below
                 # its current value) is rejected like a step that increases the cost.
-                trial_det = problem.min_determinant(u + delta)
-                if _folds_further(trial_det, det, threshold):
+                trial_det = problem.min_determinant(self.u + delta)
+                if _folds_further(trial_det, self.det, self.threshold):
                     rho = -1.0
-                    folds_rejected += 1
+                    self.folds_rejected += 1
             if rho > 0:
-                accepted = True
-                mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                nu = 2.0
-            else:
-                mu *= nu
-                nu *= 2.0
-                if mu > _MU_MAX:
-                    break
-        if not accepted:
-            if non_finite:
-                message = f"non-finite step or cost ({non_finite} tries): stopped"
-                success = False
-            elif mu > _MU_MAX:
-                message = "no step decreases the cost (mu > 1e12)"
-                success = True
-            else:
-                message = "predicted relative decrease < relative_cost"
-                success = True
-            break
-        iterations += 1
-        decrease = (ev.cost - trial.cost) / max(ev.cost, 1e-300)
-        step = float(np.sqrt((delta.reshape(-1, 3) ** 2).sum(axis=1)).max()) / cell
-        u = u + delta
+                self.mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                self.nu = 2.0
+                return trial, delta, trial_det
+            if self._damp_more():
+                break
+        if non_finite:
+            self._stop(f"non-finite step or cost ({non_finite} tries): stopped", False)
+        elif self.mu > _MU_MAX:
+            self._stop("no step decreases the cost (mu > 1e12)", True)
+        else:
+            self._stop("predicted relative decrease < relative_cost", True)
+        return None
+
+    def _damp_more(self) -> bool:
+        """Grow the damping (Nielsen); whether it passed ``mu_max``."""
+        self.mu *= self.nu
+        self.nu *= 2.0
+        return self.mu > _MU_MAX
+
+    def _accept(self, trial: Evaluation, delta: np.ndarray, trial_det: float) -> bool:
+        """Move to the accepted trial (and maybe jump further); whether the level has converged."""
+        self.iterations += 1
+        decrease = (self.ev.cost - trial.cost) / max(self.ev.cost, 1e-300)
+        step = float(np.sqrt((delta.reshape(-1, 3) ** 2).sum(axis=1)).max()) / self.cell
+        self.u = self.u + delta
         # Iteratively reweighted: the accepted point gets its own weights and masks.
-        ev = problem.reweighted(trial)
-        det = trial_det
-        if decrease < criteria.relative_cost:
-            message = f"relative cost decrease {decrease:.2e} < relative_cost"
-            success = True
-            break
-        if step < criteria.relative_step:
-            message = f"relative step {step:.2e} < relative_step"
-            success = True
-            break
-        jump = _extrapolation(delta, previous_step) if extrapolate else None
-        previous_step = delta
+        self.ev = self.problem.reweighted(trial)
+        self.det = trial_det
+        if decrease < self.criteria.relative_cost:
+            self._stop(f"relative cost decrease {decrease:.2e} < relative_cost", True)
+            return True
+        if step < self.criteria.relative_step:
+            self._stop(f"relative step {step:.2e} < relative_step", True)
+            return True
+        jump = _extrapolation(delta, self.previous_step) if self.extrapolate else None
+        self.previous_step = delta
         if jump is not None:
-            # Measured with its own barycentre assignment under the current weights and masks,
-            # against the current point's cost under the same (``ev``): kept only if lower, and
-            # (with the folding guard) only if it does not bring det(dT/dx) below the threshold.
-            far = problem.evaluate(u + jump, weights_of=ev, reassign=True)
-            evaluations += 1
-            far_det = problem.min_determinant(u + jump) if guard else det
-            unfolded = not guard or not _folds_further(far_det, det, threshold)
-            if np.isfinite(far.cost) and far.cost < ev.cost and unfolded:
-                u = u + jump
-                ev = problem.reweighted(far)
-                det = far_det
-                previous_step = None  # the series restarts from the new point
-            else:
-                # The steps only looked like one series. Where that keeps happening (the cone ->
-                # sphere's 4-cell level: 14 jumps offered, every one 1-23% worse), each refusal
-                # is an evaluation lost: after MAX_REFUSED_JUMPS, no more on this level.
-                refused += 1
-                extrapolate = refused < MAX_REFUSED_JUMPS
-    if folds_rejected:
-        message += f" ({folds_rejected} folding step(s) rejected)"
-    return SolveInfo(ev, initial, iterations, evaluations, success, message)
+            self._try_jump(jump)
+        return False
+
+    def _try_jump(self, jump: np.ndarray) -> None:
+        """Jump along the series of the last steps when that lowers the cost.
+
+        The jump is measured with its own barycentre assignment under the current weights and
+        masks, against the current point's cost under the same (``ev``): kept only if lower,
+        and (with the folding guard) only if it does not bring det(dT/dx) below the threshold.
+        """
+        problem = self.problem
+        far = problem.evaluate(self.u + jump, weights_of=self.ev, reassign=True)
+        self.evaluations += 1
+        far_det = problem.min_determinant(self.u + jump) if self.guard else self.det
+        unfolded = not self.guard or not _folds_further(far_det, self.det, self.threshold)
+        if np.isfinite(far.cost) and far.cost < self.ev.cost and unfolded:
+            self.u = self.u + jump
+            self.ev = problem.reweighted(far)
+            self.det = far_det
+            self.previous_step = None  # the series restarts from the new point
+        else:
+            # The steps only looked like one series; where that keeps happening each refusal is
+            # an evaluation lost: after MAX_REFUSED_JUMPS, no more on this level.
+            self.refused += 1
+            self.extrapolate = self.refused < MAX_REFUSED_JUMPS
 
 
 def _scipy(problem: LevelProblem, criteria: ElasticCriteria, method: str) -> SolveInfo:

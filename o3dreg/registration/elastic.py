@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -24,12 +25,13 @@ from ..mesh.distinct import distinct
 from ..mesh.sampling import spatial_subsample
 from ._cost import LevelProblem, bound_masks
 from ._robust import support
-from ._solvers import solve
+from ._solvers import SolveInfo, solve
 from ._target import TARGET_VOXELS_PER_CELL, TargetSurface
-from .checkers import CheckerContext
+from .checkers import CheckerContext, CorrespondenceChecker, NormalAngleChecker
 from .deformation import LatticeDeformation, PartitionedDeformation
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
+from .losses import RobustLoss
 from .options import (
     MAX_LEVELS,
     DistanceEstimation,
@@ -39,6 +41,7 @@ from .options import (
 )
 from .result import ElasticRegistrationResult, LevelReport, RigidStart, SurfaceDistances
 from .rigid import default_start
+from .terms import Barycentre
 from .verdict import judge, with_rigid_start
 
 __all__ = ["evaluate_elastic", "registration_elastic"]
@@ -89,6 +92,40 @@ def _check_levels(levels: Any) -> list[ElasticLevel]:
             f"deformation), got {len(levels)}"
         )
     return list(levels)
+
+
+def _check_estimation(estimation_method: Any) -> DistanceEstimation:
+    if estimation_method is None:
+        return DistanceEstimation()
+    if not isinstance(estimation_method, DistanceEstimation):
+        raise TypeError(
+            "`estimation_method` must be a DistanceEstimation, "
+            f"got {type(estimation_method).__name__}"
+        )
+    return estimation_method
+
+
+def _check_options(
+    criteria: Any, padding: Any, callback: Any, parts: Any, with_scaling: Any, has_init: bool
+) -> tuple[ElasticCriteria, float]:
+    """The checks of :func:`registration_elastic`'s remaining options; its criteria and padding."""
+    if criteria is None:
+        criteria = ElasticCriteria()
+    elif not isinstance(criteria, ElasticCriteria):
+        raise TypeError(f"`criteria` must be an ElasticCriteria, got {type(criteria).__name__}")
+    padding = check_positive(padding, "padding", allow_zero=True)
+    if callback is not None and not callable(callback):
+        raise TypeError(f"`callback` must be callable, got {type(callback).__name__}")
+    if parts not in ("joint", "connected"):
+        raise ValueError(f"`parts` must be 'joint' or 'connected', got {parts!r}")
+    if not isinstance(with_scaling, bool):
+        raise TypeError(f"`with_scaling` must be a bool, got {type(with_scaling).__name__}")
+    if with_scaling and has_init:
+        raise ValueError(
+            "`with_scaling` applies to the start computed without `init`; with `init` given "
+            "there is no rigid step (got with_scaling=True and an init)"
+        )
+    return criteria, padding
 
 
 def registration_elastic(
@@ -182,31 +219,12 @@ def registration_elastic(
     check_referenced(vs, fs, "source")
     target_arrays = as_mesh_arrays(target, "target", drop_degenerate=True)
     levels_ = _check_levels(levels)
-    if estimation_method is None:
-        estimation_method = DistanceEstimation()
-    elif not isinstance(estimation_method, DistanceEstimation):
-        raise TypeError(
-            "`estimation_method` must be a DistanceEstimation, "
-            f"got {type(estimation_method).__name__}"
-        )
+    estimation_method = _check_estimation(estimation_method)
     surface = TargetSurface.from_mesh(*target_arrays, estimation_method.min_target_component)
     vt, ft = surface.mesh
-    if criteria is None:
-        criteria = ElasticCriteria()
-    elif not isinstance(criteria, ElasticCriteria):
-        raise TypeError(f"`criteria` must be an ElasticCriteria, got {type(criteria).__name__}")
-    padding = check_positive(padding, "padding", allow_zero=True)
-    if callback is not None and not callable(callback):
-        raise TypeError(f"`callback` must be callable, got {type(callback).__name__}")
-    if parts not in ("joint", "connected"):
-        raise ValueError(f"`parts` must be 'joint' or 'connected', got {parts!r}")
-    if not isinstance(with_scaling, bool):
-        raise TypeError(f"`with_scaling` must be a bool, got {type(with_scaling).__name__}")
-    if with_scaling and init is not None:
-        raise ValueError(
-            "`with_scaling` applies to the start computed without `init`; with `init` given "
-            "there is no rigid step (got with_scaling=True and an init)"
-        )
+    criteria, padding = _check_options(
+        criteria, padding, callback, parts, with_scaling, init is not None
+    )
 
     rigid_start = None
     if init is None:
@@ -306,57 +324,110 @@ def _coarse_to_fine(
 ) -> _Fit:
     """The levels, coarse to fine, of one deformation of space: the template ``(points, fs)``
     (rigidly aligned) onto ``surface``. Inputs validated; no distances back from the target and
-    no verdict yet (the caller measures them on the whole target)."""
-    vt = surface.vertices
-    query = surface.query
-    origin, size = lattice_box([points, vt], padding)
-    loss, checkers = estimation_method.robust_loss, estimation_method.checkers
-    weight = estimation_method.symmetric_weight if estimation_method.symmetric else 0.0
-    symmetric_levels = weight > 0 and any(lev.symmetric_scale > 0 for lev in levels_)
-    target_points = vt if symmetric_levels else None
+    no verdict yet (the caller measures them on the whole target).
 
-    surface.build_levels_of_detail(
-        _detail_voxel(size, lev) for lev in levels_ if lev.simplify_target
-    )
-    orientation = 1.0
-    if estimation_method.max_normal_angle is not None:
-        orientation = _relative_orientation(points, fs, surface.finest_detail())
-    # Only the barycentre correction uses them (off by default).
-    correct = target_points is not None and estimation_method.barycentre_correction
-    samples = _surface_samples(points, fs) if correct else None
+    Each level poses its problem (:class:`_Hierarchy`), a solver minimises it, and its lattice
+    joins the deformation; the next level starts where this one ended.
+    """
+    hierarchy = _Hierarchy.prepare(points, fs, surface, levels_, estimation_method, padding)
     deformation = LatticeDeformation(())
     previous = np.zeros_like(points)
     history: list[LevelReport] = []
     failures: list[str] = []
-    last_problem: LevelProblem | None = None
-    if target_points is not None:
-        # The largest budget first, so that every level's subsample nests in it.
-        surface.subsample(int(estimation_method.target_points_per_source_point * points.shape[0]))
+    problem: LevelProblem | None = None
     for k, level in enumerate(levels_):
         start = time.perf_counter()
-        lattice = TrilinearLattice.zeros(origin, size, (level.resolution,) * 3)
-        if level.adaptive_quantile is None:
-            active = np.ones(points.shape[0], dtype=bool)
-        else:
-            dist = query.distance(points + previous)
-            active = dist > np.quantile(dist, level.adaptive_quantile)
-            if not active.any():
-                active = dist >= dist.max()
+        problem, use = hierarchy.problem(level, previous, deformation)
+        info = solve(problem, level.criteria or criteria, level.solver)
+        level_lattice = problem.scatter(info.evaluation.u)
+        deformation = deformation.with_level(level_lattice)
+        previous = previous + level_lattice.displacement(points)
+        report = _level_report(level, problem, info, use.size, time.perf_counter() - start)
+        _log_level(k, len(levels_), report)
+        history.append(report)
+        if not info.success:
+            failures.append(f"level {k + 1} ({level.resolution} cells): {info.message}")
+        if callback is not None:
+            callback(report)
+    return hierarchy.fit(deformation, points + previous, history, failures, problem)
+
+
+@dataclass
+class _Hierarchy:
+    """What every level of one deformation shares, set up once: the template, the target, the
+    lattice box, the strategies of the estimation and the target's orientation."""
+
+    points: np.ndarray
+    faces: np.ndarray
+    surface: TargetSurface
+    origin: np.ndarray
+    size: np.ndarray
+    loss: RobustLoss
+    checkers: tuple[CorrespondenceChecker, ...]
+    #: The barycentre term, ``None`` when no level uses it.
+    barycentre: Barycentre | None
+    #: ``-1`` when the target is oriented inside out relative to the template.
+    orientation: float
+    #: Area-weighted samples of the template surface (the barycentre correction only).
+    samples: tuple[np.ndarray, np.ndarray] | None
+
+    @classmethod
+    def prepare(
+        cls,
+        points: np.ndarray,
+        fs: np.ndarray,
+        surface: TargetSurface,
+        levels: list[ElasticLevel],
+        method: DistanceEstimation,
+        padding: float,
+    ) -> _Hierarchy:
+        origin, size = lattice_box([points, surface.vertices], padding)
+        barycentre = next((t for t in method.terms if isinstance(t, Barycentre)), None)
+        if barycentre is not None and not (
+            barycentre.weight > 0 and any(lev.symmetric_scale > 0 for lev in levels)
+        ):
+            barycentre = None
+        surface.build_levels_of_detail(
+            _detail_voxel(size, lev) for lev in levels if lev.simplify_target
+        )
+        checkers = method.checkers
+        orientation = 1.0
+        if _tests_normals(checkers):
+            orientation = _relative_orientation(points, fs, surface.finest_detail())
+        correct = barycentre is not None and barycentre.correction
+        samples = _surface_samples(points, fs) if correct else None
+        if barycentre is not None:
+            # The largest budget first, so that every level's subsample nests in it.
+            surface.subsample(int(barycentre.target_points_per_source_point * points.shape[0]))
+        return cls(
+            points, fs, surface, origin, size, method.robust_loss, checkers, barycentre,
+            orientation, samples,
+        )  # fmt: skip
+
+    def problem(
+        self, level: ElasticLevel, previous: np.ndarray, deformation: LatticeDeformation
+    ) -> tuple[LevelProblem, np.ndarray]:
+        """The problem of ``level`` from the template moved by the coarser levels
+        (``previous``, ``deformation``), and the template points it is posed on."""
+        points, surface = self.points, self.surface
+        lattice = TrilinearLattice.zeros(self.origin, self.size, (level.resolution,) * 3)
+        active = self._active(level, points + previous)
         # Coarse lattices have few nodes: a spatial subsample of the data determines them as well
         # as all of it, at a fraction of the cost of each distance query.
         use = _level_sample(lattice, points, level.points_per_node)
-        use_target = None
-        level_weight = weight * level.symmetric_scale
-        if target_points is not None and level_weight > 0:
-            budget = int(estimation_method.target_points_per_source_point * use.size)
+        use_target, level_weight = None, 0.0
+        if self.barycentre is not None:
+            level_weight = self.barycentre.weight * level.symmetric_scale
+        if self.barycentre is not None and level_weight > 0:
+            budget = int(self.barycentre.target_points_per_source_point * use.size)
             use_target = surface.subsample(budget)
-        level_query = _level_query(surface, size, level)
+        level_query = _level_query(surface, self.size, level)
         normals = None
-        if estimation_method.max_normal_angle is not None:
-            normals = orientation * vertex_normals(points + previous, fs)[use]
+        if _tests_normals(self.checkers):
+            normals = self.orientation * vertex_normals(points + previous, self.faces)[use]
         offsets = None
-        if use_target is not None and samples is not None:
-            surface_samples, sample_weights = samples
+        if use_target is not None and self.samples is not None:
+            surface_samples, sample_weights = self.samples
             offsets = _barycentre_offsets(
                 (points + previous)[use], surface_samples, deformation, sample_weights
             )
@@ -370,11 +441,11 @@ def _coarse_to_fine(
             level_weight,
             level.regularization,
             level.energy,
-            loss=loss,
-            checkers=checkers,
+            loss=self.loss,
+            checkers=self.checkers,
             # Whether the target has open edges is a property of the full target: a simplified
             # copy of a closed surface can have spurious ones.
-            target_has_boundary=query.has_boundary,
+            target_has_boundary=surface.query.has_boundary,
             min_jacobian_determinant=level.min_jacobian_determinant
             if level.solver == "lm"
             else None,
@@ -382,56 +453,88 @@ def _coarse_to_fine(
             prior=deformation if deformation.levels else None,
             barycentre_offsets=offsets,
         )
-        last_problem = problem
-        info = solve(problem, level.criteria or criteria, level.solver)
-        level_lattice = problem.scatter(info.evaluation.u)
-        deformation = deformation.with_level(level_lattice)
-        previous = previous + level_lattice.displacement(points)
-        report = LevelReport(
-            resolution=level.resolution,
-            free_nodes=int(problem.free_nodes.size),
-            iterations=info.iterations,
-            evaluations=info.evaluations,
-            initial_cost=info.initial_cost,
-            final_cost=info.evaluation.cost,
-            mean_distance=float(info.evaluation.distances.mean()),
-            points=int(use.size),
-            seconds=time.perf_counter() - start,
-            success=info.success,
-            message=info.message,
-        )
-        logger.info(
-            "level %d/%d (%d cells/axis, %d free nodes): cost %.4g -> %.4g in %d iterations, "
-            "%.3f s: %s",
-            k + 1,
-            len(levels_),
-            level.resolution,
-            report.free_nodes,
-            report.initial_cost,
-            report.final_cost,
-            report.iterations,
-            report.seconds,
-            report.message,
-        )
-        history.append(report)
-        if not info.success:
-            failures.append(f"level {k + 1} ({level.resolution} cells): {info.message}")
-        if callback is not None:
-            callback(report)
+        return problem, use
 
-    moved = points + previous
-    # Once for the forward distances and the support; without the full target's tree when the
-    # levels only queried its levels of detail.
-    found = query.closest_few(moved)
-    return _Fit(
-        deformation=deformation,
-        moved=moved,
-        history=tuple(history),
-        failures=tuple(failures),
-        forward=found[0],
-        supported=_supported(moved, fs, query, found, estimation_method, last_problem, orientation),
-        det=float(deformation.jacobian_determinant(points).min()) if deformation.levels else 1.0,
-        cell_det=_min_cell_determinant(deformation, points),
+    def _active(self, level: ElasticLevel, moved: np.ndarray) -> np.ndarray:
+        """The template points whose cells the level refines (all, or where the residual is
+        above the level's ``adaptive_quantile``)."""
+        if level.adaptive_quantile is None:
+            return np.ones(moved.shape[0], dtype=bool)
+        dist = self.surface.query.distance(moved)
+        active = dist > np.quantile(dist, level.adaptive_quantile)
+        if not active.any():
+            active = dist >= dist.max()
+        return active
+
+    def fit(
+        self,
+        deformation: LatticeDeformation,
+        moved: np.ndarray,
+        history: list[LevelReport],
+        failures: list[str],
+        last: LevelProblem | None,
+    ) -> _Fit:
+        """The fit of the levels (``last``: the finest level's problem, for its scales)."""
+        query, points = self.surface.query, self.points
+        # Once for the forward distances and the support; without the full target's tree when
+        # the levels only queried its levels of detail.
+        found = query.closest_few(moved)
+        normals = None
+        if _tests_normals(self.checkers):
+            normals = self.orientation * vertex_normals(moved, self.faces)
+        sigma = None if last is None else last.sigma
+        masks = bound_masks(self.checkers, CheckerContext(query, normals=normals, sigma=sigma))
+        return _Fit(
+            deformation=deformation,
+            moved=moved,
+            history=tuple(history),
+            failures=tuple(failures),
+            forward=found[0],
+            # Whether each template vertex has data: the masks of the last level, on all
+            # vertices and the full target at the final positions.
+            supported=support(masks, moved, *found),
+            det=float(deformation.jacobian_determinant(points).min())
+            if deformation.levels
+            else 1.0,
+            cell_det=_min_cell_determinant(deformation, points),
+        )
+
+
+def _tests_normals(checkers: tuple[CorrespondenceChecker, ...]) -> bool:
+    return any(isinstance(c, NormalAngleChecker) for c in checkers)
+
+
+def _level_report(
+    level: ElasticLevel, problem: LevelProblem, info: SolveInfo, points: int, seconds: float
+) -> LevelReport:
+    return LevelReport(
+        resolution=level.resolution,
+        free_nodes=int(problem.free_nodes.size),
+        iterations=info.iterations,
+        evaluations=info.evaluations,
+        initial_cost=info.initial_cost,
+        final_cost=info.evaluation.cost,
+        mean_distance=float(info.evaluation.distances.mean()),
+        points=int(points),
+        seconds=seconds,
+        success=info.success,
+        message=info.message,
+    )
+
+
+def _log_level(k: int, count: int, report: LevelReport) -> None:
+    logger.info(
+        "level %d/%d (%d cells/axis, %d free nodes): cost %.4g -> %.4g in %d iterations, "
+        "%.3f s: %s",
+        k + 1,
+        count,
+        report.resolution,
+        report.free_nodes,
+        report.initial_cost,
+        report.final_cost,
+        report.iterations,
+        report.seconds,
+        report.message,
     )
 
 
@@ -626,25 +729,6 @@ def _relative_orientation(
         )
         return -1.0
     return 1.0
-
-
-def _supported(
-    moved: np.ndarray,
-    faces: np.ndarray,
-    query: SurfaceDistanceQuery,
-    found: tuple[np.ndarray, np.ndarray, np.ndarray],
-    method: DistanceEstimation,
-    problem: LevelProblem | None,
-    orientation: float = 1.0,
-) -> np.ndarray:
-    """Whether each template vertex has data: the masks of the last level, on all vertices and
-    the full target at the final positions. ``found`` is ``query.closest(moved)``."""
-    normals = None
-    if method.max_normal_angle is not None:
-        normals = orientation * vertex_normals(moved, faces)
-    sigma = None if problem is None else problem.sigma
-    context = CheckerContext(query, normals=normals, sigma=sigma)
-    return support(bound_masks(method.checkers, context), moved, *found)
 
 
 def _surface_samples(

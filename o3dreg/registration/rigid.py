@@ -717,7 +717,17 @@ class _CandidateSearch:
         method: Any,
         criteria: Any,
     ) -> RigidRegistrationResult:
+        """Search from every candidate, refine the best pose (and a close runner-up), then
+        decide between them."""
         tried = self._preselect(candidates, pool)
+        best, runner = self._search(pool, tried, method, criteria)
+        finals = self._refine_finalists(pool, best, runner, method, criteria)
+        return self._decide(finals, len(tried))
+
+    def _search(
+        self, pool: Executor, tried: list[tuple[str, np.ndarray]], method: Any, criteria: Any
+    ) -> tuple[tuple[float, str, Any], tuple[float, str, Any] | None]:
+        """A coarse ICP from every candidate pose; the best and the runner-up."""
         searches = [
             pool.submit(
                 self.icp,
@@ -748,6 +758,17 @@ class _CandidateSearch:
         tied = [o for o in others if self._tie(best[0], o[0])]
         if tied and rotation_angle(_pose(best)) >= INPUT_POSE_FAR:
             runner = min(tied, key=lambda o: rotation_angle(_pose(o)))
+        return best, runner
+
+    def _refine_finalists(
+        self,
+        pool: Executor,
+        best: tuple[float, str, Any],
+        runner: tuple[float, str, Any] | None,
+        method: Any,
+        criteria: Any,
+    ) -> list[tuple[float, str, Any]]:
+        """The winner refined, and the runner-up refined where it could still win; best first."""
         winner_job = pool.submit(self.refine, _pose(best), method, criteria)
         # A runner-up likely to need refining (by the search scores) is refined beside the
         # winner; the rule below, on the winner's refined score, decides.
@@ -770,6 +791,13 @@ class _CandidateSearch:
                 )
                 finals.append(self._refined(runner, icp))
         finals.sort(key=lambda f: f[0])
+        return finals
+
+    def _decide(
+        self, finals: list[tuple[float, str, Any]], candidates: int
+    ) -> RigidRegistrationResult:
+        """The result from the refined finalists: a near tie is broken by the input pose when
+        one of them agrees with it, else reported as ambiguous."""
         win_score, win_name, win = finals[0]
         runner_score: float | None = None
         runner_t: np.ndarray | None = None
@@ -805,7 +833,7 @@ class _CandidateSearch:
         logger.info(
             "rigid start: %s wins of %d (score %.4g, runner-up %s)",
             win_name,
-            len(tried),
+            candidates,
             win_score,
             "none" if runner_score is None else f"{runner_score:.4g}",
         )
@@ -814,7 +842,7 @@ class _CandidateSearch:
             score=win_score,
             runner_up_score=runner_score,
             runner_up_transformation=runner_t,
-            candidates=len(tried),
+            candidates=candidates,
             warnings=tuple(warnings),
         )
 

@@ -159,8 +159,8 @@ def test_the_normal_checker_looks_up_only_the_normals_it_needs():
     # triangle (face_normals), with the same verdicts. A query whose tree is built (queried
     # tens of times by the levels) computes them all once.
     from o3dreg.app.synthetic import synthetic_form
-    from o3dreg.registration.elastic import _supported, vertex_normals
-    from o3dreg.registration.options import DistanceEstimation
+    from o3dreg.registration.checkers import CheckerContext
+    from o3dreg.registration.elastic import vertex_normals
 
     sphere = synthetic_form("sphere", 2000)
     v, f = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
@@ -175,9 +175,11 @@ def test_the_normal_checker_looks_up_only_the_normals_it_needs():
     full = NormalMask(normals, SurfaceDistanceQuery(v, f).face_normals, 45.0)
     np.testing.assert_array_equal(lazy, full.check(pts, *found))
     assert 0 < lazy.sum() < lazy.size  # both verdicts occur
-    method = DistanceEstimation(reject_boundary=False, max_normal_angle=45.0)
     moved = v[:, :] * 1.01
-    _supported(moved, f, lazy_query, other.closest(moved), method, None)
+    context = CheckerContext(lazy_query, normals=vertex_normals(moved, f))
+    bound = NormalAngleChecker(45.0).bind(context)
+    assert bound is not None
+    bound.check(moved, *other.closest(moved))
     assert "face_normals" not in lazy_query.__dict__
     np.testing.assert_array_equal(other.face_normal(found[1]), full.face_normals[found[1]])
     assert "face_normals" in other.__dict__
