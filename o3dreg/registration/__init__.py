@@ -15,7 +15,14 @@ from .landmark_start import LandmarkRegistrationResult, registration_landmarks
 from .lattice import TrilinearLattice
 from .losses import CauchyLoss, HuberLoss, L2Loss, RobustLoss, TukeyLoss
 from .options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
-from .result import ElasticRegistrationResult, LevelReport, RigidStart, SurfaceDistances
+from .result import (
+    ElasticRegistrationResult,
+    LevelReport,
+    MapQuality,
+    RegistrationVerdict,
+    RigidStart,
+    SurfaceDistances,
+)
 from .rigid import RigidRegistrationResult, registration_rigid
 from .terms import Barycentre, DistanceTerm, PointToSurface
 from .verdict import assess_registration, population_outliers
@@ -36,9 +43,11 @@ __all__ = [
     "LandmarkRegistrationResult",
     "LatticeDeformation",
     "LevelReport",
+    "MapQuality",
     "NormalAngleChecker",
     "PartitionedDeformation",
     "PointToSurface",
+    "RegistrationVerdict",
     "RigidRegistrationResult",
     "RigidStart",
     "RobustLoss",

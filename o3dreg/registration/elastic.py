@@ -39,7 +39,13 @@ from .options import (
     ElasticLevel,
     default_levels,
 )
-from .result import ElasticRegistrationResult, LevelReport, RigidStart, SurfaceDistances
+from .result import (
+    ElasticRegistrationResult,
+    LevelReport,
+    MapQuality,
+    RigidStart,
+    SurfaceDistances,
+)
 from .rigid import default_start
 from .terms import Barycentre
 from .verdict import judge, with_rigid_start
@@ -179,7 +185,7 @@ def registration_elastic(
         but distinct structures are then not dragged together by one map of space. The result's
         ``deformation`` is then a :class:`~o3dreg.PartitionedDeformation`: it maps each point
         with the deformation of its nearest (rigidly aligned) source vertex's component, and
-        saves and loads as one file; ``part_labels`` and ``part_deformations`` hold the parts.
+        saves and loads as one file, and holds the parts (``parts``, ``labels``, ``sites``).
     with_scaling : bool, optional
         Make the start computed without ``init`` a similarity (``registration_rigid(...,
         with_scaling=True)``, on the target as prepared here): for a template of another size or
@@ -243,9 +249,8 @@ def registration_elastic(
         local = surface.in_frame(frame)
         local_points = into_frame(frame, points)
     labels = template_parts(vs.shape[0], fs) if parts == "connected" else None
-    parts_fields: dict[str, Any] = {}
     if labels is not None and labels.max() > 0:
-        fit, parts_fields = _register_parts(
+        fit = _register_parts(
             local_points,
             fs,
             local,
@@ -261,7 +266,7 @@ def registration_elastic(
             local_points, fs, local, levels_, estimation_method, criteria, padding, callback
         )
     if frame is not None:
-        fit, parts_fields = _laid_in(frame, fit, parts_fields, points)
+        fit = _laid_in(frame, fit, points)
     measured = surface.distances(fit.moved, fs, forward=fit.forward)
     success = not fit.failures
     result = ElasticRegistrationResult(
@@ -270,14 +275,15 @@ def registration_elastic(
         vertices=fit.moved,
         faces=fs,
         distances=measured.summary(),
-        history=fit.history,
-        min_jacobian_determinant=fit.det,
+        levels=fit.history,
+        quality=MapQuality(
+            min_jacobian_determinant=fit.det,
+            min_cell_jacobian_determinant=fit.cell_det,
+            flipped_triangles=flipped_triangles(points, fit.moved, fs),
+            supported=fit.supported,
+        ),
         success=success,
         message=fit.converged if success else "; ".join(fit.failures),
-        min_cell_jacobian_determinant=fit.cell_det,
-        flipped_triangles=flipped_triangles(points, fit.moved, fs),
-        supported=fit.supported,
-        **parts_fields,
     )
     # The verdict from the distances just measured and the target's moments (as
     # assess_registration(result, (vs, fs), (vt, ft), rigid=rigid_start) would measure them).
@@ -567,9 +573,7 @@ def _lattice_frame(transformation: np.ndarray) -> np.ndarray | None:
     return frame
 
 
-def _laid_in(
-    frame: np.ndarray, fit: _Fit, parts_fields: dict[str, Any], points: np.ndarray
-) -> tuple[_Fit, dict[str, Any]]:
+def _laid_in(frame: np.ndarray, fit: _Fit, points: np.ndarray) -> _Fit:
     """A fit made in the coordinates of ``frame`` back in the target's: the deformation with its
     lattices laid in ``frame`` and the moved vertices it gives (``points``: the rigidly aligned
     source, the sites of a partitioned map)."""
@@ -578,13 +582,12 @@ def _laid_in(
         deformation: LatticeDeformation | PartitionedDeformation = PartitionedDeformation(
             pieces, points, fit.deformation.labels
         )
-        parts_fields = {**parts_fields, "part_deformations": pieces, "part_sites": points}
     else:
         deformation = fit.deformation.in_frame(frame)
     # The result's vertices are its map applied to the aligned source (what `transform` and a
     # saved map give); the same as the fit's, moved by the frame, to rounding.
     moved = deformation.transform(points)
-    return fit._replace(deformation=deformation, moved=moved), parts_fields
+    return fit._replace(deformation=deformation, moved=moved)
 
 
 def template_parts(number_of_vertices: int, faces: np.ndarray) -> np.ndarray:
@@ -608,9 +611,9 @@ def _register_parts(
     criteria: ElasticCriteria,
     padding: float,
     callback: Any,
-) -> tuple[_Fit, dict[str, Any]]:
+) -> _Fit:
     """``parts='connected'``: the levels for each source component (``points``: the source
-    rigidly aligned), and the result's part fields."""
+    rigidly aligned), in one partitioned deformation."""
     vt, ft = surface.mesh
     _, nearest = cKDTree(points).query(vt)
     target_labels = labels[nearest]
@@ -660,11 +663,7 @@ def _register_parts(
         cell_det=cell_det,
         converged=f"{count} parts: all levels converged",
     )
-    return whole, {
-        "part_labels": labels,
-        "part_deformations": tuple(deformations),
-        "part_sites": points,
-    }
+    return whole
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

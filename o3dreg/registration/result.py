@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -14,7 +15,13 @@ from ..io.mesh import to_open3d
 from .deformation import LatticeDeformation, PartitionedDeformation
 from .distance import SurfaceDistanceQuery
 
-__all__ = ["ElasticRegistrationResult", "LevelReport", "SurfaceDistances"]
+__all__ = [
+    "ElasticRegistrationResult",
+    "LevelReport",
+    "MapQuality",
+    "RegistrationVerdict",
+    "SurfaceDistances",
+]
 
 
 @dataclass(frozen=True)
@@ -171,33 +178,13 @@ class RigidStart:
 
 
 @dataclass(frozen=True, eq=False)
-class ElasticRegistrationResult:
-    """The outcome of :func:`~o3dreg.registration_elastic`.
-
-    ``T(x) = deformation.transform(transformation @ x)`` maps the source (template) onto the
-    target.
+class MapQuality:
+    """How sound the elastic map of a registration is: its folds and the data behind it.
 
     Attributes
     ----------
-    transformation : (4, 4) ndarray
-        The total rigid (or similarity) part, ``init`` included.
-    deformation : LatticeDeformation or PartitionedDeformation
-        The elastic map applied after ``transformation`` (partitioned: one lattice hierarchy per
-        part, with ``parts='connected'``).
-    vertices : (n, 3) ndarray
-        The source vertices mapped by ``T``.
-    faces : (m, 3) ndarray
-        The source triangles (unchanged: the semilandmark mesh's topology).
-    distances : SurfaceDistances
-        Measured as :func:`~o3dreg.evaluate_elastic` does.
-    history : tuple of LevelReport
-        One report per level, coarse to fine.
     min_jacobian_determinant : float
         Smallest ``det(dT/dx)`` at the source vertices (``<= 0`` means the map folds there).
-    success : bool
-        Whether every level met its stopping criteria (``False``: some level hit
-        ``max_iteration``). Says nothing about whether the result is right: see ``status``.
-    message : str
     min_cell_jacobian_determinant : float
         Smallest ``det(dT/dx)`` over 8 interior samples (local coordinates 1/4 and 3/4) of every
         finest cell holding a source vertex: the map is one-to-one there when positive.
@@ -205,19 +192,31 @@ class ElasticRegistrationResult:
         Source triangles whose normal reverses between the rigidly aligned source and the
         result (``n_rigid . n_registered <= 0``): local folds of the surface.
     supported : (n,) bool ndarray or None
-        Per source vertex, whether the target has data for it at the end: ``False`` where its
-        closest target point lies beyond an open boundary of the target (with
-        ``reject_boundary``), its normal disagrees (``max_normal_angle``), or it is farther than
-        ``max_distance_factor`` robust scales (see :class:`~o3dreg.DistanceEstimation`).
-        Unsupported vertices followed the regularised motion of their neighbours.
-        :meth:`semilandmark_mesh` colours them.
-    part_labels : (n,) int ndarray or None
-        With ``parts='connected'``: the connected component of each source vertex.
-    part_deformations : tuple of LatticeDeformation
-        With ``parts='connected'``: one deformation per component (``deformation.parts``).
-    part_sites : (n, 3) ndarray or None
-        With ``parts='connected'``: the rigidly aligned source vertices, which route each point
-        of :meth:`transform` to the component of its nearest site.
+        Per source vertex, whether the target has data for it at the end: ``False`` where a
+        correspondence checker of the :class:`~o3dreg.DistanceEstimation` rejects its closest
+        target point (beyond an open boundary, normals apart, too far). Unsupported vertices
+        followed the regularised motion of their neighbours.
+    """
+
+    min_jacobian_determinant: float = 1.0
+    min_cell_jacobian_determinant: float = 1.0
+    flipped_triangles: int = 0
+    supported: np.ndarray | None = field(default=None, repr=False)
+
+    def __repr__(self) -> str:
+        return (
+            f"MapQuality(min_jacobian_determinant={self.min_jacobian_determinant:.3g}, "
+            f"min_cell_jacobian_determinant={self.min_cell_jacobian_determinant:.3g}, "
+            f"flipped_triangles={self.flipped_triangles})"
+        )
+
+
+@dataclass(frozen=True)
+class RegistrationVerdict:
+    """Whether a registration can be used, in one word and in plain sentences.
+
+    Attributes
+    ----------
     status : {'ok', 'suspect', 'failed'}
         The verdict (:func:`~o3dreg.assess_registration`) from measured facts: folds, flipped
         triangles, distances for the target's size, the supported fraction, an ambiguous rigid
@@ -230,34 +229,161 @@ class ElasticRegistrationResult:
         for (``None`` with a given ``init``).
     """
 
+    status: str = "ok"
+    warnings: tuple[str, ...] = ()
+    rigid_start: RigidStart | None = None
+
+
+#: The flat keyword arguments :class:`ElasticRegistrationResult` still takes, by group.
+_QUALITY_FIELDS = (
+    "min_jacobian_determinant",
+    "min_cell_jacobian_determinant",
+    "flipped_triangles",
+    "supported",
+)
+_VERDICT_FIELDS = ("status", "warnings", "rigid_start")
+
+
+@dataclass(frozen=True, eq=False, init=False)
+class ElasticRegistrationResult:
+    """The outcome of :func:`~o3dreg.registration_elastic`.
+
+    ``T(x) = deformation.transform(transformation @ x)`` maps the source (template) onto the
+    target.
+
+    Attributes
+    ----------
+    transformation : (4, 4) ndarray
+        The total rigid (or similarity) part, ``init`` included.
+    deformation : LatticeDeformation or PartitionedDeformation
+        The elastic map applied after ``transformation``. With ``parts='connected'``, a
+        :class:`~o3dreg.PartitionedDeformation` holding one lattice hierarchy per part (its
+        ``parts``, ``labels`` and ``sites``).
+    vertices : (n, 3) ndarray
+        The source vertices mapped by ``T``.
+    faces : (m, 3) ndarray
+        The source triangles (unchanged: the semilandmark mesh's topology).
+    distances : SurfaceDistances
+        Measured as :func:`~o3dreg.evaluate_elastic` does.
+    levels : tuple of LevelReport
+        One report per level, coarse to fine.
+    quality : MapQuality
+        The map's folds and the source vertices with data.
+    success : bool
+        Whether every level met its stopping criteria (``False``: some level hit
+        ``max_iteration``). Says nothing about whether the result is right: see ``verdict``.
+    message : str
+    verdict : RegistrationVerdict
+        ``status`` (only ``'ok'`` means nothing looked wrong), ``warnings`` and ``rigid_start``.
+
+    The flat names of the groups' fields (``status``, ``warnings``, ``rigid_start``,
+    ``min_jacobian_determinant``, ``min_cell_jacobian_determinant``, ``flipped_triangles``,
+    ``supported``), ``history`` (the ``levels``) and ``part_labels``, ``part_deformations``,
+    ``part_sites`` (the partitioned deformation's) read as attributes too, and the flat names
+    are accepted as keyword arguments (``dataclasses.replace(result, status=...)``).
+    """
+
     transformation: np.ndarray
     deformation: LatticeDeformation | PartitionedDeformation
     vertices: np.ndarray = field(repr=False)
     faces: np.ndarray = field(repr=False)
     distances: SurfaceDistances
-    history: tuple[LevelReport, ...]
-    min_jacobian_determinant: float
+    levels: tuple[LevelReport, ...]
+    quality: MapQuality
     success: bool
     message: str
-    min_cell_jacobian_determinant: float = 1.0
-    flipped_triangles: int = 0
-    supported: np.ndarray | None = field(default=None, repr=False)
-    part_labels: np.ndarray | None = field(default=None, repr=False)
-    part_deformations: tuple[LatticeDeformation, ...] = field(default=(), repr=False)
-    part_sites: np.ndarray | None = field(default=None, repr=False)
-    status: str = "ok"
-    warnings: tuple[str, ...] = ()
-    rigid_start: RigidStart | None = None
+    verdict: RegistrationVerdict
+
+    def __init__(
+        self,
+        transformation: np.ndarray,
+        deformation: LatticeDeformation | PartitionedDeformation,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        distances: SurfaceDistances,
+        *,
+        levels: tuple[LevelReport, ...] = (),
+        quality: MapQuality | None = None,
+        success: bool = True,
+        message: str = "",
+        verdict: RegistrationVerdict | None = None,
+        **flat: Any,
+    ) -> None:
+        levels = tuple(flat.pop("history", levels))
+        quality = _with_fields(quality or MapQuality(), _QUALITY_FIELDS, flat)
+        verdict = _with_fields(verdict or RegistrationVerdict(), _VERDICT_FIELDS, flat)
+        if flat:
+            raise TypeError(f"ElasticRegistrationResult got unexpected arguments {sorted(flat)}")
+        values = (transformation, deformation, vertices, faces, distances, levels, quality)
+        names = ("transformation", "deformation", "vertices", "faces", "distances", "levels")
+        for name, value in zip((*names, "quality"), values):
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "success", success)
+        object.__setattr__(self, "message", message)
+        object.__setattr__(self, "verdict", verdict)
 
     def __repr__(self) -> str:
         d = self.distances
         return (
-            f"ElasticRegistrationResult(status={self.status!r}, levels={len(self.history)}, "
+            f"ElasticRegistrationResult(status={self.status!r}, levels={len(self.levels)}, "
             f"success={self.success}, "
             f"source->target mean={d.source_to_target_mean:.4g}, "
             f"target->source mean={d.target_to_source_mean:.4g}, "
             f"min_jacobian_determinant={self.min_jacobian_determinant:.3g})"
         )
+
+    # -- the flat names of the grouped fields (read-only) ----------------------------------------
+    @property
+    def history(self) -> tuple[LevelReport, ...]:
+        """:attr:`levels`."""
+        return self.levels
+
+    @property
+    def status(self) -> str:
+        return self.verdict.status
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        return self.verdict.warnings
+
+    @property
+    def rigid_start(self) -> RigidStart | None:
+        return self.verdict.rigid_start
+
+    @property
+    def min_jacobian_determinant(self) -> float:
+        return self.quality.min_jacobian_determinant
+
+    @property
+    def min_cell_jacobian_determinant(self) -> float:
+        return self.quality.min_cell_jacobian_determinant
+
+    @property
+    def flipped_triangles(self) -> int:
+        return self.quality.flipped_triangles
+
+    @property
+    def supported(self) -> np.ndarray | None:
+        return self.quality.supported
+
+    @property
+    def part_labels(self) -> np.ndarray | None:
+        """The part of each source vertex (``parts='connected'``), else ``None``."""
+        d = self.deformation
+        return d.labels if isinstance(d, PartitionedDeformation) else None
+
+    @property
+    def part_deformations(self) -> tuple[LatticeDeformation, ...]:
+        """One deformation per part (``parts='connected'``), else empty."""
+        d = self.deformation
+        return d.parts if isinstance(d, PartitionedDeformation) else ()
+
+    @property
+    def part_sites(self) -> np.ndarray | None:
+        """The rigidly aligned source vertices that route each point to its part
+        (``parts='connected'``), else ``None``."""
+        d = self.deformation
+        return d.sites if isinstance(d, PartitionedDeformation) else None
 
     def transform(self, points: Any) -> np.ndarray:
         """Map any source-space points (landmarks, other meshes' vertices) with ``T``."""
@@ -292,3 +418,9 @@ class ElasticRegistrationResult:
             colours = np.where(self.supported[:, None], 0.7, np.array([1.0, 0.0, 0.0]))
             mesh.vertex_colors = o3d.utility.Vector3dVector(colours)
         return mesh
+
+
+def _with_fields(group: Any, names: tuple[str, ...], flat: dict[str, Any]) -> Any:
+    """``group`` with the fields among ``names`` that ``flat`` gives (taken out of ``flat``)."""
+    changes = {name: flat.pop(name) for name in names if name in flat}
+    return dataclasses.replace(group, **changes) if changes else group
