@@ -29,7 +29,7 @@ CHAIN = [
     ),
     (
         "volume",
-        "o3dreg.volume.cleaning",
+        "o3dreg.mesh.cleaning",
         "keep_largest_components, smooth_taubin, decimate, crop_mesh",
         "bone meshes: a decimated template and the patients",
     ),
@@ -42,12 +42,12 @@ CHAIN = [
     (
         "registration",
         "o3dreg.registration.elastic",
-        "registration_elastic: levels of trilinear lattices, eq. (3)",
+        "registration_elastic: a coarse-to-fine driver over the levels",
         "ElasticRegistrationResult: the template's vertices on the patient",
     ),
     (
         "registration",
-        "o3dreg.registration.batch",
+        "o3dreg.app.batch",
         "register_batch: every patient, resumable, in parallel",
         "(s, n, 3) corresponding shapes + the template's triangles",
     ),
@@ -65,7 +65,7 @@ CHAIN = [
     ),
     (
         "shape",
-        "o3dreg.shape.landmarks",
+        "o3dreg.shape.landmark_transfer",
         "predict_landmarks: template landmarks carried by the fit",
         "LandmarkPrediction (landmarks on the patient)",
     ),
@@ -74,20 +74,24 @@ CHAIN = [
 #: Modules beside a box of the chain: (module of that box, module beside it, what it holds).
 BESIDE = [
     ("o3dreg.volume.readers", "o3dreg.volume.volume", "the Volume type"),
+    ("o3dreg.registration.rigid", "o3dreg.registration.landmark_start", "a start from landmarks"),
     (
         "o3dreg.registration.elastic",
         "o3dreg.registration.options",
         "ElasticLevel, DistanceEstimation",
     ),
-    ("o3dreg.registration.elastic", "o3dreg.registration._cost", "LevelProblem: eq. (3), Jacobian"),
-    ("o3dreg.registration.elastic", "o3dreg.registration._solvers", "Levenberg-Marquardt, ..."),
-    (
-        "o3dreg.registration.elastic",
-        "o3dreg.registration.deformation",
-        "LatticeDeformation (lattice)",
-    ),
+    ("o3dreg.registration.elastic", "o3dreg.registration.terms", "PointToSurface, Barycentre"),
+    ("o3dreg.registration.elastic", "o3dreg.registration.losses", "L2Loss, CauchyLoss, ..."),
+    ("o3dreg.registration.elastic", "o3dreg.registration.checkers", "Boundary-, NormalAngle-, ..."),
+    ("o3dreg.registration.elastic", "o3dreg.registration._target", "TargetSurface, prepared once"),
+    ("o3dreg.registration.elastic", "o3dreg.registration._cost", "LevelProblem: one level's cost"),
+    ("o3dreg.registration.elastic", "o3dreg.registration._terms", "residuals, Jacobian rows"),
+    ("o3dreg.registration.elastic", "o3dreg.registration._solvers", "LevenbergMarquardt, SciPy"),
+    ("o3dreg.registration.elastic", "o3dreg.registration.deformation", "LatticeDeformation"),
     ("o3dreg.registration.elastic", "o3dreg.registration.distance", "SurfaceDistanceQuery"),
     ("o3dreg.registration.elastic", "o3dreg.registration.result", "the result, LevelReport"),
+    ("o3dreg.registration.elastic", "o3dreg.registration.verdict", "assess_registration"),
+    ("o3dreg.app.batch", "o3dreg.app.settings", "RegistrationSettings"),
     ("o3dreg.shape.build", "o3dreg.shape.procrustes", "generalized_procrustes"),
     ("o3dreg.shape.build", "o3dreg.shape.sliding", "slide_semilandmarks (optional)"),
     ("o3dreg.shape.build", "o3dreg.shape.quality", "compactness, generalization, ..."),
@@ -97,16 +101,18 @@ BESIDE = [
 
 #: Stages: (key, title, fill colour of the band).
 STAGES = [
-    ("volume", "stage 1, CT -> bone mesh: o3dreg/volume/", "#eef5fb"),
-    ("registration", "stage 2, registration: o3dreg/registration/", "#fdf3e7"),
+    ("volume", "stage 1, CT -> bone mesh: o3dreg/volume/, o3dreg/mesh/", "#eef5fb"),
+    ("registration", "stage 2, registration: o3dreg/registration/ (batches: app/)", "#fdf3e7"),
     ("shape", "stage 3, shape model: o3dreg/shape/", "#eef8ee"),
 ]
 
 FOOTER = [
-    "o3dreg/io/: mesh files (read_triangle_mesh, write_triangle_mesh), versioned .npz archives;"
-    " used by every stage.",
-    "o3dreg/app/: the pipelines that chain the stages (demo, model_folder) and their pictures"
-    " (report, render).",
+    "o3dreg/mesh/: generic mesh code every stage uses (edges, distinct values, canonical order,"
+    " components, cleaning, subsampling).",
+    "o3dreg/io/: mesh files (read_triangle_mesh, write_triangle_mesh), landmark files, .npz"
+    " archives; used by every stage.",
+    "o3dreg/app/: batches (settings, resume, Dask), the pipelines that chain the stages (demo,"
+    " model_folder), reports, pictures.",
     "o3dreg/cli/: argparse adapters over app/ and the library (o3dreg register, reconstruct,"
     " build-model, model, demo, view).",
 ]

@@ -235,7 +235,7 @@ def _render_matplotlib(
 
     # Rotate so that ``up`` is matplotlib's z axis.
     e1, e2 = _horizontal_axes(up)
-    # A right-handed frame (e2, -e1, up): with (e2, e1, up) every picture was a mirror image.
+    # A right-handed frame (e2, -e1, up): (e2, e1, up) would mirror every picture.
     # The camera direction cos(az) e2 + sin(az) e1 of _camera is azimuth -az in this frame.
     basis = np.stack([e2, -e1, up], axis=1)
     pts = vertices @ basis

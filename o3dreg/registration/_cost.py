@@ -15,7 +15,7 @@ trilinear weights (8 nodes per point). Residual blocks:
     touch a free node: second differences (thin-plate bending energy, free for affine motion) or
     first differences (membrane energy). Fixed nodes keep a zero increment.
 
-Robustness (issue 6) enters as per-row weights, recomputed at every evaluation and held fixed in
+Robustness enters as per-row weights, recomputed at every evaluation and held fixed in
 the Jacobian (iteratively reweighted least squares inside Levenberg-Marquardt): block (a) becomes
 ``sqrt(w_i) d_i`` with Jacobian ``sqrt(w_i) grad_i (x) W_i``, where ``w_i`` is the robust-loss
 weight of ``d_i`` (see :class:`~o3dreg.DistanceEstimation`) times 0/1 masks (closest point beyond
@@ -60,11 +60,8 @@ __all__ = ["SCALE_FLOOR", "Evaluation", "LevelProblem", "bound_masks"]
 #: Smallest robust scale ``sigma``, as a fraction of the level's cell size. A level that starts
 #: nearly converged (the finest ones on a clean target) has a tiny median residual; a scale
 #: taken from it alone would discount the tail of genuine misfit the level is there to remove.
-#: Measured on the bunny (3k -> 36k, rigid step; benchmarks/bench_robust.py and
-#: bench_registration.py): with 0.01 the clean error was 19% above plain least squares at a 5%
-#: warp (0.261 against 0.220 mm), with 0.03 12-18% at a 10% warp; 0.05 leaves 0.5% and 10%, and
-#: still keeps a 40% cut within 1.42x (0.1: 3.5x) and 5% debris without the island filter within
-#: 1.12x.
+#: A smaller floor costs accuracy on clean targets, a larger one robustness to cuts and debris
+#: (benchmarks/bench_robust.py measures both sides).
 SCALE_FLOOR = 0.05
 
 

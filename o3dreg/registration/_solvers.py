@@ -46,15 +46,13 @@ def solve(problem: LevelProblem, criteria: ElasticCriteria, method: str = "lm") 
 
 #: Largest system solved by a dense Cholesky factorisation (the coarsest level: 81 unknowns at 2
 #: cells per axis). Larger ones go to conjugate gradients: a dense factorisation of a few hundred
-#: unknowns is cheap on an idle machine, but multithreaded BLAS on a loaded one was measured
-#: 10-100x slower than conjugate gradients.
+#: unknowns is cheap on an idle machine, but multithreaded BLAS on a loaded one is far slower
+#: than conjugate gradients.
 DENSE_UNKNOWNS = 100
 
 #: Conjugate gradients stop at ``|r| <= CG_RTOL |b|``, after at most ``CG_MAXITER`` iterations.
-#: A Levenberg-Marquardt step needs no more (the next linearisation corrects it): measured on
-#: the bunny (3k -> 36k, medium and large warps, symmetric and single distance), 1e-4 instead
-#: of 1e-6 leaves every evaluation count and the correspondence errors to 4 digits unchanged,
-#: with a third fewer CG iterations (660 -> 428 over a symmetric registration).
+#: A Levenberg-Marquardt step needs no more: the next linearisation corrects it, so a tighter
+#: tolerance costs CG iterations without changing the steps that are accepted.
 CG_RTOL = 1e-4
 CG_MAXITER = 1000
 
@@ -175,8 +173,7 @@ def _extrapolation(step: np.ndarray, previous: np.ndarray | None) -> np.ndarray 
     accepted step re-assigns target points to template points and the next one moves the
     template points towards the new barycentres: a fixed-point iteration (Lloyd's), which
     converges linearly. Its successive steps are then nearly parallel and shrink by a steady
-    factor ``r`` (measured on the bunny's 2-cell level: cosines 0.93-0.98, ``r`` 0.6-0.7), so
-    the rest of the series, ``step * r / (1 - r)``, is a good guess of the remaining way (the
+    factor ``r``, so the rest of the series, ``step * r / (1 - r)``, is a good guess of the remaining way (the
     one-vector form of Aitken's / Anderson's acceleration). Only offered when the two steps
     are within :data:`EXTRAPOLATION_MIN_COSINE` of parallel and ``r`` within
     :data:`EXTRAPOLATION_RATIO` (a ratio near 1 would jump far on a guess); the solver keeps the

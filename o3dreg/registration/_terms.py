@@ -218,10 +218,10 @@ class BarycentreTerm:
         ``e1 + d < e2 - D`` (triangle inequality), so only points with ``d + D >= e2 - e1`` are
         searched (exact ties included), ``d`` the nearest point's summed moves between
         searches and ``D`` the sum of the template's largest moves (the nearest point's own
-        path instead of ``D`` searches 20-25% fewer points on the bunny's 4- and 8-cell
-        levels, the same assignments). The k-d tree search is bounded by a radius that held for
-        nearly all points last time (it prunes more: measured 40% faster); the few points
-        without a neighbour inside it are searched again unbounded.
+        path, tighter than ``D``, leaves fewer points to search for the same assignments). The
+        k-d tree search is bounded by a radius that held for nearly all points last time (a
+        bounded search prunes more); the few points without a neighbour inside it are searched
+        again unbounded.
         """
         t = self.target_points
         if self._last is None or self._last.shape != y.shape:

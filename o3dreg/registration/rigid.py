@@ -69,35 +69,35 @@ AMBIGUITY_RATIO = 1.2
 INPUT_POSE_NEAR = 45.0
 INPUT_POSE_FAR = 90.0
 #: Points of the coarse target and of the source subsample the search from many starts works
-#: on (ICP and scores). 500 source points instead of 1000 made the search 25% faster for the
-#: same winners (27 cases: bunny, demo, CT mandibles; final symmetric distances within 0.2%).
+#: on (ICP and scores): the search only ranks poses, which the refinement then polishes on the
+#: full surfaces, so a few hundred source points pick the same winners as many more.
 SEARCH_POINTS = 1000
 SEARCH_SOURCE_POINTS = 500
 #: The runner-up is refined (as the winner is) only when its score from the search is below this
-#: factor times the winner's refined score: the refinement changed the scores of the winner and
-#: the runner-up by factors 0.84-1.035 on the bunny, the demo's patients and 7 CT mandibles, so
-#: a pose twice as far would need a factor 0.6 to come within AMBIGUITY_RATIO of the winner.
+#: factor times the winner's refined score: the refinement changes a pose's score by a few
+#: percent, far less than a pose twice as far would need to come within AMBIGUITY_RATIO of the
+#: winner.
 RUNNER_UP_REFINED = 2.0
 #: ICP runs in bursts of this many iterations (even: see :meth:`_CandidateSearch.icp`) and stops
 #: when a burst moves the source by less than a fraction of the target's diagonal (RMS): at the
-#: search from many starts, SEARCH_STILL (its poses are starts for the refinement, which moves
-#: them by ~3e-3 of the diagonal on the bunny); at the refinement, REFINE_STILL (half of what
-#: the correspondences' alternation near convergence moves the pose by at every iteration on
-#: the bunny, 2e-5; the decimated template bounds the pose to ~1e-3, test_rigid.py).
+#: search from many starts, SEARCH_STILL (its poses are only starts for the refinement, which
+#: moves them by far more); at the refinement, REFINE_STILL (below what the correspondences'
+#: alternation near convergence moves the pose by at every iteration, and far below what a
+#: decimated template can fix the pose to).
 ICP_BURST = 4
 SEARCH_STILL = 1e-4
 REFINE_STILL = 1e-5
 #: A target of more vertices is aligned to in a copy simplified by vertex clustering to about
-#: DETAIL_VERTICES (33 times a 3k template's density): a million-vertex target's AABB tree, ICP's
-#: k-d trees and moments took 6 s, and its detail below the template's spacing moves no pose.
+#: DETAIL_VERTICES (tens of times a template's density): the trees and moments of a
+#: million-vertex target cost seconds, and its detail below the template's spacing moves no
+#: pose.
 LARGE_TARGET = 200_000
 DETAIL_VERTICES = 100_000
 #: Threads that run the candidate search's ICP starts (and the runner-up's refinement beside the
 #: winner's) side by side. Open3D's ICP releases the GIL and each run is independent and on one
 #: thread, so the poses and scores are those of running them one after the other (tested); the
 #: scores stay in the calling thread (libigl's queries hold the GIL, which also holds back the
-#: ICP threads between their bursts). On 2 cores the demo's 8 rigid steps took 4.5-5.0 s
-#: instead of 5.4-5.9 s.
+#: ICP threads between their bursts).
 SEARCH_THREADS = 4
 #: Two poses are distinct when the source vertices they place differ by more than this fraction
 #: of the target's bounding-box diagonal (RMS): about what ICP's basin of attraction spans.

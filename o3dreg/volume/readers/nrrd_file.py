@@ -157,7 +157,7 @@ def _nrrd_geometry(header: dict[str, Any], path: str) -> tuple[np.ndarray, np.nd
                 f"`path`: {path!r} has spacings {spacing.tolist()}; each must be a non-zero number"
             )
         # A negative spacing runs that axis the other way (as SimpleITK reads it): the size is
-        # its magnitude, the sign goes to the direction (it was dropped: the mesh mirrored).
+        # its magnitude, the sign goes to the direction (dropping it would mirror the mesh).
         direction = np.diag(np.sign(spacing))
         spacing = np.abs(spacing)
     origin_in = header.get("space origin")
