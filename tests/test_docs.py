@@ -79,3 +79,42 @@ def test_every_dotted_o3dreg_name_in_the_prose_exists():
             except AttributeError:
                 missing.append(f"{page.name}: {name}")
     assert not missing, missing
+
+
+#: Parameters that mean the same in several public functions, and those functions: one wording
+#: each (as Open3D shares its argument texts across functions).
+SHARED_PARAMETERS = {
+    "source": ("registration_rigid", "registration_elastic", "evaluate_elastic"),
+    "target": ("registration_rigid", "registration_elastic", "evaluate_elastic"),
+    "mesh": (
+        "connected_components",
+        "crop_mesh",
+        "decimate",
+        "keep_largest_components",
+        "remove_small_components",
+        "smooth_taubin",
+    ),
+}
+
+
+def parameter_text(function, name):
+    """The numpydoc entry of parameter ``name`` in ``function``'s docstring (type and text)."""
+    import inspect
+    import re
+
+    doc = inspect.getdoc(function) or ""
+    block = doc.split("Parameters\n----------\n", 1)[1]
+    block = re.split(r"\n\n[A-Z][a-z]+\n-+\n", block, maxsplit=1)[0]
+    for entry in re.split(r"\n(?=\S)", block):
+        head, _, body = entry.partition("\n")
+        if name in [n.strip() for n in head.split(":")[0].split(",")]:
+            return head.split(":", 1)[1].strip(), " ".join(body.split())
+    raise AssertionError(f"{function.__name__} documents no parameter {name!r}")
+
+
+def test_a_shared_parameter_has_one_wording():
+    import o3dreg
+
+    for name, functions in SHARED_PARAMETERS.items():
+        texts = {parameter_text(getattr(o3dreg, f), name) for f in functions}
+        assert len(texts) == 1, (name, texts)

@@ -12,6 +12,8 @@ import ast
 import sys
 from pathlib import Path
 
+import pytest
+
 PACKAGE = Path(__file__).resolve().parents[1] / "o3dreg"
 TESTS = Path(__file__).resolve().parent
 
@@ -271,3 +273,27 @@ def test_the_check_sees_a_crossing(tmp_path, monkeypatch):
     (tmp_path / "c.py").write_text("from . import _sub\n")
     monkeypatch.setattr(sys.modules[__name__], "PACKAGE", tmp_path)
     assert crossings() == {("b.py", "_X"), ("b.py", "_f")}
+
+
+def test_moved_paths_still_import_with_a_warning():
+    import importlib
+    import warnings
+
+    import o3dreg
+
+    for old, new in o3dreg.MOVED_MODULES.items():
+        sys.modules.pop(old, None)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            module = importlib.import_module(old)
+        assert any(issubclass(w.category, DeprecationWarning) for w in caught), old
+        target = importlib.import_module(new)
+        for name in getattr(target, "__all__", ()):
+            assert getattr(module, name) is getattr(target, name)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert o3dreg.volume.crop_mesh is o3dreg.crop_mesh
+        assert o3dreg.registration.register_batch is o3dreg.register_batch
+    assert [w.category for w in caught] == [DeprecationWarning, DeprecationWarning]
+    with pytest.raises(AttributeError):
+        o3dreg.registration.no_such_name  # noqa: B018

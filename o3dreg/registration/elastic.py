@@ -151,14 +151,16 @@ def registration_elastic(
 
     ``T(x) = deformation(transformation @ x)``: a rigid pre-alignment followed by a hierarchy of
     trilinear lattices (coarse to fine), each level minimising eq. (3) of Berar et al. (2005)
-    with Levenberg-Marquardt and an analytic sparse Jacobian.
+    with Levenberg-Marquardt and an analytic sparse Jacobian. The template is typically a
+    low-density mesh (a few thousand vertices), the target a dense scan; degenerate target
+    triangles are dropped.
 
     Parameters
     ----------
     source : open3d.geometry.TriangleMesh or (vertices, faces)
-        The template that moves (~1k-4k vertices). Not modified.
+        The template: the surface that moves. Not modified.
     target : open3d.geometry.TriangleMesh or (vertices, faces)
-        The patient surface (~30k+ vertices). Not modified. Degenerate triangles are dropped.
+        The patient surface the source is matched to. Not modified.
     init : (4, 4) array_like, optional
         The rigid (or similarity) transformation of the source. Default ``None``: computed by
         :func:`~o3dreg.registration_rigid` (moment-based guess refined by ICP).
@@ -796,8 +798,10 @@ def evaluate_elastic(
 
     Parameters
     ----------
-    source, target : open3d.geometry.TriangleMesh or (vertices, faces)
-        Not modified.
+    source : open3d.geometry.TriangleMesh or (vertices, faces)
+        The template: the surface that moves. Not modified.
+    target : open3d.geometry.TriangleMesh or (vertices, faces)
+        The patient surface the source is matched to. Not modified.
     transformation : (4, 4) array_like, optional
         Rigid part applied first. Default identity.
     deformation : LatticeDeformation or PartitionedDeformation, optional

@@ -346,8 +346,10 @@ def registration_rigid(
 
     Parameters
     ----------
-    source, target : open3d.geometry.TriangleMesh or (vertices, faces)
-        ``source`` moves. Not modified.
+    source : open3d.geometry.TriangleMesh or (vertices, faces)
+        The template: the surface that moves. Not modified.
+    target : open3d.geometry.TriangleMesh or (vertices, faces)
+        The patient surface the source is matched to. Not modified.
     init : (4, 4) array_like, optional
         Initial transformation. When given, the candidate search (and the size check) is
         skipped and ICP starts from it.
