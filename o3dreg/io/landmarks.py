@@ -168,7 +168,8 @@ def _is_number(text: str) -> bool:
 def _read_headerless_csv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
     """``label,x,y,z`` (or ``x,y,z``) rows without a header, as statismo and scalismo write
     landmarks; the file does not say its coordinate system."""
-    labels, points = [], []
+    labels: list[str] = []
+    points: list[list[float]] = []
     width = 0
     with open(path, newline="", encoding="utf-8-sig") as fh:
         for number, row in enumerate(csv.reader(fh), start=1):
