@@ -63,10 +63,6 @@ _EXAMPLES = {
     ],
     "o3dreg model info": ["o3dreg model info model/", "o3dreg model info model/ --json"],
     "o3dreg model modes": ["o3dreg model modes model/ --modes 3 --sd -3 3 -o modes/"],
-    "o3dreg model fit": [
-        "o3dreg model fit model/ patient.ply --landmarks landmarks.mrk.json",
-        "o3dreg model fit model/ patient.ply --landmarks lm.csv --truth truth.csv --json",
-    ],
 }
 
 

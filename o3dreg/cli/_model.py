@@ -57,6 +57,20 @@ exit status: 0 every patient registered with verdict 'ok'; 1 a patient failed or
 (the model is built from the others), or fewer than 2 'ok' patients; 2 bad input."""
 
 
+FIT_EPILOG = """verdict: the fit is judged 'ok', 'suspect' or 'failed' against the model's own
+population: its distance to the patient against the model's leave-one-out residuals, the
+Mahalanobis distance of its coefficients, the patient's size against the training shapes'
+(models built without --scaling), and whether the patient's mirror image fits clearly better
+(left and right swapped).
+
+exit status: 0 verdict 'ok'; 1 'suspect' or 'failed' (outputs written, the reasons printed);
+2 bad input.
+
+examples:
+  o3dreg model fit model/ patient.ply --landmarks landmarks.mrk.json
+  o3dreg model fit model.h5 patient.ply --landmarks lm.csv --truth truth.csv --json"""
+
+
 def add_parser(subparsers: Any) -> None:
     build = subparsers.add_parser(
         "build-model",
@@ -128,7 +142,14 @@ def add_parser(subparsers: Any) -> None:
     modes.add_argument("--overwrite", action="store_true", help="replace existing mesh files")
     modes.add_argument("--json", action="store_true")
     modes.set_defaults(func=run_modes)
-    fit = sub.add_parser("fit", help="fit the model to a patient and predict landmarks")
+    fit = sub.add_parser(
+        "fit",
+        help="fit the model to a patient and predict landmarks",
+        description="Fit the model's pose and shape to PATIENT and predict the landmarks placed "
+        "on the model's template.",
+        epilog=FIT_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     fit.add_argument(
         "model_dir",
         metavar="MODEL",
@@ -373,6 +394,9 @@ def run_fit(args: argparse.Namespace) -> int:
                 "iterations": fit.iterations,
                 "success": fit.success,
                 "message": fit.message,
+                "status": fit.status,
+                "warnings": list(fit.warnings),
+                "mahalanobis_distance": fit.mahalanobis_distance,
             },
         }
         if errors is not None:
@@ -390,8 +414,16 @@ def run_fit(args: argparse.Namespace) -> int:
             lines.append(f"{label:<16}{p[0]:>10.2f}{p[1]:>10.2f}{p[2]:>10.2f}{err}")
         if errors is not None:
             lines.append(f"mean error {errors.mean():.3g} mm")
+        lines.append(f"verdict: {fit.status}" + ("" if fit.warnings else " (nothing looked wrong)"))
+        lines += [f"  - {w}" for w in fit.warnings]
         emit("\n".join(lines), args)
-    return 0 if fit.success else 1
+    if fit.status != "ok" and (args.quiet or args.json):
+        print(
+            f"o3dreg model fit: verdict {fit.status}: " + "; ".join(fit.warnings),
+            file=sys.stderr,
+        )
+    # The exit status follows the verdict (a fit that did not converge is 'suspect').
+    return 0 if fit.status == "ok" else 1
 
 
 def _vector3(text: str) -> list[float]:
