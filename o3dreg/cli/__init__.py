@@ -1,6 +1,6 @@
 """The ``o3dreg`` command line: one sub-command per module in this package.
 
-Exit codes: 0 success; 1 the job ran and wrote its outputs but did not converge; 2 bad input or
+Exit codes: 0 success; 1 the job ran and wrote its outputs but its verdict is not 'ok'; 2 bad input or
 a failure before any output was written; 130 interrupted (Ctrl-C), 143 terminated (SIGTERM).
 """
 
@@ -28,8 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="o3dreg",
         description="Elastic registration of surface meshes and statistical shape models.",
-        epilog="exit status: 0 success; 1 the job ran and wrote its outputs but did not converge "
-        "(or some patients failed); 2 bad input, nothing written; 130 interrupted (SIGINT), 143 terminated (SIGTERM); "
+        epilog="exit status: 0 success; 1 the job ran and wrote its outputs but its verdict is "
+        "not 'ok' (or some patients failed); 2 bad input, nothing written; 130 interrupted (SIGINT), 143 terminated (SIGTERM); "
         "`o3dreg COMMAND --help` shows each command's options and examples.",
     )
     parser.add_argument("--version", action="version", version=f"o3dreg {__version__}")

@@ -31,9 +31,9 @@ verdict: every registration is judged 'ok', 'suspect' or 'failed' from measured 
 flipped triangles, distances for the target's size, supported fraction, an ambiguous rigid
 start, sizes in other units, a degenerate target); the reasons are printed.
 
-exit status: 0 verdict 'ok' and every level met its stopping criteria; 1 verdict 'suspect' or
-'failed', or a level stopped at --max-iteration (outputs are still written: look at them);
-2 bad input (nothing written)."""
+exit status: follows the verdict: 0 'ok'; 1 'suspect' or 'failed' (outputs are still written:
+look at them); 2 bad input (nothing written). A level that stopped at --max-iteration is a
+note on the "stopping criteria" line, not a verdict: the verdict judges the result."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -202,7 +202,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if result.status != "ok" and (args.quiet or args.json):
         print(f"o3dreg register: verdict {result.status}", file=sys.stderr)
-    return 0 if result.status == "ok" and result.success else 1
+    # One rule: the exit status follows the verdict (a level at its iteration limit is a note).
+    return 0 if result.status == "ok" else 1
 
 
 def verdict_text(result: ElasticRegistrationResult) -> str:
