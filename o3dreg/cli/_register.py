@@ -11,7 +11,12 @@ import numpy as np
 from tqdm import tqdm
 
 from ..app.explorer import write_registration_explorer
-from ..io.mesh import MESH_SUFFIXES, read_triangle_mesh, write_triangle_mesh
+from ..io.mesh import (
+    SEMILANDMARK_SUFFIXES,
+    check_semilandmark_suffix,
+    read_triangle_mesh,
+    write_triangle_mesh,
+)
 from ..registration.landmarks import registration_landmarks
 from ..registration.options import default_levels
 from ..registration.result import ElasticRegistrationResult, LevelReport
@@ -107,6 +112,9 @@ def report_dict(result: ElasticRegistrationResult, **extra) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    # The registered template is a semilandmark mesh: its vertex order must survive the file.
+    if args.output.lower().endswith(".stl"):
+        check_semilandmark_suffix(args.output, "--output")
     check_outputs(
         {
             "--output": args.output,
@@ -123,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
             "--landmarks TARGET_LANDMARKS": args.landmarks[1] if args.landmarks else None,
         },
         suffixes={
-            "--output": MESH_SUFFIXES,
+            "--output": SEMILANDMARK_SUFFIXES,
             "--deformation": (".npz",),
             "--report": (".json",),
             "--html": (".html", ".htm"),
@@ -172,7 +180,9 @@ def run(args: argparse.Namespace) -> int:
     mesh = result.semilandmark_mesh(target if args.project else None)
     # Exit 2 means nothing written: a failing output removes the ones written before it.
     with all_or_nothing([args.output, args.deformation, args.report, args.html]):
-        write_triangle_mesh(args.output, mesh, overwrite=args.overwrite, name="--output")
+        write_triangle_mesh(
+            args.output, mesh, overwrite=args.overwrite, semilandmarks=True, name="--output"
+        )
         if args.deformation:
             result.deformation.save(args.deformation, overwrite=args.overwrite)
         report = report_dict(
