@@ -184,6 +184,21 @@ def test_o3dreg_reads_what_meshio_writes(semilandmarks, tmp_path, suffix):
     np.testing.assert_array_equal(np.asarray(back.triangles), f)
 
 
+def test_a_meshio_mesh_in_memory_keeps_its_quads(caplog):
+    from o3dreg import evaluate_elastic
+
+    mesh = meshio.Mesh(MIXED_POINTS, [("triangle", TRIANGLES), ("quad", QUADS)])
+    with caplog.at_level(logging.WARNING, logger="o3dreg"):
+        distances = evaluate_elastic(mesh, (MIXED_POINTS, np.vstack([TRIANGLES, SPLIT])))
+    assert "1 quad cells split into triangle fans" in caplog.text
+    # The same surface both ways: every distance is zero (to rounding).
+    assert distances.source_to_target_max < 1e-12
+    assert distances.target_to_source_max < 1e-12
+    tetra = meshio.Mesh(MIXED_POINTS, [("tetra", np.array([[0, 1, 3, 4]]))])
+    with pytest.raises(ValueError, match="`source` must hold surface cells.*'tetra'"):
+        evaluate_elastic(tetra, mesh)
+
+
 def test_meshio_volume_cells_are_refused(tmp_path):
     tetra = meshio.Mesh(MIXED_POINTS[:5], [("tetra", np.array([[0, 1, 3, 4]]))])
     path = tmp_path / "tet.vtu"
