@@ -41,7 +41,10 @@ exit status 2 means no new file.
 `build-model` refuses a folder that already holds a model unless `--overwrite` (finished
 registrations are reused either way; a patient is registered again when the template, its file
 or the options changed). Worker processes (`--jobs`) end with the command. Messages of the C++
-libraries (Open3D, RPly) go to standard error, so `--json` output is always valid JSON.
+libraries (Open3D, RPly) go to standard error, so `--json` output is always valid JSON. A
+mistyped option or value is one line on standard error, with the command's `--help` to see.
+Progress bars are drawn on a terminal only (`register`, `build-model`); in a log file,
+`register -v` logs one line per level instead.
 
 The Python API raises these types (the command line turns each into exit status 2): `TypeError`
 for an argument of the wrong kind; `ValueError` for a wrong shape or value, and for a file whose

@@ -14,7 +14,7 @@ import signal
 import sys
 import threading
 from collections.abc import Iterator, Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 from .. import __version__
 from . import _demo, _model, _reconstruct, _register, _view
@@ -24,8 +24,19 @@ from . import _demo, _model, _reconstruct, _register, _view
 _COMMANDS = (_register, _reconstruct, _model, _demo, _view)
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line: the command, the message and where the
+    help is (argparse prints the whole usage block first)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(
+            EXIT_BAD_INPUT,
+            f"{self.prog}: error: {message} (see `{self.prog} --help`)\n",
+        )
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="o3dreg",
         description="Elastic registration of surface meshes and statistical shape models.",
         epilog="exit status: 0 success; 1 the job ran and wrote its outputs but its verdict is "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 import time
@@ -22,6 +23,8 @@ from ..registration.options import default_levels
 from ..registration.result import ElasticRegistrationResult, LevelReport
 from ._common import all_or_nothing, check_outputs, emit, emit_json, write_json
 from ._registration_options import add_registration_options, settings_from_args
+
+logger = logging.getLogger("o3dreg")
 
 EPILOG = """examples:
   o3dreg register template.ply patient.ply -o registered.ply
@@ -148,20 +151,24 @@ def run(args: argparse.Namespace) -> int:
         f"target {args.target}: {len(target.vertices)} vertices",
         args,
     )
-    show = not args.quiet and not args.json
+    # The progress bar on a terminal only (as build-model): a log file gets no bar, and the
+    # per-level lines through the logger (-v).
+    show = not args.quiet and not args.json and sys.stderr.isatty()
     bar = None
     if show:
         bar = tqdm(total=len(levels), desc="levels", unit="level", file=sys.stderr, leave=False)
 
     def progress(report: LevelReport) -> None:
+        line = (
+            f"level {report.resolution:>3} cells/axis: {report.free_nodes:>5} free nodes, "
+            f"{report.iterations:>2} iterations, mean distance {report.mean_distance:.4g}, "
+            f"{report.seconds:.2f} s"
+        )
         if bar is not None:
             bar.update(1)
-            bar.write(
-                f"  level {report.resolution:>3} cells/axis: {report.free_nodes:>5} free nodes, "
-                f"{report.iterations:>2} iterations, mean distance {report.mean_distance:.4g}, "
-                f"{report.seconds:.2f} s",
-                file=sys.stderr,
-            )
+            bar.write(f"  {line}", file=sys.stderr)
+        else:
+            logger.info("register: %s", line)
 
     start = time.perf_counter()
     init = None
