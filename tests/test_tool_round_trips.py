@@ -342,3 +342,20 @@ def test_register_refuses_stl_output_before_any_work(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--output" in err and "vertex order" in err and "STL" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.ply", "t.ply"]
+
+
+def test_gltf_written_by_open3d_and_by_trimesh_reads_in_order(semilandmarks, tmp_path):
+    # Open3D writes .gltf with its buffer as a data URI; trimesh writes buffers as .bin files
+    # beside it. Both read with the vertices in the order written (float32 positions).
+    v, f = semilandmarks
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(f.astype(np.int32))
+    )
+    o3d.io.write_triangle_mesh(str(tmp_path / "o.gltf"), mesh)
+    scene = trimesh.Scene(trimesh.Trimesh(v, f, process=False))
+    for name, data in scene.export(file_type="gltf").items():
+        (tmp_path / name).write_bytes(data)
+    for path in (tmp_path / "o.gltf", tmp_path / "model.gltf"):
+        back = read_triangle_mesh(path)
+        np.testing.assert_allclose(np.asarray(back.vertices), v, rtol=0, atol=2e-5)
+        np.testing.assert_array_equal(np.asarray(back.triangles), f)
