@@ -92,6 +92,19 @@ def test_a_patient_one_and_a_half_times_the_size_fails(chiral):
     assert "times the training shapes' median" in text
 
 
+def test_a_scaling_model_fits_any_size(chiral):
+    # Size removed by Procrustes: a patient ten times the size is a member of the population,
+    # its distances judged in the model's size (1 mm of noise on a 400 mm patient is 0.1 mm on
+    # the 40 mm model: far below the 1%-of-size reference; in the patient's millimetres it
+    # would be several times that reference).
+    _, faces, draw = chiral
+    scaled = build_shape_model(np.stack([draw() for _ in range(14)]), faces, scaling=True)
+    patient = _posed(draw() * 10.0, 13)
+    patient = patient + np.random.default_rng(5).normal(size=patient.shape)
+    fit = fit_shape_model(scaled, (patient, faces))
+    assert fit.status == "ok", fit.warnings
+
+
 def test_without_the_reflection_check_a_mirrored_patient_is_not_caught_by_size(chiral):
     # The size and residual checks do not misfire on a mirrored patient of the right size:
     # what catches it is the mirror fit, which check_reflection=False leaves out.

@@ -182,7 +182,11 @@ def _best_fit(
     shift = np.eye(4)
     shift[:3, 3] = vt.mean(axis=0) - model.mean.mean(axis=0)
     starts = [
-        np.array(registration_rigid((model.mean, model.faces), (vt, ft)).transformation),
+        np.array(
+            registration_rigid(
+                (model.mean, model.faces), (vt, ft), with_scaling=model.scaling
+            ).transformation
+        ),
         shift,
     ]
     best, best_cost = None, np.inf

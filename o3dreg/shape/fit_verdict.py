@@ -159,8 +159,11 @@ def assess_model_fit(model: ShapeModel, fit: Any, target: Any, *, mirrored: Any 
     # A population of exactly linear shapes leaves no residual: a patient's surface, its
     # triangulation and noise, still do. The reference is at least 1% of the model's size.
     reference = max(reference, RESIDUAL_FLOOR * surface_size(model.mean, model.faces))
-    if reference > 0:
-        ratio = fit.mean_distance / reference
+    # A scaling model's shapes are in the model's size: the fit's distance, in the patient's
+    # units, is compared after removing the pose's scale.
+    scale = float(abs(np.linalg.det(np.asarray(fit.transformation)[:3, :3]))) ** (1.0 / 3.0)
+    if reference > 0 and scale > 0:
+        ratio = fit.mean_distance / scale / reference
         for level, factor in (("failed", RESIDUAL_FAILED), ("suspect", RESIDUAL_SUSPECT)):
             if ratio > factor:
                 found.append(
@@ -168,8 +171,8 @@ def assess_model_fit(model: ShapeModel, fit: Any, target: Any, *, mirrored: Any 
                         level,
                         f"the fitted model is {fit.mean_distance:.3g} from the patient on average, "
                         f"{ratio:.1f} times the residual the model's own training shapes leave "
-                        f"when each is left out ({reference:.3g}): the patient is not a shape "
-                        "this model describes",
+                        f"when each is left out ({reference * scale:.3g}): the patient is not a "
+                        "shape this model describes",
                     )
                 )
                 break
