@@ -114,6 +114,12 @@ def test_without_the_reflection_check_a_mirrored_patient_is_not_caught_by_size(c
     assert not any("size" in w for w in fit.warnings)
 
 
+def test_fit_bad_input(chiral):
+    model, faces, draw = chiral
+    with pytest.raises(TypeError, match="`check_reflection` must be a bool, got str"):
+        fit_shape_model(model, (draw(), faces), check_reflection="yes")
+
+
 def test_population_references_are_the_models_own(chiral):
     model, faces, _ = chiral
     rms, maha = population_residuals(model, model.number_of_modes)

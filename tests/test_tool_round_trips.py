@@ -57,6 +57,12 @@ def test_every_written_format_keeps_the_vertex_order_or_is_refused(
         np.testing.assert_array_equal(got, v)
 
 
+def test_semilandmarks_must_be_a_bool(semilandmarks, tmp_path):
+    with pytest.raises(TypeError, match="`semilandmarks` must be a bool, got str"):
+        write_triangle_mesh(tmp_path / "m.ply", semilandmarks, semilandmarks="yes")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_obj_header_does_not_name_the_temporary_file(semilandmarks, tmp_path):
     path = write_triangle_mesh(tmp_path / "m.obj", semilandmarks)
     head = open(path).read(300)
@@ -229,7 +235,7 @@ def test_meshio_reads_what_o3dreg_writes(semilandmarks, tmp_path, suffix):
 trimesh = pytest.importorskip("trimesh")
 
 
-@pytest.mark.parametrize("suffix", [".ply", ".obj", ".off", ".glb", ".stl"])
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".off", ".glb", ".gltf", ".stl"])
 def test_trimesh_reads_what_o3dreg_writes(semilandmarks, tmp_path, suffix):
     v, f = semilandmarks
     path = write_triangle_mesh(tmp_path / f"w{suffix}", (v, f))

@@ -319,6 +319,8 @@ def write_triangle_mesh(
     """
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`{name}` must be a path, got {type(path).__name__}")
+    if not isinstance(semilandmarks, (bool, np.bool_)):
+        raise TypeError(f"`semilandmarks` must be a bool, got {type(semilandmarks).__name__}")
     check = check_semilandmark_suffix if semilandmarks else check_mesh_suffix
     suffix = check(os.fspath(path), name)
     if isinstance(mesh, o3d.geometry.TriangleMesh):

@@ -147,6 +147,8 @@ def fit_shape_model(
     else:
         reg = check_positive(regularization, "regularization", allow_zero=True)
     max_iteration = check_positive(max_iteration, "max_iteration", integer=True)
+    if not isinstance(check_reflection, (bool, np.bool_)):
+        raise TypeError(f"`check_reflection` must be a bool, got {type(check_reflection).__name__}")
     tolerance = check_positive(tolerance, "tolerance", allow_zero=True)
     if init is not None:
         pose = as_transformation(init, "init")
