@@ -19,8 +19,14 @@ from ..io.mesh import atomic_write_text
 
 
 def _number_list(text: str, convert: type, kind: str, minimum: float) -> list:
+    items = text.split(",")
+    if any(not v.strip() for v in items):
+        # "2,,4" or "2,4,": a value left out is a typo, not a shorter list.
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated {kind} with no empty item, got {text!r}"
+        )
     try:
-        values = [convert(v) for v in text.split(",") if v.strip()]
+        values = [convert(v) for v in items]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated {kind}, got {text!r}") from None
     if not values or min(values) < minimum:
