@@ -34,13 +34,13 @@ TEMPLATES = (1000, 3000, 10000, 20000)
 STAGES = [
     ("cost evaluation _cost.LevelProblem.evaluate (total)", "_cost.py:evaluate"),
     ("  point-to-surface SurfaceDistanceQuery.closest", "distance.py:closest"),
-    ("accepted points: barycentre re-assignment (grid search)", "_cost.py:reweighted"),
+    ("accepted points: barycentre re-assignment (SciPy k-d tree)", "_cost.py:reweighted"),
     ("level starts: scales, first queries, pattern", "_cost.py:__init__"),
     ("normal equations (fixed pattern)", "normal_equations"),
     ("solve the damped system DampedSystem.solve_damped", "_solvers.py:solve_damped"),
     ("lattice weights / Jacobian (lattice.py)", "lattice.py"),
     ("target levels of detail (vertex clustering)", "_target.py:build_levels_of_detail"),
-    ("closest-point tree builds SurfaceDistanceQuery._tree", "distance.py:_tree"),
+    ("libigl AABB tree builds SurfaceDistanceQuery._tree", "distance.py:_tree"),
     ("final distances both ways (TargetSurface.distances)", "_target.py:distances"),
 ]
 
@@ -139,6 +139,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--child", help=argparse.SUPPRESS)
     parser.add_argument("--profile", action="store_true", help="profile only")
+    parser.add_argument(
+        "--targets",
+        type=lambda text: [int(n) for n in text.split(",")],
+        default=list(TARGETS),
+        help=f"target sizes to run, comma-separated, of {list(TARGETS)} (default: all)",
+    )
+    parser.add_argument("--no-templates", action="store_true", help="skip the template scaling")
     args = parser.parse_args()
     if args.child:
         print(json.dumps(child(args.child)))
@@ -147,13 +154,15 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             print("target scaling (template ~3k vertices):")
             print(f"{'target':>9}{'template':>9}{'time s':>8}{'peak MB':>9}{'err mm':>8}  levels s")
-            for n in TARGETS:
+            for n in args.targets:
                 r = run(make_case(target_mesh(n), 3000), tmp)
                 print(
                     f"{r['target']:>9}{r['template']:>9}{r['seconds']:>8.2f}{r['peak_mb']:>9.0f}"
                     f"{r['error_mean']:>8.3f}  {r['levels_s']}",
                     flush=True,
                 )
+            if args.no_templates:
+                return
             print("template scaling (target: the 36k bunny):")
             bunny = target_mesh(36_000)
             for m in TEMPLATES:

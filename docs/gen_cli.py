@@ -26,7 +26,7 @@ Exit status:
 | status | meaning |
 |---|---|
 | **0** | success |
-| **1** | the job ran and wrote its outputs but its verdict is not `ok` (`register`: the reasons are printed) or a level did not converge, or a batch (`build-model`, `demo`) had failed or flagged patients (the model is built from the `ok` ones; the others are listed with their reasons on standard error) |
+| **1** | the job ran and wrote its outputs but its verdict is not `ok` (`register`, `model fit`: the reasons are printed; the exit status follows the verdict alone, and a registration level that stopped at `--max-iteration` is a note on the "stopping criteria" line), or a batch (`build-model`, `demo`) had failed or flagged patients (the model is built from the `ok` ones; the others are listed with their reasons on standard error) |
 | **2** | bad input, or a failure before any output was written: one line on standard error, no traceback, no partial file (also a full disk, a read-only folder, out of memory) |
 | **130** | interrupted (Ctrl-C, SIGINT): one line; finished files are kept, no partial file |
 | **143** | terminated (SIGTERM): as for SIGINT |
@@ -41,7 +41,10 @@ exit status 2 means no new file.
 `build-model` refuses a folder that already holds a model unless `--overwrite` (finished
 registrations are reused either way; a patient is registered again when the template, its file
 or the options changed). Worker processes (`--jobs`) end with the command. Messages of the C++
-libraries (Open3D, RPly) go to standard error, so `--json` output is always valid JSON.
+libraries (Open3D, RPly) go to standard error, so `--json` output is always valid JSON. A
+mistyped option or value is one line on standard error, with the command's `--help` to see.
+Progress bars are drawn on a terminal only (`register`, `build-model`); in a log file,
+`register -v` logs one line per level instead.
 
 The Python API raises these types (the command line turns each into exit status 2): `TypeError`
 for an argument of the wrong kind; `ValueError` for a wrong shape or value, and for a file whose

@@ -7,6 +7,7 @@ parameter, the expectation and what was received.
 from __future__ import annotations
 
 import importlib
+import logging
 import os
 import warnings
 from typing import Any
@@ -92,6 +93,41 @@ def _padded_cells_to_triangles(cells: np.ndarray, name: str) -> np.ndarray:
     )
 
 
+#: meshio's cell types that are no surface: skipped (their points are on no triangle).
+_MESHIO_SKIPPED = ("vertex", "line", "line3", "polyline")
+
+
+def _meshio_triangles(cells: dict[str, Any], name: str) -> np.ndarray:
+    """The triangles of a ``meshio.Mesh``'s cells by type: triangles as they are, quads and
+    polygons split into triangle fans (with a warning), never dropped; vertices and lines
+    skipped; any other cell (volume, higher order) refused."""
+    parts, split = [], []
+    for kind, block in cells.items():
+        block = np.asarray(block)
+        if kind == "triangle":
+            parts.append(block)
+        elif kind == "quad" or kind.startswith("polygon"):
+            k = np.arange(1, block.shape[1] - 1)
+            fans = np.stack(
+                [np.repeat(block[:, :1], k.size, axis=1), block[:, k], block[:, k + 1]], axis=2
+            )
+            parts.append(fans.reshape(-1, 3))
+            split.append(f"{len(block)} {kind}")
+        elif kind not in _MESHIO_SKIPPED:
+            raise ValueError(
+                f"`{name}` must hold surface cells (triangles, quads, polygons), got {kind!r} "
+                "cells: extract the surface first"
+            )
+    if not parts:
+        kinds = ", ".join(sorted(cells)) or "none"
+        raise ValueError(f"`{name}` must hold triangle cells, got {kinds}")
+    if split:
+        logging.getLogger("o3dreg").warning(
+            "`%s`: %s cells split into triangle fans", name, ", ".join(split)
+        )
+    return np.concatenate([p.reshape(-1, 3) for p in parts])
+
+
 def _mesh_parts(mesh: Any, name: str) -> tuple[Any, Any]:
     """``(vertices, faces)`` array-likes of any supported mesh object, without copying.
 
@@ -121,11 +157,7 @@ def _mesh_parts(mesh: Any, name: str) -> tuple[Any, Any]:
         None,
     )
     if faces is None and isinstance(getattr(mesh, "cells_dict", None), dict):
-        # meshio.Mesh: cells by type.
-        faces = mesh.cells_dict.get("triangle")
-        if faces is None:
-            kinds = ", ".join(sorted(mesh.cells_dict)) or "none"
-            raise ValueError(f"`{name}` must hold triangle cells, got {kinds}")
+        faces = _meshio_triangles(mesh.cells_dict, name)
     if vertices is None or faces is None:
         raise TypeError(f"`{name}` must be {_MESH_KINDS}, got {_describe(mesh)}")
     if int(getattr(mesh, "n_strips", 0) or 0) > 0:

@@ -70,7 +70,8 @@ class PatientRecord:
     transformation : tuple of 16 float
         The rigid pre-alignment, row-major (empty for a failure).
     source : str
-        The target file, or ``"<array>"``.
+        The target file, or ``"<array>"``. ``NAME.json`` stores it relative to its own folder
+        (read back as a path that works from any working folder).
     verdict : {'ok', 'suspect', 'failed', 'unknown'}
         The registration's verdict (:func:`~o3dreg.assess_registration`), made worse by a
         population check (:func:`o3dreg.app.population.check_population`) where one was run;
@@ -365,6 +366,8 @@ def _read_record(path: str, name: str, key: str) -> PatientRecord | None:
         with open(path, encoding="utf-8") as fh:
             data = json.load(fh)
         stored_key = data.pop("resume_key", None)
+        if isinstance(data.get("source"), str):
+            data["source"] = resolve_record_source(data["source"], os.path.dirname(path))
         data["transformation"] = tuple(data.get("transformation", ()))
         data["warnings"] = tuple(data.get("warnings", ()))
         # A measure that could not be taken is written as null (JSON has no NaN).
@@ -397,7 +400,37 @@ def _read_record(path: str, name: str, key: str) -> PatientRecord | None:
 
 
 def _write_json(path: str, data: Any) -> None:
+    folder = os.path.dirname(os.path.abspath(path))
+
+    def relative(item: Any) -> Any:
+        if isinstance(item, dict) and isinstance(item.get("source"), str):
+            return {**item, "source": stored_source(item["source"], folder)}
+        return item
+
+    data = [relative(d) for d in data] if isinstance(data, list) else relative(data)
     atomic_write_text(path, json_text.dumps(data, indent=2) + "\n", overwrite=True)
+
+
+def stored_source(source: str, folder: str) -> str:
+    """``source`` as a record in ``folder`` stores it: relative to ``folder`` (the records stay
+    valid when the command that reads them runs elsewhere, or when the model folder moves with
+    its patients). ``"<array>"`` (a mesh given in memory) is kept."""
+    if not source or source.startswith("<"):
+        return source
+    try:
+        return os.path.relpath(os.path.abspath(source), os.path.abspath(folder))
+    except ValueError:  # another drive (Windows): no relative path
+        return os.path.abspath(source)
+
+
+def resolve_record_source(source: str, folder: str) -> str:
+    """The path of a record's ``source`` (see :func:`stored_source`): relative to ``folder``
+    (the record's folder); a record written with a path relative to where its command ran is
+    found there when it is not found beside ``folder``."""
+    if not source or source.startswith("<") or os.path.isabs(source):
+        return source
+    beside = os.path.normpath(os.path.join(folder, source))
+    return beside if os.path.exists(beside) or not os.path.exists(source) else source
 
 
 def save_registered(

@@ -26,6 +26,7 @@ import open3d as o3d
 from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays
 from ..io.mesh import atomic_write_text, read_triangle_mesh
+from ..registration.batch import resolve_record_source
 from ..registration.distance import SurfaceDistanceQuery
 from ..registration.result import ElasticRegistrationResult
 from ..shape.model import ShapeModel
@@ -179,7 +180,7 @@ def _registration_cases(
                 registered = vertices
             else:
                 notes.append(f"{name}.ply does not have the model's template vertices; not shown")
-        source = record.get("source", "")
+        source = resolve_record_source(str(record.get("source", "")), folder)
         if registered is not None:
             try:
                 given = targets.get(name)
@@ -191,6 +192,9 @@ def _registration_cases(
                     target = as_mesh_arrays(given, f"targets[{name!r}]")
             except (OSError, TypeError, ValueError) as error:
                 notes.append(f"patient surface not shown, no distances: {error}")
+                logger.warning(
+                    "explorer: %s: patient surface not shown, no distances: %s", name, error
+                )
         cases.append(
             _case(
                 str(record.get("name", name)),

@@ -1,6 +1,6 @@
 """The ``o3dreg`` command line: one sub-command per module in this package.
 
-Exit codes: 0 success; 1 the job ran and wrote its outputs but did not converge; 2 bad input or
+Exit codes: 0 success; 1 the job ran and wrote its outputs but its verdict is not 'ok'; 2 bad input or
 a failure before any output was written; 130 interrupted (Ctrl-C), 143 terminated (SIGTERM).
 """
 
@@ -14,7 +14,7 @@ import signal
 import sys
 import threading
 from collections.abc import Iterator, Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 from .. import __version__
 from . import _demo, _model, _reconstruct, _register, _view
@@ -24,12 +24,23 @@ from . import _demo, _model, _reconstruct, _register, _view
 _COMMANDS = (_register, _reconstruct, _model, _demo, _view)
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line: the command, the message and where the
+    help is (argparse prints the whole usage block first)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(
+            EXIT_BAD_INPUT,
+            f"{self.prog}: error: {message} (see `{self.prog} --help`)\n",
+        )
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="o3dreg",
         description="Elastic registration of surface meshes and statistical shape models.",
-        epilog="exit status: 0 success; 1 the job ran and wrote its outputs but did not converge "
-        "(or some patients failed); 2 bad input, nothing written; 130 interrupted (SIGINT), 143 terminated (SIGTERM); "
+        epilog="exit status: 0 success; 1 the job ran and wrote its outputs but its verdict is "
+        "not 'ok' (or some patients failed); 2 bad input, nothing written; 130 interrupted (SIGINT), 143 terminated (SIGTERM); "
         "`o3dreg COMMAND --help` shows each command's options and examples.",
     )
     parser.add_argument("--version", action="version", version=f"o3dreg {__version__}")
@@ -63,10 +74,6 @@ _EXAMPLES = {
     ],
     "o3dreg model info": ["o3dreg model info model/", "o3dreg model info model/ --json"],
     "o3dreg model modes": ["o3dreg model modes model/ --modes 3 --sd -3 3 -o modes/"],
-    "o3dreg model fit": [
-        "o3dreg model fit model/ patient.ply --landmarks landmarks.mrk.json",
-        "o3dreg model fit model/ patient.ply --landmarks lm.csv --truth truth.csv --json",
-    ],
 }
 
 

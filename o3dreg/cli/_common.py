@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 import concurrent.futures as cf
 import contextlib
-import ctypes
 import math
 import os
 import signal
 import sys
+import threading
+import time
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -18,8 +19,14 @@ from ..io.mesh import atomic_write_text
 
 
 def _number_list(text: str, convert: type, kind: str, minimum: float) -> list:
+    items = text.split(",")
+    if any(not v.strip() for v in items):
+        # "2,,4" or "2,4,": a value left out is a typo, not a shorter list.
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated {kind} with no empty item, got {text!r}"
+        )
     try:
-        values = [convert(v) for v in text.split(",") if v.strip()]
+        values = [convert(v) for v in items]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated {kind}, got {text!r}") from None
     if not values or min(values) < minimum:
@@ -132,26 +139,31 @@ def emit_json(data: Any) -> None:
     sys.stdout.write("\n")
 
 
+#: How often a worker checks that the process that started it is still there (seconds).
+PARENT_CHECK_SECONDS = 0.5
+
+
 def _die_with_parent() -> None:  # pragma: no cover - runs in the worker processes
-    """Worker initializer: SIGTERM this process when its parent dies (Linux), even by SIGKILL."""
+    """Worker initializer: the worker ends when its parent dies, even by SIGKILL (its parent
+    process then changes: it is checked every :data:`PARENT_CHECK_SECONDS` on a thread)."""
     # A forked worker inherits the CLI's SIGTERM handler, which raises an exception that the
     # pool would catch and return: the worker must simply end.
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     parent = os.getppid()
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        return  # not Linux: workers end when the pool's queue closes
-    if os.getppid() != parent:  # the parent died before prctl
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_CHECK_SECONDS)
         os._exit(1)
+
+    threading.Thread(target=watch, name="o3dreg-parent-check", daemon=True).start()
 
 
 @contextlib.contextmanager
 def process_pool(jobs: int) -> Iterator[cf.ProcessPoolExecutor | None]:
     """A pool of ``jobs`` worker processes (None for one job) that never outlives the command.
 
-    Workers get SIGTERM when the parent dies; on an exception (Ctrl-C, SIGTERM) pending work is
+    Workers end when the parent dies; on an exception (Ctrl-C, SIGTERM) pending work is
     cancelled and the running workers are terminated instead of waited for.
     """
     if jobs <= 1:

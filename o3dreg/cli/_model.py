@@ -27,6 +27,7 @@ from ..shape.landmark_transfer import (
     write_landmarks,
 )
 from ..shape.model import ShapeModel
+from ..shape.statismo import read_statismo
 from ._common import (
     all_or_nothing,
     check_outputs,
@@ -54,6 +55,20 @@ template's). A patient without a landmark file stops the command before any regi
 
 exit status: 0 every patient registered with verdict 'ok'; 1 a patient failed or was flagged
 (the model is built from the others), or fewer than 2 'ok' patients; 2 bad input."""
+
+
+FIT_EPILOG = """verdict: the fit is judged 'ok', 'suspect' or 'failed' against the model's own
+population: its distance to the patient against the model's leave-one-out residuals, the
+Mahalanobis distance of its coefficients, the patient's size against the training shapes'
+(models built without --scaling), and whether the patient's mirror image fits clearly better
+(left and right swapped).
+
+exit status: 0 verdict 'ok'; 1 'suspect' or 'failed' (outputs written, the reasons printed);
+2 bad input.
+
+examples:
+  o3dreg model fit model/ patient.ply --landmarks landmarks.mrk.json
+  o3dreg model fit model.h5 patient.ply --landmarks lm.csv --truth truth.csv --json"""
 
 
 def add_parser(subparsers: Any) -> None:
@@ -100,11 +115,19 @@ def add_parser(subparsers: Any) -> None:
     model = subparsers.add_parser("model", help="inspect and use a shape model")
     sub = model.add_subparsers(dest="model_command", metavar="ACTION")
     info = sub.add_parser("info", help="variance table (Table 4)")
-    info.add_argument("model_dir")
+    info.add_argument(
+        "model_dir",
+        metavar="MODEL",
+        help="model folder (o3dreg build-model) or statismo / scalismo .h5 file",
+    )
     info.add_argument("--json", action="store_true")
     info.set_defaults(func=run_info)
     modes = sub.add_parser("modes", help="write mean and mode meshes (Figure 6)")
-    modes.add_argument("model_dir")
+    modes.add_argument(
+        "model_dir",
+        metavar="MODEL",
+        help="model folder (o3dreg build-model) or statismo / scalismo .h5 file",
+    )
     modes.add_argument("--modes", type=positive_int, default=2, help="number of modes (default 2)")
     modes.add_argument(
         "--sd",
@@ -113,12 +136,25 @@ def add_parser(subparsers: Any) -> None:
         default=[-3.0, 3.0],
         help="multiples of the standard deviation",
     )
-    modes.add_argument("-o", "--output", help="folder (default MODEL_DIR/modes)")
+    modes.add_argument(
+        "-o", "--output", help="folder (default MODEL/modes; MODEL_modes beside a .h5 file)"
+    )
     modes.add_argument("--overwrite", action="store_true", help="replace existing mesh files")
     modes.add_argument("--json", action="store_true")
     modes.set_defaults(func=run_modes)
-    fit = sub.add_parser("fit", help="fit the model to a patient and predict landmarks")
-    fit.add_argument("model_dir")
+    fit = sub.add_parser(
+        "fit",
+        help="fit the model to a patient and predict landmarks",
+        description="Fit the model's pose and shape to PATIENT and predict the landmarks placed "
+        "on the model's template.",
+        epilog=FIT_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    fit.add_argument(
+        "model_dir",
+        metavar="MODEL",
+        help="model folder (o3dreg build-model) or statismo / scalismo .h5 file",
+    )
     fit.add_argument("patient", help="patient mesh")
     fit.add_argument(
         "--landmarks", required=True, help="template landmarks (.mrk.json, .fcsv, .csv, .pp; LPS)"
@@ -234,11 +270,34 @@ def _check_model_folder(output: str, overwrite: bool) -> None:
         )
 
 
+#: Suffixes of a statismo / scalismo model file, accepted wherever a model folder is.
+STATISMO_SUFFIXES = (".h5", ".hdf5")
+
+
+def _is_statismo(model: str) -> bool:
+    return model.lower().endswith(STATISMO_SUFFIXES) and not os.path.isdir(model)
+
+
 def _load(model_dir: str) -> Any:
+    """The model of a model folder (``MODEL/model.npz``) or of a statismo ``.h5`` file."""
+    if _is_statismo(model_dir):
+        return read_statismo(model_dir)
+    if os.path.isfile(model_dir):
+        raise ValueError(
+            f"MODEL must be a model folder (o3dreg build-model) or a statismo .h5 file, "
+            f"got the file {model_dir!r}"
+        )
     path = os.path.join(model_dir, "model.npz")
     if not os.path.isfile(path):
-        raise OSError(f"MODEL_DIR: no model.npz in {model_dir!r} (run o3dreg build-model)")
+        raise OSError(f"MODEL: no model.npz in {model_dir!r} (run o3dreg build-model)")
     return ShapeModel.load(path)
+
+
+def _beside(model_dir: str, name: str) -> str:
+    """``MODEL/name`` for a model folder, ``STEM_name`` beside a statismo file."""
+    if _is_statismo(model_dir):
+        return f"{os.path.splitext(model_dir)[0]}_{name}"
+    return os.path.join(model_dir, name)
 
 
 def run_info(args: argparse.Namespace) -> int:
@@ -264,7 +323,7 @@ def run_info(args: argparse.Namespace) -> int:
 
 def run_modes(args: argparse.Namespace) -> int:
     model = _load(args.model_dir)
-    folder = args.output or os.path.join(args.model_dir, "modes")
+    folder = args.output or _beside(args.model_dir, "modes")
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise OSError(f"--output: {folder!r} exists and is not a folder")
     count = min(max(args.modes, 0), model.number_of_modes)
@@ -295,9 +354,13 @@ def run_fit(args: argparse.Namespace) -> int:
         suffixes={"--output": LANDMARK_SUFFIXES},
     )
     model = _load(args.model_dir)
-    template_path = os.path.join(args.model_dir, "template.ply")
-    template = read_triangle_mesh(template_path, name="MODEL_DIR/template.ply")
-    model.check_template(template, "MODEL_DIR/template.ply")
+    if _is_statismo(args.model_dir):
+        # A statismo file's reference mesh is its mean: the landmarks are placed on it.
+        template = model.mesh()
+    else:
+        template_path = os.path.join(args.model_dir, "template.ply")
+        template = read_triangle_mesh(template_path, name="MODEL/template.ply")
+        model.check_template(template, "MODEL/template.ply")
     landmarks = load_template_landmarks(args.landmarks, template)
     patient = read_triangle_mesh(args.patient, name="PATIENT")
     prediction = predict_landmarks(
@@ -331,6 +394,9 @@ def run_fit(args: argparse.Namespace) -> int:
                 "iterations": fit.iterations,
                 "success": fit.success,
                 "message": fit.message,
+                "status": fit.status,
+                "warnings": list(fit.warnings),
+                "mahalanobis_distance": fit.mahalanobis_distance,
             },
         }
         if errors is not None:
@@ -348,8 +414,16 @@ def run_fit(args: argparse.Namespace) -> int:
             lines.append(f"{label:<16}{p[0]:>10.2f}{p[1]:>10.2f}{p[2]:>10.2f}{err}")
         if errors is not None:
             lines.append(f"mean error {errors.mean():.3g} mm")
+        lines.append(f"verdict: {fit.status}" + ("" if fit.warnings else " (nothing looked wrong)"))
+        lines += [f"  - {w}" for w in fit.warnings]
         emit("\n".join(lines), args)
-    return 0 if fit.success else 1
+    if fit.status != "ok" and (args.quiet or args.json):
+        print(
+            f"o3dreg model fit: verdict {fit.status}: " + "; ".join(fit.warnings),
+            file=sys.stderr,
+        )
+    # The exit status follows the verdict (a fit that did not converge is 'suspect').
+    return 0 if fit.status == "ok" else 1
 
 
 def _vector3(text: str) -> list[float]:
@@ -370,8 +444,16 @@ def _add_explore(sub: Any) -> None:
         "slider per mode (+-3 SD), the variance table, and each patient's registered template "
         "coloured by its distance to the patient, with its verdict.",
     )
-    explore.add_argument("model_dir")
-    explore.add_argument("-o", "--output", help="page to write (default MODEL_DIR/explorer.html)")
+    explore.add_argument(
+        "model_dir",
+        metavar="MODEL",
+        help="model folder (o3dreg build-model) or statismo / scalismo .h5 file",
+    )
+    explore.add_argument(
+        "-o",
+        "--output",
+        help="page to write (default MODEL/explorer.html; MODEL_explorer.html beside a .h5 file)",
+    )
     explore.add_argument(
         "--up",
         type=_vector3,
@@ -385,16 +467,16 @@ def _add_explore(sub: Any) -> None:
 
 def run_explore(args: argparse.Namespace) -> int:
     model = _load(args.model_dir)
-    output = args.output or os.path.join(args.model_dir, "explorer.html")
+    output = args.output or _beside(args.model_dir, "explorer.html")
     if args.output is not None:
         # A page: never one of the model's own files (an HTML page written over model.npz
         # destroyed the model).
         check_outputs({"--output": args.output}, args.overwrite, suffixes={"--output": (".html",)})
-    folder = os.path.join(args.model_dir, "registrations")
+    folder = "" if _is_statismo(args.model_dir) else os.path.join(args.model_dir, "registrations")
     written = write_model_explorer(
         output,
         model,
-        registrations=folder if os.path.isdir(folder) else None,
+        registrations=folder if folder and os.path.isdir(folder) else None,
         up=args.up,
         overwrite=args.overwrite or args.output is None,
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 import time
@@ -11,12 +12,19 @@ import numpy as np
 from tqdm import tqdm
 
 from ..app.explorer import write_registration_explorer
-from ..io.mesh import MESH_SUFFIXES, read_triangle_mesh, write_triangle_mesh
+from ..io.mesh import (
+    SEMILANDMARK_SUFFIXES,
+    check_semilandmark_suffix,
+    read_triangle_mesh,
+    write_triangle_mesh,
+)
 from ..registration.landmark_start import registration_landmarks
 from ..registration.options import default_levels
 from ..registration.result import ElasticRegistrationResult, LevelReport
 from ._common import all_or_nothing, check_outputs, emit, emit_json, write_json
 from ._registration_options import add_registration_options, settings_from_args
+
+logger = logging.getLogger("o3dreg")
 
 EPILOG = """examples:
   o3dreg register template.ply patient.ply -o registered.ply
@@ -31,9 +39,9 @@ verdict: every registration is judged 'ok', 'suspect' or 'failed' from measured 
 flipped triangles, distances for the target's size, supported fraction, an ambiguous rigid
 start, sizes in other units, a degenerate target); the reasons are printed.
 
-exit status: 0 verdict 'ok' and every level met its stopping criteria; 1 verdict 'suspect' or
-'failed', or a level stopped at --max-iteration (outputs are still written: look at them);
-2 bad input (nothing written)."""
+exit status: follows the verdict: 0 'ok'; 1 'suspect' or 'failed' (outputs are still written:
+look at them); 2 bad input (nothing written). A level that stopped at --max-iteration is a
+note on the "stopping criteria" line, not a verdict: the verdict judges the result."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -107,6 +115,9 @@ def report_dict(result: ElasticRegistrationResult, **extra) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    # The registered template is a semilandmark mesh: its vertex order must survive the file.
+    if args.output.lower().endswith(".stl"):
+        check_semilandmark_suffix(args.output, "--output")
     check_outputs(
         {
             "--output": args.output,
@@ -123,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
             "--landmarks TARGET_LANDMARKS": args.landmarks[1] if args.landmarks else None,
         },
         suffixes={
-            "--output": MESH_SUFFIXES,
+            "--output": SEMILANDMARK_SUFFIXES,
             "--deformation": (".npz",),
             "--report": (".json",),
             "--html": (".html", ".htm"),
@@ -140,20 +151,24 @@ def run(args: argparse.Namespace) -> int:
         f"target {args.target}: {len(target.vertices)} vertices",
         args,
     )
-    show = not args.quiet and not args.json
+    # The progress bar on a terminal only (as build-model): a log file gets no bar, and the
+    # per-level lines through the logger (-v).
+    show = not args.quiet and not args.json and sys.stderr.isatty()
     bar = None
     if show:
         bar = tqdm(total=len(levels), desc="levels", unit="level", file=sys.stderr, leave=False)
 
     def progress(report: LevelReport) -> None:
+        line = (
+            f"level {report.resolution:>3} cells/axis: {report.free_nodes:>5} free nodes, "
+            f"{report.iterations:>2} iterations, mean distance {report.mean_distance:.4g}, "
+            f"{report.seconds:.2f} s"
+        )
         if bar is not None:
             bar.update(1)
-            bar.write(
-                f"  level {report.resolution:>3} cells/axis: {report.free_nodes:>5} free nodes, "
-                f"{report.iterations:>2} iterations, mean distance {report.mean_distance:.4g}, "
-                f"{report.seconds:.2f} s",
-                file=sys.stderr,
-            )
+            bar.write(f"  {line}", file=sys.stderr)
+        else:
+            logger.info("register: %s", line)
 
     start = time.perf_counter()
     init = None
@@ -172,7 +187,9 @@ def run(args: argparse.Namespace) -> int:
     mesh = result.semilandmark_mesh(target if args.project else None)
     # Exit 2 means nothing written: a failing output removes the ones written before it.
     with all_or_nothing([args.output, args.deformation, args.report, args.html]):
-        write_triangle_mesh(args.output, mesh, overwrite=args.overwrite, name="--output")
+        write_triangle_mesh(
+            args.output, mesh, overwrite=args.overwrite, semilandmarks=True, name="--output"
+        )
         if args.deformation:
             result.deformation.save(args.deformation, overwrite=args.overwrite)
         report = report_dict(
@@ -202,7 +219,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if result.status != "ok" and (args.quiet or args.json):
         print(f"o3dreg register: verdict {result.status}", file=sys.stderr)
-    return 0 if result.status == "ok" and result.success else 1
+    # One rule: the exit status follows the verdict (a level at its iteration limit is a note).
+    return 0 if result.status == "ok" else 1
 
 
 def verdict_text(result: ElasticRegistrationResult) -> str:

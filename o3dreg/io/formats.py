@@ -1,37 +1,45 @@
-"""Mesh formats o3dreg reads and writes itself: VTK polydata (legacy ``.vtk`` and XML ``.vtp``),
-binary glTF (``.glb``) and STL.
+"""Mesh formats o3dreg reads and writes itself, with numpy and the standard library only:
+VTK (legacy ``.vtk``, XML ``.vtp`` and ``.vtu``), OBJ, OFF, ASCII PLY, glTF (``.gltf``,
+``.glb``) and STL. Open3D writes binary PLY and reads binary and ASCII PLY.
 
-Open3D reads and writes PLY, OBJ, OFF, glTF and STL. What it lacks, this module supplies, with
-numpy only:
+Every format keeps the vertices in the order written (a semilandmark mesh keeps its
+correspondence), STL excepted, and text is written at full float64 precision:
 
-* **VTK polydata**, the format statismo, scalismo, ShapeWorks and 3D Slicer exchange. The
-  triangle subset is read: ``POLYGONS`` (triangles; larger polygons are split into fans, with a
-  warning) and ``TRIANGLE_STRIPS``; vertices and lines are skipped; point and cell data are
-  ignored. Legacy files: versions up to 5.1 (the ``OFFSETS`` / ``CONNECTIVITY`` layout of
-  VTK 9), ASCII and BINARY (big-endian). XML files: ``ascii``, inline ``binary`` (base64) and
-  ``appended`` (raw or base64) data, uncompressed or zlib-compressed, 32- or 64-bit headers,
-  either byte order. Legacy files are written in version 4.2 (read by every VTK and ITK since
-  2005, statismo and scalismo included), XML files as version 1.0 with inline base64 data.
-* **OBJ** (reading): Open3D renumbers the vertices in the order the faces use them and drops
-  faces that are not triangles; here the vertices keep the file's order (a semilandmark mesh
-  keeps its correspondence) and polygons are split into triangle fans.
-* **GLB**: Open3D 0.18-0.19 writes ``.glb`` files whose buffer view lies outside the buffer, so
-  neither Open3D nor other readers can open them; o3dreg writes GLB 2.0 itself (positions are
-  float32, as glTF requires) and Open3D reads it.
-* **STL** stores each triangle's three corners separately; Open3D returns three vertices per
-  triangle. Corners with identical coordinates are merged on reading, so a mesh comes back with
-  its connectivity (STL writes float32, so shared corners are bit-identical). STL is written
-  here, binary or ASCII, with facet normals computed from the triangles (Open3D writes no ASCII
-  STL and refuses a mesh without triangle normals).
+* **VTK**, the format statismo, scalismo, ShapeWorks and 3D Slicer exchange. The triangle subset
+  is read: polygons, quads and pixels (split into triangle fans, with a warning), triangles and
+  triangle strips; vertices and lines are skipped; volume cells are refused; point and cell data
+  are ignored. Legacy files: ``POLYDATA`` and ``UNSTRUCTURED_GRID`` (as meshio writes it),
+  versions up to 5.1 (the ``OFFSETS`` / ``CONNECTIVITY`` layout of VTK 9), ASCII and BINARY
+  (big-endian). XML files (``PolyData``, ``UnstructuredGrid``): ``ascii``, inline ``binary``
+  (base64) and ``appended`` (raw or base64) data, uncompressed or zlib-compressed, 32- or 64-bit
+  headers, either byte order. Legacy files are written in version 4.2 (read by every VTK and
+  ITK since 2005, statismo and scalismo included), XML files as version 1.0 with inline base64
+  data.
+* **OBJ**: Open3D's reader renumbers the vertices in the order the faces use them and drops
+  faces that are not triangles; here the vertices keep the file's order and polygons are split
+  into triangle fans. Written with ``v`` and ``f`` lines only.
+* **OFF**: any of Geomview's ``[ST][C][N]OFF`` keywords (MeshLab writes ``NSTOFF``), the counts
+  on the keyword's line or the next; written as plain ``OFF`` (meshio and PyVista refuse
+  ``NOFF``, which Open3D writes).
+* **glTF**: read in the file's vertex order (Open3D's reader renumbers); written by o3dreg
+  (positions float32, as glTF requires). Open3D 0.18-0.19 writes ``.glb`` files whose buffer
+  view lies outside the buffer, so no reader opens them.
+* **STL** stores each triangle's three corners separately. Corners with identical coordinates
+  are merged on reading (STL writes float32, so shared corners are bit-identical); the vertex
+  order is lost, so a semilandmark mesh is never written as STL. Written here, binary or ASCII,
+  with facet normals computed from the triangles.
 """
 
 from __future__ import annotations
 
 import base64
+import io
 import json
 import logging
+import os
 import re
 import struct
+import urllib.parse
 import warnings
 import zlib
 from typing import Any
@@ -214,39 +222,33 @@ def read_vtk(path: str) -> tuple[np.ndarray, np.ndarray]:
         raise OSError(f"{path!r}: third line must be ASCII or BINARY, got {mode!r}")
     binary = mode == "BINARY"
     dataset = (reader.line() or "").split()
-    if len(dataset) < 2 or dataset[0].upper() != "DATASET" or dataset[1].upper() != "POLYDATA":
-        kind = dataset[1] if len(dataset) > 1 else "nothing"
-        raise OSError(f"{path!r}: only DATASET POLYDATA is read, got {kind}")
+    kind = dataset[1].upper() if len(dataset) > 1 and dataset[0].upper() == "DATASET" else ""
+    if kind not in ("POLYDATA", "UNSTRUCTURED_GRID"):
+        raise OSError(
+            f"{path!r}: DATASET POLYDATA or UNSTRUCTURED_GRID is read, got "
+            f"{dataset[1] if len(dataset) > 1 else 'nothing'}"
+        )
     vertices: np.ndarray | None = None
     triangles: list[np.ndarray] = []
+    cells: tuple[np.ndarray, np.ndarray] | None = None
     while (text := reader.line()) is not None:
         words = text.split()
         key = words[0].upper()
+        if kind == "UNSTRUCTURED_GRID" and key in ("CELLS", "CELL_TYPES"):
+            if key == "CELLS":
+                cells = _legacy_cells(reader, words, version, binary, path)
+                continue
+            if cells is None:
+                raise OSError(f"{path!r}: CELL_TYPES before CELLS")
+            types = reader.numbers(int(words[1]), ">i4", binary).astype(np.int64)
+            triangles.append(_typed_cells_to_triangles(*cells, types, path))
+            continue
         if key == "POINTS":
             n = int(words[1])
             vertices = reader.numbers(3 * n, _legacy_dtype(words[2], path), binary).reshape(n, 3)
             vertices = vertices.astype(np.float64)
         elif key in ("VERTICES", "LINES", "POLYGONS", "TRIANGLE_STRIPS"):
-            count, size = int(words[1]), int(words[2])
-            if version >= 5.0:
-                # VTK 9: "KEY offsets connectivity", then OFFSETS and CONNECTIVITY arrays.
-                off_words = (reader.line() or "").split()
-                offsets = reader.numbers(count, _legacy_dtype(off_words[1], path), binary)
-                con_words = (reader.line() or "").split()
-                connectivity = reader.numbers(size, _legacy_dtype(con_words[1], path), binary)
-            else:
-                # Before VTK 9: one row per cell, "npts i0 i1 ...", int32 in binary files.
-                flat = reader.numbers(size, ">i4", binary).astype(np.int64)
-                offsets_list, connectivity_parts, at = [0], [], 0
-                for _ in range(count):
-                    npts = int(flat[at])
-                    connectivity_parts.append(flat[at + 1 : at + 1 + npts])
-                    offsets_list.append(offsets_list[-1] + npts)
-                    at += npts + 1
-                offsets = np.array(offsets_list)
-                connectivity = (
-                    np.concatenate(connectivity_parts) if connectivity_parts else np.zeros(0)
-                )
+            offsets, connectivity = _legacy_cells(reader, words, version, binary, path)
             if key in ("POLYGONS", "TRIANGLE_STRIPS"):
                 triangles.append(
                     _cells_to_triangles(
@@ -268,8 +270,79 @@ def read_vtk(path: str) -> tuple[np.ndarray, np.ndarray]:
             raise OSError(f"{path!r}: unexpected keyword {words[0]!r} in POLYDATA")
     if vertices is None:
         raise OSError(f"{path!r}: no POINTS section")
+    if kind == "UNSTRUCTURED_GRID" and cells is not None and not triangles:
+        raise OSError(f"{path!r}: CELLS without CELL_TYPES")
     faces = np.concatenate(triangles) if triangles else np.zeros((0, 3), dtype=np.int64)
     return _check_mesh(vertices, faces.astype(np.int64), path)
+
+
+def _legacy_cells(
+    reader: _LegacyReader, words: list[str], version: float, binary: bool, path: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """CSR ``(offsets with a leading 0, connectivity)`` of a legacy cell section."""
+    count, size = int(words[1]), int(words[2])
+    if version >= 5.0:
+        # VTK 9: "KEY offsets connectivity", then OFFSETS and CONNECTIVITY arrays.
+        off_words = (reader.line() or "").split()
+        offsets = reader.numbers(count, _legacy_dtype(off_words[1], path), binary)
+        con_words = (reader.line() or "").split()
+        connectivity = reader.numbers(size, _legacy_dtype(con_words[1], path), binary)
+        return offsets.astype(np.int64), connectivity.astype(np.int64)
+    # Before VTK 9: one row per cell, "npts i0 i1 ...", int32 in binary files.
+    flat = reader.numbers(size, ">i4", binary).astype(np.int64)
+    offsets_list, connectivity_parts, at = [0], [], 0
+    for _ in range(count):
+        if at >= flat.size:
+            raise OSError(f"{path!r}: cell list shorter than its count")
+        npts = int(flat[at])
+        connectivity_parts.append(flat[at + 1 : at + 1 + npts])
+        offsets_list.append(offsets_list[-1] + npts)
+        at += npts + 1
+    connectivity = np.concatenate(connectivity_parts) if connectivity_parts else np.zeros(0)
+    return np.array(offsets_list, dtype=np.int64), connectivity.astype(np.int64)
+
+
+#: VTK cell types: skipped (vertices, lines), surface cells split into triangles.
+_VTK_SKIPPED = {1: "vertex", 2: "poly-vertex", 3: "line", 4: "polyline"}
+_VTK_TRIANGLE, _VTK_STRIP, _VTK_POLYGON, _VTK_PIXEL, _VTK_QUAD = 5, 6, 7, 8, 9
+
+
+def _typed_cells_to_triangles(
+    offsets: np.ndarray, connectivity: np.ndarray, types: np.ndarray, path: str
+) -> np.ndarray:
+    """Triangles of an unstructured grid's surface cells (triangles; quads, polygons and
+    pixels split into two or more triangles, with a warning; strips). Vertices and lines are
+    skipped; a volume or higher-order cell is refused (it is not a triangle surface)."""
+    sizes = np.diff(offsets)
+    if types.size != sizes.size:
+        raise OSError(f"{path!r}: {sizes.size} cells but {types.size} cell types")
+    other = sorted(set(types.tolist()) - set(_VTK_SKIPPED) - {5, 6, 7, 8, 9})
+    if other:
+        raise OSError(
+            f"{path!r} holds cells of VTK type {other} (volume or higher-order cells): a "
+            "triangle surface is read (extract its surface first)"
+        )
+    parts: list[np.ndarray] = []
+    pixel = types == _VTK_PIXEL
+    if pixel.any():
+        # A pixel's corners are in grid order (0, 1, 3, 2 around it): reorder into a quad.
+        starts = offsets[:-1][pixel]
+        corners = connectivity[starts[:, None] + np.arange(4)]
+        connectivity = connectivity.copy()
+        connectivity[starts[:, None] + np.arange(4)] = corners[:, [0, 1, 3, 2]]
+    for kind, strips in ((None, False), (_VTK_STRIP, True)):
+        chosen = np.isin(types, [_VTK_TRIANGLE, _VTK_POLYGON, _VTK_PIXEL, _VTK_QUAD])
+        if kind is not None:
+            chosen = types == kind
+        if not chosen.any():
+            continue
+        starts, counts = offsets[:-1][chosen], sizes[chosen]
+        sub_offsets = np.concatenate([[0], np.cumsum(counts)])
+        index = np.repeat(starts - sub_offsets[:-1], counts) + np.arange(sub_offsets[-1])
+        parts.append(
+            _cells_to_triangles(sub_offsets, connectivity[index], strips=strips, path=path)
+        )
+    return np.concatenate(parts) if parts else np.zeros((0, 3), dtype=np.int64)
 
 
 def write_vtk(path: str, vertices: np.ndarray, faces: np.ndarray, *, ascii: bool = False) -> None:
@@ -412,8 +485,12 @@ def read_vtp(path: str) -> tuple[np.ndarray, np.ndarray]:
         root = ElementTree.fromstring(data)
     except ElementTree.ParseError as exc:
         raise OSError(f"{path!r} is not a VTK XML file ({exc})") from exc
-    if root.tag != "VTKFile" or root.get("type") != "PolyData":
-        raise OSError(f"{path!r}: only VTKFile type='PolyData' is read, got {root.get('type')!r}")
+    grid = root.get("type") == "UnstructuredGrid"
+    if root.tag != "VTKFile" or root.get("type") not in ("PolyData", "UnstructuredGrid"):
+        raise OSError(
+            f"{path!r}: VTKFile type='PolyData' or 'UnstructuredGrid' is read, got "
+            f"{root.get('type')!r}"
+        )
     if appended is not None:
         app = root.find("AppendedData")
         if app is not None and app.get("encoding", "raw") == "base64":
@@ -428,6 +505,21 @@ def read_vtp(path: str) -> tuple[np.ndarray, np.ndarray]:
         if points is None:
             raise OSError(f"{path!r}: a Piece without Points")
         vertices_parts.append(arrays.read(points).astype(np.float64).reshape(n, 3))
+        if grid:
+            found = {a.get("Name"): a for a in piece.findall("Cells/DataArray")}
+            if int(piece.get("NumberOfCells", "0")) == 0:
+                base += n
+                continue
+            if not {"connectivity", "offsets", "types"} <= set(found):
+                raise OSError(f"{path!r}: Cells without connectivity, offsets and types")
+            connectivity = arrays.read(found["connectivity"]).astype(np.int64)
+            offsets = np.concatenate([[0], arrays.read(found["offsets"]).astype(np.int64)])
+            types = arrays.read(found["types"]).astype(np.int64)
+            triangle_parts.append(
+                _typed_cells_to_triangles(offsets, connectivity, types, path) + base
+            )
+            base += n
+            continue
         for section, strips in (("Polys", False), ("Strips", True)):
             if int(piece.get(f"NumberOf{section}", "0")) == 0:
                 continue
@@ -480,6 +572,34 @@ def write_vtp(path: str, vertices: np.ndarray, faces: np.ndarray, *, ascii: bool
         "</Polys>",
         "</Piece>",
         "</PolyData>",
+        "</VTKFile>",
+        "",
+    ]
+    with open(path, "w", encoding="ascii") as fh:
+        fh.write("\n".join(parts))
+
+
+def write_vtu(path: str, vertices: np.ndarray, faces: np.ndarray, *, ascii: bool = False) -> None:
+    """Write a VTK XML ``UnstructuredGrid`` file of triangle cells (VTK type 5)."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    m = len(faces)
+    parts = [
+        '<?xml version="1.0"?>',
+        '<VTKFile type="UnstructuredGrid" version="1.0" byte_order="LittleEndian" '
+        'header_type="UInt64">',
+        "<UnstructuredGrid>",
+        f'<Piece NumberOfPoints="{len(vertices)}" NumberOfCells="{m}">',
+        "<Points>",
+        _xml_array("Points", "Float64", vertices, ascii, 3),
+        "</Points>",
+        "<Cells>",
+        _xml_array("connectivity", "Int64", faces.reshape(-1), ascii, 1),
+        _xml_array("offsets", "Int64", 3 * np.arange(1, m + 1, dtype=np.int64), ascii, 1),
+        _xml_array("types", "UInt8", np.full(m, _VTK_TRIANGLE, dtype=np.uint8), ascii, 1),
+        "</Cells>",
+        "</Piece>",
+        "</UnstructuredGrid>",
         "</VTKFile>",
         "",
     ]
@@ -653,10 +773,11 @@ def write_stl(path: str, vertices: np.ndarray, faces: np.ndarray, *, ascii: bool
 # ---------------------------------------------------------------------------------------------
 
 
-def write_glb(
-    path: str, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None
-) -> None:
-    """Write a binary glTF 2.0 file: one mesh, one triangle primitive (float32 positions)."""
+def _gltf(
+    vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None
+) -> tuple[dict[str, Any], bytes]:
+    """The glTF 2.0 document and its one buffer: one mesh, one triangle primitive, positions
+    (float32, as glTF requires) in the vertices' order."""
     positions = np.ascontiguousarray(vertices, dtype="<f4")
     indices = np.ascontiguousarray(faces, dtype="<u4").reshape(-1)
     blobs: list[bytes] = [positions.tobytes(), indices.tobytes()]
@@ -699,6 +820,14 @@ def write_glb(
         "bufferViews": views,
         "accessors": accessors,
     }
+    return gltf, binary
+
+
+def write_glb(
+    path: str, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None
+) -> None:
+    """Write a binary glTF 2.0 file: one mesh, one triangle primitive (float32 positions)."""
+    gltf, binary = _gltf(vertices, faces, normals)
     text = json.dumps(gltf, separators=(",", ":")).encode()
     text += b" " * ((-len(text)) % 4)  # JSON chunk padded with spaces
     total = 12 + 8 + len(text) + 8 + len(binary)
@@ -708,12 +837,297 @@ def write_glb(
         fh.write(struct.pack("<I4s", len(binary), b"BIN\0") + binary)
 
 
+def write_gltf(
+    path: str, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None
+) -> None:
+    """Write a glTF 2.0 JSON file with its buffer inside (a base64 data URI): one file, one
+    mesh, one triangle primitive (float32 positions), vertices in order."""
+    gltf, binary = _gltf(vertices, faces, normals)
+    encoded = base64.b64encode(binary).decode("ascii")
+    gltf["buffers"][0]["uri"] = f"data:application/octet-stream;base64,{encoded}"
+    with open(path, "w", encoding="utf-8") as fh:
+        json.dump(gltf, fh, separators=(",", ":"))
+
+
+# ---------------------------------------------------------------------------------------------
+# Text formats written at full precision: OBJ, OFF, ASCII PLY
+# ---------------------------------------------------------------------------------------------
+
+#: Shortest text that reads back as the same float64 (17 significant digits).
+_FULL = "%.17g"
+
+
+def _rows(values: np.ndarray, fmt: str) -> str:
+    """``values`` (2-D) as text lines, one row each (NumPy's formatting, in C)."""
+    if values.size == 0:
+        return ""
+    buf = io.StringIO()
+    np.savetxt(buf, values, fmt=fmt)
+    return buf.getvalue()
+
+
+def write_obj(path: str, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Write a Wavefront OBJ file: ``v x y z`` at full float64 precision, then ``f a b c``
+    (1-based). The counts are written as comments (as Open3D does), so :func:`read_obj` finds a
+    truncated file."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    with open(path, "w", encoding="ascii") as fh:
+        fh.write("# written by o3dreg\n")
+        fh.write(f"# number of vertices: {len(vertices)}\n")
+        fh.write(f"# number of triangles: {len(faces)}\n")
+        fh.write(_rows(vertices, f"v {_FULL} {_FULL} {_FULL}"))
+        fh.write(_rows(faces + 1, "f %d %d %d"))
+
+
+def write_off(path: str, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Write a plain ``OFF`` file (no normals: ``NOFF`` is refused by meshio and PyVista) at
+    full float64 precision."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    with open(path, "w", encoding="ascii") as fh:
+        fh.write(f"OFF\n{len(vertices)} {len(faces)} 0\n")
+        fh.write(_rows(vertices, f"{_FULL} {_FULL} {_FULL}"))
+        fh.write(_rows(faces, "3 %d %d %d"))
+
+
+def write_ply_ascii(
+    path: str, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray | None = None
+) -> None:
+    """Write an ASCII PLY file: double coordinates (and normals) at full precision."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    columns = [vertices]
+    props = ["x", "y", "z"]
+    if normals is not None and len(normals) == len(vertices):
+        columns.append(np.asarray(normals, dtype=np.float64))
+        props += ["nx", "ny", "nz"]
+    header = ["ply", "format ascii 1.0", "comment written by o3dreg"]
+    header.append(f"element vertex {len(vertices)}")
+    header += [f"property double {name}" for name in props]
+    header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    header.append("end_header")
+    with open(path, "w", encoding="ascii") as fh:
+        fh.write("\n".join(header) + "\n")
+        fh.write(_rows(np.hstack(columns), " ".join([_FULL] * len(props))))
+        fh.write(_rows(faces, "3 %d %d %d"))
+
+
+# ---------------------------------------------------------------------------------------------
+# OFF (read)
+# ---------------------------------------------------------------------------------------------
+
+#: ``[ST][C][N][4][n]OFF``: texture coordinates, colours, normals, 4-D, n-D (Geomview; the
+#: first three in any order: MeshLab writes ``NSTOFF``).
+_OFF_KEY = re.compile(r"^((?:ST|C|N)*)(4)?(n)?OFF$")
+
+
+def read_off(path: str, name: str = "path") -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of an ASCII OFF file (Geomview's format and its variants).
+
+    The keyword may carry prefixes (``NOFF``, ``COFF``, ``STOFF``, ``NSTOFF``, ...: extra
+    numbers per vertex, ignored) and the counts may follow it on the same line (``OFF n m e``);
+    ``#`` starts a comment. Polygons are split into triangle fans (with a warning). 4-D,
+    n-D and binary OFF files are refused.
+    """
+    with open(path, "rb") as fh:
+        text = fh.read().decode("latin-1")
+    tokens_by_line = [line.split("#", 1)[0].split() for line in text.splitlines()]
+    lines = [t for t in tokens_by_line if t]
+    if not lines:
+        raise OSError(f"`{name}`: {path!r} is empty")
+    head = lines[0]
+    match = _OFF_KEY.match(head[0])
+    if match is None:
+        raise OSError(f"`{name}`: {path!r} is not an OFF file (first word {head[0]!r})")
+    if match.group(2) or match.group(3):
+        raise OSError(f"`{name}`: {path!r} is a {head[0]} file (4-D or n-D): 3-D OFF is read")
+    rest = head[1:]
+    if rest[:1] == ["BINARY"]:
+        raise OSError(f"`{name}`: {path!r} is a binary OFF file: ASCII OFF is read")
+    at = 1
+    if len(rest) < 2:
+        if at >= len(lines):
+            raise OSError(f"`{name}`: {path!r} ends before its counts")
+        rest = lines[at]
+        at += 1
+    try:
+        nv, nf = int(rest[0]), int(rest[1])
+    except (ValueError, IndexError):
+        raise OSError(
+            f"`{name}`: {path!r}: counts 'vertices faces edges' expected, got {rest}"
+        ) from None
+    if at + nv + nf > len(lines):
+        raise OSError(
+            f"`{name}`: {path!r} is truncated: it declares {nv} vertices and {nf} faces, "
+            f"{len(lines) - at} lines follow"
+        )
+    try:
+        vertices = np.array([row[:3] for row in lines[at : at + nv]], dtype=np.float64)
+    except ValueError:
+        raise OSError(f"`{name}`: {path!r}: a vertex is not three numbers") from None
+    if vertices.shape != (nv, 3):
+        raise OSError(f"`{name}`: {path!r}: a vertex line holds fewer than 3 numbers")
+    offsets, connectivity = [0], []
+    for number, row in enumerate(lines[at + nv : at + nv + nf]):
+        try:
+            k = int(row[0])
+            corners = [int(c) for c in row[1 : 1 + k]]
+        except ValueError:
+            corners, k = [], -1
+        if k < 1 or len(corners) != k:
+            raise OSError(f"`{name}`: {path!r}: face {number + 1} is malformed: {' '.join(row)!r}")
+        connectivity.extend(corners)
+        offsets.append(len(connectivity))
+    faces = _cells_to_triangles(
+        np.array(offsets), np.array(connectivity, dtype=np.int64), strips=False, path=path
+    )
+    return _check_mesh(vertices, faces, path)
+
+
+# ---------------------------------------------------------------------------------------------
+# glTF (.gltf, .glb): read in the file's vertex order
+# ---------------------------------------------------------------------------------------------
+
+_GLTF_COMPONENTS = {5120: "i1", 5121: "u1", 5122: "i2", 5123: "u2", 5125: "u4", 5126: "f4"}
+_GLTF_WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+
+
+def _gltf_document(path: str) -> tuple[dict[str, Any], list[bytes]]:
+    """The JSON document and the bytes of every buffer (GLB chunk, data URI or file beside)."""
+    with open(path, "rb") as fh:
+        data = fh.read()
+    binary_chunk = b""
+    if data[:4] == b"glTF":
+        if len(data) < 20:
+            raise OSError(f"{path!r}: a GLB file shorter than its header")
+        _, _, total = struct.unpack_from("<4sII", data, 0)
+        at, doc_bytes = 12, b""
+        while at + 8 <= min(total, len(data)):
+            size, kind = struct.unpack_from("<I4s", data, at)
+            chunk = data[at + 8 : at + 8 + size]
+            if len(chunk) != size:
+                raise OSError(f"{path!r}: GLB chunk ends early (truncated file)")
+            if kind == b"JSON":
+                doc_bytes = chunk
+            elif kind == b"BIN\0" and not binary_chunk:
+                binary_chunk = chunk
+            at += 8 + size + ((-size) % 4 if at + 8 + size < total else 0)
+        text = doc_bytes
+    else:
+        text = data
+    try:
+        doc = json.loads(text.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise OSError(f"{path!r} is not a glTF file ({exc})") from None
+    buffers: list[bytes] = []
+    folder = os.path.dirname(os.path.abspath(path))
+    for k, buffer in enumerate(doc.get("buffers", [])):
+        uri = buffer.get("uri")
+        if uri is None:
+            buffers.append(binary_chunk)
+        elif uri.startswith("data:"):
+            buffers.append(base64.b64decode(uri.split(",", 1)[1]))
+        else:
+            try:
+                with open(os.path.join(folder, urllib.parse.unquote(uri)), "rb") as fh:
+                    buffers.append(fh.read())
+            except OSError as exc:
+                raise OSError(f"{path!r}: buffer {k} ({uri!r}) cannot be read: {exc}") from None
+    return doc, buffers
+
+
+def _gltf_accessor(doc: dict[str, Any], buffers: list[bytes], index: int, path: str) -> np.ndarray:
+    accessor = doc["accessors"][index]
+    dtype = np.dtype("<" + _GLTF_COMPONENTS[accessor["componentType"]])
+    width = _GLTF_WIDTH[accessor["type"]]
+    count = int(accessor["count"])
+    if "bufferView" not in accessor:
+        return np.zeros((count, width), dtype=dtype)  # all zeros, as the specification says
+    view = doc["bufferViews"][accessor["bufferView"]]
+    buffer = buffers[view["buffer"]]
+    start = int(view.get("byteOffset", 0)) + int(accessor.get("byteOffset", 0))
+    stride = int(view.get("byteStride", 0)) or dtype.itemsize * width
+    end = start + stride * (count - 1) + dtype.itemsize * width if count else start
+    if end > len(buffer):
+        raise OSError(f"{path!r}: accessor {index} reaches beyond its buffer (truncated file)")
+    rows = np.ndarray(
+        (count, width), dtype=dtype, buffer=buffer, offset=start, strides=(stride, dtype.itemsize)
+    )
+    return np.array(rows)
+
+
+def _gltf_node_matrix(node: dict[str, Any]) -> np.ndarray:
+    if "matrix" in node:
+        return np.array(node["matrix"], dtype=np.float64).reshape(4, 4).T  # column-major
+    matrix = np.eye(4)
+    x, y, z, w = node.get("rotation", [0.0, 0.0, 0.0, 1.0])
+    rotation = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    matrix[:3, :3] = rotation * np.asarray(node.get("scale", [1.0, 1.0, 1.0]), dtype=np.float64)
+    matrix[:3, 3] = node.get("translation", [0.0, 0.0, 0.0])
+    return matrix
+
+
+def read_gltf(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of a glTF 2.0 file (``.gltf`` or ``.glb``), in the file's order.
+
+    Every triangle primitive (mode 4, indexed or not) of every mesh of the default scene, each
+    node's transformation applied; primitives follow each other in the order the scene lists
+    them. A one-primitive file (what o3dreg and most tools write) keeps its vertex order, so a
+    semilandmark mesh keeps its correspondence (Open3D's reader renumbers the vertices).
+    """
+    doc, buffers = _gltf_document(path)
+    try:
+        scenes = doc.get("scenes") or [{"nodes": list(range(len(doc.get("nodes", []))))}]
+        roots = scenes[int(doc.get("scene", 0))].get("nodes", [])
+        vertex_parts: list[np.ndarray] = []
+        face_parts: list[np.ndarray] = []
+        base = 0
+        stack = [(int(n), np.eye(4)) for n in reversed(roots)]
+        while stack:
+            index, parent = stack.pop()
+            node = doc["nodes"][index]
+            world = parent @ _gltf_node_matrix(node)
+            for child in reversed(node.get("children", [])):
+                stack.append((int(child), world))
+            if "mesh" not in node:
+                continue
+            for primitive in doc["meshes"][node["mesh"]]["primitives"]:
+                if primitive.get("mode", 4) != 4 or "POSITION" not in primitive["attributes"]:
+                    continue
+                points = _gltf_accessor(doc, buffers, primitive["attributes"]["POSITION"], path)
+                points = points.astype(np.float64)
+                if not np.allclose(world, np.eye(4)):
+                    points = points @ world[:3, :3].T + world[:3, 3]
+                if "indices" in primitive:
+                    faces = _gltf_accessor(doc, buffers, primitive["indices"], path)
+                    faces = faces.reshape(-1, 3).astype(np.int64)
+                else:
+                    faces = np.arange(len(points) // 3 * 3, dtype=np.int64).reshape(-1, 3)
+                vertex_parts.append(points)
+                face_parts.append(faces + base)
+                base += len(points)
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        raise OSError(
+            f"{path!r} is not a glTF triangle mesh ({type(exc).__name__}: {exc})"
+        ) from None
+    if not vertex_parts:
+        raise OSError(f"{path!r} holds no triangle primitive")
+    return _check_mesh(np.concatenate(vertex_parts), np.concatenate(face_parts), path)
+
+
 # ---------------------------------------------------------------------------------------------
 # Dispatch by suffix (used by o3dreg.io.mesh)
 # ---------------------------------------------------------------------------------------------
 
 #: Suffixes read and written here rather than by Open3D alone.
-OWN_SUFFIXES = (".vtk", ".vtp")
+OWN_SUFFIXES = (".vtk", ".vtp", ".vtu", ".obj", ".off", ".gltf", ".glb", ".stl")
 
 
 def read_mesh(path: str, suffix: str, name: str = "path") -> Any:
@@ -722,11 +1136,16 @@ def read_mesh(path: str, suffix: str, name: str = "path") -> Any:
 
     if suffix == ".vtk":
         return to_open3d(*read_vtk(path))
-    if suffix == ".vtp":
+    if suffix in (".vtp", ".vtu"):
         return to_open3d(*read_vtp(path))
     if suffix == ".obj":
         return to_open3d(*read_obj(path, name))
-    mesh = o3d.io.read_triangle_mesh(path)  # type: ignore[arg-type]  # stubs say PathLike only
+    if suffix == ".off":
+        return to_open3d(*read_off(path, name))
+    if suffix in (".gltf", ".glb"):
+        return to_open3d(*read_gltf(path))
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh = o3d.io.read_triangle_mesh(path)  # type: ignore[arg-type]  # stubs: PathLike only
     if suffix == ".stl" and len(mesh.triangles):
         vertices, faces = merge_identical_vertices(
             np.asarray(mesh.vertices), np.asarray(mesh.triangles)
@@ -738,19 +1157,29 @@ def read_mesh(path: str, suffix: str, name: str = "path") -> Any:
 def write_mesh(path: str, mesh: Any, suffix: str, *, write_ascii: bool = False) -> bool:
     """Write an ``open3d.geometry.TriangleMesh`` (a copy the caller owns) to ``path``."""
     vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    normals = np.asarray(mesh.vertex_normals) if mesh.has_vertex_normals() else None
     if suffix == ".vtk":
         write_vtk(path, vertices, faces, ascii=write_ascii)
-        return True
-    if suffix == ".vtp":
+    elif suffix == ".vtp":
         write_vtp(path, vertices, faces, ascii=write_ascii)
-        return True
-    if suffix == ".glb":
-        normals = np.asarray(mesh.vertex_normals) if mesh.has_vertex_normals() else None
+    elif suffix == ".vtu":
+        write_vtu(path, vertices, faces, ascii=write_ascii)
+    elif suffix == ".glb":
         write_glb(path, vertices, faces, normals)
-        return True
-    if suffix == ".stl":
+    elif suffix == ".gltf":
+        write_gltf(path, vertices, faces, normals)
+    elif suffix == ".stl":
         # Open3D needs triangle normals (a mesh read from PLY may have vertex normals only)
         # and writes no ASCII STL: both forms are written here.
         write_stl(path, vertices, faces, ascii=write_ascii)
-        return True
-    return bool(o3d.io.write_triangle_mesh(path, mesh, write_ascii=write_ascii))  # type: ignore[arg-type]
+    elif suffix == ".obj":
+        write_obj(path, vertices, faces)
+    elif suffix == ".off":
+        write_off(path, vertices, faces)
+    elif suffix == ".ply" and write_ascii:
+        write_ply_ascii(path, vertices, faces, normals)
+    else:
+        # Binary PLY: Open3D writes double coordinates (full precision).
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            return bool(o3d.io.write_triangle_mesh(path, mesh, write_ascii=write_ascii))  # type: ignore[arg-type]
+    return True

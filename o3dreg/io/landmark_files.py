@@ -16,8 +16,8 @@ format              how the file says its system
                     absent: Slicer before 4.11 wrote RAS and no line, so RAS is assumed,
                     with a warning
 ``.csv``            column names ``l,p,s`` or ``r,a,s`` (as Slicer's markups CSV export
-                    writes them); ``x,y,z`` says nothing: the points are taken as they are,
-                    with a warning
+                    writes them); ``x,y,z`` or no header (statismo's ``label,x,y,z``
+                    rows) says nothing: the points are taken as they are, with a warning
 ``.pp`` (MeshLab)   never (points are in the picked mesh's coordinates): taken as they are,
                     with a warning
 =================== ========================================================================
@@ -89,9 +89,11 @@ def read_landmarks(
     ----------
     path : str or path-like
         ``.csv`` with a header row naming a ``label`` column and the coordinates ``l,p,s``,
-        ``r,a,s`` or ``x,y,z`` (other columns ignored); a Slicer markups file ``.mrk.json``
-        (``markups[0].controlPoints``; control points without a position are skipped) or
-        ``.fcsv``; a MeshLab picked-points file ``.pp`` (inactive points skipped).
+        ``r,a,s`` or ``x,y,z`` (other columns ignored), or rows ``label,x,y,z`` without a
+        header (statismo's and scalismo's landmark files); a Slicer markups file ``.mrk.json``
+        (``markups[0].controlPoints``) or ``.fcsv`` (the fields its ``# columns`` line names);
+        points Slicer marks undefined, preview or missing (not placed) are skipped with a
+        ``UserWarning`` naming them; a MeshLab picked-points file ``.pp`` (inactive points skipped).
     coordinate_system : {'LPS', 'RAS'}, optional
         System of the points returned. Default ``'LPS'``, the system of o3dreg's meshes.
     file_coordinate_system : {'LPS', 'RAS'}, optional
@@ -155,7 +157,43 @@ def _numbers(values: list[str], path: str, where: str) -> list[float]:
         raise ValueError(f"`path`: {path!r} {where}: coordinates are not numbers") from exc
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _read_headerless_csv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
+    """``label,x,y,z`` (or ``x,y,z``) rows without a header, as statismo and scalismo write
+    landmarks; the file does not say its coordinate system."""
+    labels: list[str] = []
+    points: list[list[float]] = []
+    width = 0
+    with open(path, newline="", encoding="utf-8-sig") as fh:
+        for number, row in enumerate(csv.reader(fh), start=1):
+            if not any(field.strip() for field in row):
+                continue
+            width = width or len(row)
+            if len(row) != width:
+                expected = "label,x,y,z" if width == 4 else "x,y,z"
+                raise ValueError(
+                    f"`path`: {path!r} line {number}: {expected} expected (a file without a "
+                    f"header), got {len(row)} fields {row}"
+                )
+            points.append(_numbers(row[-3:], path, f"line {number}"))
+            labels.append(
+                row[0].strip() if len(row) == 4 and row[0].strip() else f"L{len(labels) + 1}"
+            )
+    return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), None
+
+
 def _read_csv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
+    with open(path, newline="", encoding="utf-8-sig") as fh:
+        first = next(csv.reader(fh), [])
+    if len(first) in (3, 4) and all(_is_number(v) for v in first[-3:]):
+        return _read_headerless_csv(path)
     with open(path, newline="", encoding="utf-8-sig") as fh:
         reader = csv.DictReader(fh)
         fields = [f.strip().lower() for f in (reader.fieldnames or [])]
@@ -188,25 +226,73 @@ def _fcsv_system(value: str, path: str) -> str:
     return system
 
 
+#: Slicer's control point states (``vtkMRMLMarkupsNode``: 0 undefined, 1 preview, 2 defined,
+#: 3 missing); only defined points are placed landmarks.
+_UNPLACED = {"0": "undefined", "1": "preview", "3": "missing"}
+
+
+def _skip_unplaced(path: str, skipped: list[tuple[str, str]], stacklevel: int) -> None:
+    if skipped:
+        names = ", ".join(f"{label!r} ({status})" for label, status in skipped)
+        warnings.warn(
+            f"{path!r}: {len(skipped)} control point(s) not placed, skipped: {names}",
+            UserWarning,
+            stacklevel=stacklevel,
+        )
+
+
 def _read_fcsv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
+    """Slicer fiducials: the ``# columns`` line names the fields (Slicer 4-5:
+    ``id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID``; Slicer 3:
+    ``label,x,y,z,sel,vis``); Slicer 5 rows carry two more, ``positionStatus`` and
+    ``autoCreated``, that the line does not name. Without the line, Slicer 4's columns."""
     declared = None
-    rows = []
+    columns: list[str] | None = None
+    rows: list[tuple[int, str]] = []
     with open(path, newline="", encoding="utf-8-sig") as fh:
-        for line in fh:
+        for number, line in enumerate(fh, start=1):
             text = line.strip()
             if text.startswith("#"):
                 key, _, value = text.lstrip("# ").partition("=")
-                if key.strip().lower() == "coordinatesystem":
+                key = key.strip().lower()
+                if key == "coordinatesystem":
                     declared = _fcsv_system(value, path)
+                elif key == "columns":
+                    columns = [c.strip().lower() for c in value.split(",")]
             elif text:
-                rows.append(text)
-    labels, points = [], []
-    for k, row in enumerate(csv.reader(rows)):
-        if len(row) < 4:
-            raise ValueError(f"`path`: {path!r} point {k + 1}: id,x,y,z expected, got {row}")
-        points.append(_numbers(row[1:4], path, f"point {k + 1}"))
-        label = row[11].strip() if len(row) > 11 else ""
-        labels.append(label or f"L{k + 1}")
+                rows.append((number, text))
+    named = columns if columns is not None else _FCSV_COLUMNS.lower().split(",")
+    missing = [c for c in ("x", "y", "z") if c not in named]
+    if missing:
+        raise ValueError(
+            f"`path`: {path!r} has a columns line without {', '.join(missing)}: {columns}"
+        )
+    where = {c: named.index(c) for c in named}
+    status_at = where.get("positionstatus")
+    if status_at is None and named[-1:] == ["associatednodeid"]:
+        status_at = len(named)  # Slicer 5: the first field after the named ones
+    labels, points, skipped = [], [], []
+    parsed = csv.reader(text for _, text in rows)
+    for k, ((number, text), row) in enumerate(zip(rows, parsed)):
+        # A row that ends before its last named column is cut (a file truncated inside its
+        # last row): its numbers and its label cannot be trusted.
+        if len(row) < len(named):
+            raise ValueError(
+                f"`path`: {path!r} line {number} is short: {len(named)} fields expected "
+                f"({','.join(named)}), got {len(row)}: {text!r} (the file may be truncated)"
+            )
+        label = row[where["label"]].strip() if "label" in where else ""
+        label = label or f"L{k + 1}"
+        status = (
+            row[status_at].strip().lower() if status_at is not None and status_at < len(row) else ""
+        )
+        status = _UNPLACED.get(status, status)
+        if status in ("undefined", "preview", "missing"):
+            skipped.append((label, status))
+            continue
+        points.append(_numbers([row[where[c]] for c in ("x", "y", "z")], path, f"line {number}"))
+        labels.append(label)
+    _skip_unplaced(path, skipped, 4)
     return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), declared
 
 
@@ -238,14 +324,20 @@ def _read_markups(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
         control = markup.get("controlPoints") or []
         # Slicer reads a markup without coordinateSystem as LPS.
         declared = str(markup.get("coordinateSystem") or "LPS").upper()
-        labels, points, skipped = [], [], 0
+        labels, points, skipped = [], [], []
         for k, p in enumerate(control):
+            label = str(p.get("label") or f"L{k + 1}")
             status = str(p.get("positionStatus", "defined")).lower()
-            if "position" not in p or status == "missing":
-                skipped += 1
+            # An unplaced point: "position" absent or "" (Slicer writes "" with
+            # positionStatus "undefined"), or a status other than defined.
+            if status in ("undefined", "preview", "missing") or p.get("position") in (None, ""):
+                skipped.append((label, status if status != "defined" else "no position"))
                 continue
-            points.append([float(c) for c in p["position"]])
-            labels.append(str(p.get("label") or f"L{k + 1}"))
+            position = [float(c) for c in p["position"]]
+            if len(position) != 3:
+                raise ValueError(f"control point {k + 1} has {len(position)} coordinates")
+            points.append(position)
+            labels.append(label)
         points_arr = np.array(points, dtype=np.float64).reshape(-1, 3)
     except (
         json.JSONDecodeError,
@@ -261,12 +353,7 @@ def _read_markups(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
         ) from exc
     if declared not in _SYSTEMS:
         raise ValueError(f"`path`: {path!r} has coordinateSystem {declared!r}; LPS or RAS expected")
-    if skipped:
-        warnings.warn(
-            f"{path!r}: {skipped} control point(s) without a position skipped",
-            UserWarning,
-            stacklevel=3,
-        )
+    _skip_unplaced(path, skipped, 4)
     return tuple(labels), points_arr, declared
 
 

@@ -11,6 +11,7 @@ import tempfile
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import open3d as o3d
 
 from .._validation import as_mesh_arrays, check_output_path, to_open3d
@@ -28,9 +29,26 @@ __all__ = [
 
 logger = logging.getLogger("o3dreg")
 
-#: File suffixes read and written as triangle meshes (Open3D's, plus VTK polydata: see
-#: :mod:`o3dreg.io.formats`).
-MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb", ".vtk", ".vtp")
+#: File suffixes read and written as triangle meshes (see :mod:`o3dreg.io.formats`).
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb", ".vtk", ".vtp", ".vtu")
+
+#: Formats that keep a mesh's vertices, in order, through a write and a read by o3dreg: the
+#: vertex index is a semilandmark mesh's correspondence. STL stores each triangle's corners
+#: separately (no shared vertices, no order): it cannot hold a semilandmark mesh.
+SEMILANDMARK_SUFFIXES = tuple(s for s in MESH_SUFFIXES if s != ".stl")
+
+
+def check_semilandmark_suffix(path: str, name: str) -> str:
+    """:func:`check_mesh_suffix`, and ``ValueError`` for a format that loses the vertex order."""
+    suffix = check_mesh_suffix(path, name)
+    if suffix not in SEMILANDMARK_SUFFIXES:
+        raise ValueError(
+            f"`{name}` must be a format that keeps the template's vertex order (the "
+            f"correspondence of a semilandmark mesh): one of {', '.join(SEMILANDMARK_SUFFIXES)}; "
+            f"got {path!r} (STL stores each triangle's corners separately: it has no shared "
+            "vertices and no vertex order)"
+        )
+    return suffix
 
 
 def check_mesh_suffix(path: str, name: str) -> str:
@@ -62,8 +80,10 @@ def read_triangle_mesh(
     ----------
     path : str or path-like
         A ``.ply``, ``.obj``, ``.stl``, ``.off``, ``.gltf``, ``.glb``, ``.vtk`` (legacy VTK
-        polydata) or ``.vtp`` (VTK XML polydata) file. STL corners with identical coordinates
-        are merged (STL stores each triangle's corners separately).
+        polydata or unstructured grid), ``.vtp`` (VTK XML polydata) or ``.vtu`` (VTK XML
+        unstructured grid) file. Vertices keep the file's order; polygons (quads) are split
+        into triangles, with a warning; volume cells are refused. STL corners with identical
+        coordinates are merged (STL stores each triangle's corners separately).
     name : str, optional
         The parameter name used in error messages.
 
@@ -259,20 +279,29 @@ def write_triangle_mesh(
     *,
     overwrite: bool = False,
     write_ascii: bool = False,
+    semilandmarks: bool = False,
     name: str = "path",
 ) -> str:
     """Write a triangle mesh atomically (a crash never leaves a half-written file).
+
+    Every format is read back by :func:`read_triangle_mesh` with the vertices in the order
+    written (STL excepted: it has no shared vertices); coordinates are written at full float64
+    precision, except where the format stores float32 (STL, glTF).
 
     Parameters
     ----------
     path : str or path-like
         Output file; its suffix selects the format (see ``MESH_SUFFIXES``).
     mesh : open3d.geometry.TriangleMesh or (vertices, faces)
-        The mesh to write. It is not modified.
+        The mesh to write. It is not modified. Its vertices must be finite.
     overwrite : bool, optional
         Replace an existing file. Default ``False``: an existing file raises ``OSError``.
     write_ascii : bool, optional
         Write a text file where the format allows it.
+    semilandmarks : bool, optional
+        The vertex order is the mesh's meaning (a registered template: vertex ``i`` corresponds
+        across patients): a format that cannot keep it (STL) raises ``ValueError``. Default
+        ``False``.
 
     Returns
     -------
@@ -281,20 +310,30 @@ def write_triangle_mesh(
     """
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`{name}` must be a path, got {type(path).__name__}")
-    suffix = check_mesh_suffix(os.fspath(path), name)
+    if not isinstance(semilandmarks, (bool, np.bool_)):
+        raise TypeError(f"`semilandmarks` must be a bool, got {type(semilandmarks).__name__}")
+    check = check_semilandmark_suffix if semilandmarks else check_mesh_suffix
+    suffix = check(os.fspath(path), name)
     if isinstance(mesh, o3d.geometry.TriangleMesh):
         out = o3d.geometry.TriangleMesh(mesh)
     else:
         out = to_open3d(*as_mesh_arrays(mesh, "mesh"))
+    bad = ~np.isfinite(np.asarray(out.vertices)).all(axis=1)
+    if bad.any():
+        first = np.flatnonzero(bad)[:5].tolist()
+        raise ValueError(
+            f"`mesh` must have finite vertices, got {int(bad.sum())} with NaN or infinite "
+            f"coordinates (vertices {first}{' ...' if bad.sum() > 5 else ''}); nothing written"
+        )
     if not out.has_vertex_normals():
         out.compute_vertex_normals()
     vertices, triangles = len(out.vertices), len(out.triangles)
 
     def verify(tmp: str) -> None:
-        # Python's own writers (VTK, VTP, STL, GLB) raise on a full disk; Open3D's do not.
-        # glTF may split vertices: compare triangles only there.
-        if suffix in (".ply", ".obj", ".off", ".gltf"):
-            _check_mesh_file(tmp, os.fspath(path), name, vertices, triangles, suffix != ".gltf")
+        # Python's own writers (every format but binary PLY) raise on a full disk; Open3D's
+        # do not.
+        if suffix == ".ply" and not write_ascii:
+            _check_mesh_file(tmp, os.fspath(path), name, vertices, triangles, True)
 
     return atomic_write(
         path,

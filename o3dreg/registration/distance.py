@@ -34,7 +34,7 @@ class SurfaceDistanceQuery:
         A valid triangle mesh (see :func:`o3dreg._validation.as_mesh_arrays`).
     open_edges : tuple of ndarray, optional
         :attr:`open_edges` of this mesh, where the caller has them (computed from
-        :class:`~o3dreg._edges.SortedEdges` of the same faces).
+        :class:`~o3dreg.mesh.edges.SortedEdges` of the same faces).
     """
 
     def __init__(

@@ -815,6 +815,7 @@ def evaluate_elastic(
         the target vertices to the moved source surface.
     """
     vs, fs = as_mesh_arrays(source, "source")
+    check_referenced(vs, fs, "source")  # as registration_elastic: every vertex on a triangle
     surface = TargetSurface.from_mesh(*as_mesh_arrays(target, "target", drop_degenerate=True))
     t = np.eye(4) if transformation is None else as_transformation(transformation, "transformation")
     if deformation is not None and not isinstance(

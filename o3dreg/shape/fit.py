@@ -16,10 +16,11 @@ from .._validation import as_mesh_arrays, as_transformation, check_positive
 from ..io.mesh import to_open3d
 from ..registration.distance import SurfaceDistanceQuery
 from ..registration.rigid import registration_rigid
+from .fit_verdict import assess_model_fit
 from .model import ShapeModel
 from .procrustes import fit_transformation
 
-__all__ = ["ModelFit", "fit_shape_model"]
+__all__ = ["ModelFit", "assess_model_fit", "fit_shape_model"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,8 +40,16 @@ class ModelFit:
         Mean distance from the fitted vertices to the patient surface.
     iterations : int
     success : bool
-        Whether the relative change of the fit fell below the tolerance.
+        Whether the relative change of the fit fell below the tolerance. Says nothing about
+        whether the fit is right: see ``status``.
     message : str
+    status : {'ok', 'suspect', 'failed'}
+        The verdict: the fit measured against the model's own population (see
+        :func:`assess_model_fit`).
+    warnings : tuple of str
+        One plain sentence per finding behind ``status`` (empty when ``'ok'``).
+    mahalanobis_distance : float
+        ``sqrt(sum_j alpha_j^2 / variance_j)`` of the coefficients.
     """
 
     coefficients: np.ndarray
@@ -51,10 +60,15 @@ class ModelFit:
     iterations: int
     success: bool
     message: str
+    status: str = "ok"
+    warnings: tuple[str, ...] = ()
+    mahalanobis_distance: float = float("nan")
 
     def __repr__(self) -> str:
         return (
-            f"ModelFit(modes={self.coefficients.size}, mean_distance={self.mean_distance:.4g}, "
+            f"ModelFit(status={self.status!r}, modes={self.coefficients.size}, "
+            f"mean_distance={self.mean_distance:.4g}, "
+            f"mahalanobis_distance={self.mahalanobis_distance:.3g}, "
             f"iterations={self.iterations}, success={self.success})"
         )
 
@@ -73,6 +87,7 @@ def fit_shape_model(
     regularization: float | None = None,
     max_iteration: int = 300,
     tolerance: float = 1e-4,
+    check_reflection: bool = True,
 ) -> ModelFit:
     """Fit pose and shape coefficients of ``model`` to a patient surface (iterated closest points).
 
@@ -106,10 +121,15 @@ def fit_shape_model(
         Default 300 (alternating pose and shape updates converge linearly, like ICP).
     tolerance : float, optional
         Default 1e-4.
+    check_reflection : bool, optional
+        Also fit the model to the patient's mirror image, to tell whether the patient is a
+        reflection of the model's anatomy (left and right swapped: see
+        :func:`assess_model_fit`). Default ``True``; it about doubles the time of a fit.
 
     Returns
     -------
     ModelFit
+        With its verdict (``status``, ``warnings``) from :func:`assess_model_fit`.
 
     References
     ----------
@@ -127,28 +147,65 @@ def fit_shape_model(
     else:
         reg = check_positive(regularization, "regularization", allow_zero=True)
     max_iteration = check_positive(max_iteration, "max_iteration", integer=True)
+    if not isinstance(check_reflection, (bool, np.bool_)):
+        raise TypeError(f"`check_reflection` must be a bool, got {type(check_reflection).__name__}")
     tolerance = check_positive(tolerance, "tolerance", allow_zero=True)
     if init is not None:
         pose = as_transformation(init, "init")
-        return _fit_model(model, vt, ft, pose, k, reg, max_iteration, tolerance)
+        fit = _fit_model(model, vt, ft, pose, k, reg, max_iteration, tolerance)
+    else:
+        fit = _best_fit(model, vt, ft, k, reg, max_iteration, tolerance)
+    mirrored = None
+    if check_reflection:
+        # The patient reflected through its centroid (any one plane: the fit's rotation
+        # search covers the others), fitted from the same starts.
+        flip = vt * np.array([-1.0, 1.0, 1.0])
+        flip[:, 0] += 2.0 * vt[:, 0].mean()
+        # It only has to tell whether the mirror image fits clearly better (a factor of 1.25
+        # or more in distance): a looser tolerance and fewer iterations do.
+        mirrored = _best_fit(
+            model, flip, ft[:, ::-1], k, reg, min(max_iteration, 30), max(tolerance, 1e-3)
+        )
+    return assess_model_fit(model, fit, (vt, ft), mirrored=mirrored)
+
+
+def _best_fit(
+    model: ShapeModel,
+    vt: np.ndarray,
+    ft: np.ndarray,
+    k: int,
+    reg: float | None,
+    max_iteration: int,
+    tolerance: float,
+) -> ModelFit:
     # Two starts: the rigid registration of the mean (moment-based guess + ICP) and a plain
     # translation of centroids (right when patients share the model's orientation, where the
     # moment guess may pick a symmetric flip); keep the fit with the smaller symmetric distance.
     shift = np.eye(4)
     shift[:3, 3] = vt.mean(axis=0) - model.mean.mean(axis=0)
     starts = [
-        np.array(registration_rigid((model.mean, model.faces), (vt, ft)).transformation),
+        np.array(
+            registration_rigid(
+                (model.mean, model.faces), (vt, ft), with_scaling=model.scaling
+            ).transformation
+        ),
         shift,
     ]
     best, best_cost = None, np.inf
     for pose in starts:
         fit = _fit_model(model, vt, ft, pose, k, reg, max_iteration, tolerance)
-        back = SurfaceDistanceQuery(fit.vertices, model.faces).distance(vt).mean()
-        cost = fit.mean_distance + float(back)
+        cost = _symmetric_distance(fit, vt)
         if cost < best_cost:
             best, best_cost = fit, cost
     assert best is not None
     return best
+
+
+def _symmetric_distance(fit: ModelFit, vt: np.ndarray) -> float:
+    """Mean distance of the fitted vertices to the patient plus that of the patient's vertices
+    to the fitted surface (the criterion that chooses between starts)."""
+    back = SurfaceDistanceQuery(fit.vertices, fit.faces).distance(vt).mean()
+    return fit.mean_distance + float(back)
 
 
 def _fit_model(

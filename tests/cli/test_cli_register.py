@@ -77,10 +77,18 @@ def test_refusals_leave_nothing(pair, tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exists.ply"]
 
 
-def test_non_convergence_exit_code(pair, tmp_path):
-    code = register(pair, tmp_path / "o.ply", "--levels", "2", "--max-iteration", "1", "-q")
-    assert code == 1
+def test_the_exit_status_follows_the_verdict_not_the_iteration_limit(pair, tmp_path, capsys):
+    # A level stopped at --max-iteration: a note on the stopping-criteria line; the exit
+    # status is the verdict's (a good result never stops a `set -e` script).
+    code = register(pair, tmp_path / "o.ply", "--levels", "2", "--max-iteration", "1", "--json")
+    report = json.loads(capsys.readouterr().out)
+    assert report["success"] is False  # the level did stop at its limit
+    assert code == (0 if report["status"] == "ok" else 1)
     assert (tmp_path / "o.ply").is_file()
+    code = register(pair, tmp_path / "p.ply", "--levels", "2", "--max-iteration", "1")
+    out = capsys.readouterr().out
+    assert "stopping criteria:" in out and "max" in out.split("stopping criteria:")[1]
+    assert code == (0 if "verdict: ok" in out else 1)
 
 
 def test_version_and_help(capsys):

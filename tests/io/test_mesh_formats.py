@@ -263,8 +263,10 @@ def test_vtp_appended_base64(tmp_path):
 
 def test_vtk_files_that_are_not_triangle_polydata(tmp_path):
     grid = tmp_path / "grid.vtk"
-    grid.write_bytes(b"# vtk DataFile Version 4.2\nx\nASCII\nDATASET UNSTRUCTURED_GRID\n")
-    with pytest.raises(OSError, match="only DATASET POLYDATA is read, got UNSTRUCTURED_GRID"):
+    grid.write_bytes(b"# vtk DataFile Version 4.2\nx\nASCII\nDATASET STRUCTURED_POINTS\n")
+    with pytest.raises(
+        OSError, match="POLYDATA or UNSTRUCTURED_GRID is read, got STRUCTURED_POINTS"
+    ):
         read_triangle_mesh(grid)
     text = tmp_path / "text.vtk"
     text.write_text("hello\n")
@@ -282,7 +284,7 @@ def test_vtk_files_that_are_not_triangle_polydata(tmp_path):
         read_triangle_mesh(bad)
     image = tmp_path / "image.vtp"
     image.write_bytes(b'<?xml version="1.0"?><VTKFile type="ImageData"></VTKFile>')
-    with pytest.raises(OSError, match="only VTKFile type='PolyData'"):
+    with pytest.raises(OSError, match="type='PolyData' or 'UnstructuredGrid' is read"):
         read_triangle_mesh(image)
 
 

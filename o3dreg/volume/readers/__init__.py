@@ -72,6 +72,11 @@ def read_volume(path: str | os.PathLike[str], *, series_uid: str | None = None) 
     if os.path.getsize(path) == 0:
         raise OSError(f"`path`: {path!r} is empty")
     suffix = _volume_suffix(path)
+    if series_uid is not None:
+        raise ValueError(
+            f"`series_uid` selects a DICOM series in a folder of slices; {path!r} is a "
+            f"{suffix} file, which holds one volume: leave `series_uid` out"
+        )
     if suffix in (".nrrd", ".nhdr"):
         return read_nrrd(path)
     return read_sitk_file(path)
