@@ -13,7 +13,7 @@ included (``registration_elastic``'s default ``init``), default levels.
   positions in the target's bounding box grown by 10%, as many as 1%, 5%, 20% of the target's
   vertices;
 * outliers 20% + clean: the same debris removed first by
-  ``o3dreg.volume.cleaning.remove_small_components(target, 100)``;
+  ``o3dreg.mesh.cleaning.remove_small_components(target, 100)``;
 * plates: two 60 x 60 x 1 mm plates 4 mm apart, the upper one shifted +3 mm along x and the lower
   one -3 mm (``--plates``), with one map of space (default) and with ``parts='connected'`` (one
   lattice hierarchy per connected component of the template).

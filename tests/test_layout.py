@@ -99,6 +99,7 @@ ROOT_TESTS = {
     "test_hostile.py",
     "test_layout.py",
     "test_mesh_types.py",
+    "test_packaging.py",
 }
 
 #: Most lines of a function's code (after its docstring) in o3dreg/registration/.
@@ -297,3 +298,20 @@ def test_moved_paths_still_import_with_a_warning():
     assert [w.category for w in caught] == [DeprecationWarning, DeprecationWarning]
     with pytest.raises(AttributeError):
         o3dreg.registration.no_such_name  # noqa: B018
+
+
+def test_the_package_imports_its_modules_by_their_own_paths():
+    # A moved path still imports (with a warning) for users; inside the package every relative
+    # import names the module where it lives.
+    found = []
+    for path, tree in _modules().items():
+        for node in ast.walk(tree):
+            if not (isinstance(node, ast.ImportFrom) and node.level > 0 and node.module):
+                continue
+            base = (PACKAGE / path).parent
+            for _ in range(node.level - 1):
+                base = base.parent
+            target = base.joinpath(*node.module.split("."))
+            if not (target.with_suffix(".py").is_file() or (target / "__init__.py").is_file()):
+                found.append(f"{path}:{node.lineno} imports {node.module}")
+    assert found == []

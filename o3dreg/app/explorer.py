@@ -26,10 +26,10 @@ import open3d as o3d
 from .._geometry import apply_transformation
 from .._validation import as_mesh_arrays
 from ..io.mesh import atomic_write_text, read_triangle_mesh
-from ..registration.batch import resolve_record_source
 from ..registration.distance import SurfaceDistanceQuery
 from ..registration.result import ElasticRegistrationResult
 from ..shape.model import ShapeModel
+from .batch import resolve_record_source
 from .render import mode_displacements, view_rotation
 
 __all__ = ["write_model_explorer", "write_registration_explorer"]

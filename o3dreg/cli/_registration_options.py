@@ -1,5 +1,5 @@
 """The registration options, defined once: ``o3dreg register`` and ``o3dreg build-model`` both
-add this group and turn it into one :class:`~o3dreg.registration.settings.RegistrationSettings`.
+add this group and turn it into one :class:`~o3dreg.app.settings.RegistrationSettings`.
 
 Every option defaults to ``None`` (not given), so an unset option keeps the library's default
 (:class:`~o3dreg.DistanceEstimation`, :class:`~o3dreg.ElasticLevel`, ...): the command line

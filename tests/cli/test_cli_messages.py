@@ -14,7 +14,7 @@ import pytest
 from o3dreg import read_triangle_mesh, write_triangle_mesh
 from o3dreg.cli import main
 
-PITCH = Path(__file__).parent / "data" / "pitch" / "CT_pitch.nii.gz"
+PITCH = Path(__file__).parents[1] / "data" / "pitch" / "CT_pitch.nii.gz"
 
 
 def _o3dreg(*args: str, cwd: Path) -> subprocess.CompletedProcess:
