@@ -117,6 +117,24 @@ class LevelProblem:
     target_points : (k, 3) ndarray or None
         Target vertices for the symmetric term; ``None`` disables it.
     symmetric_weight, regularization : float
+        The barycentre term's weight at this level; the regulariser's ``lambda``.
+    energy : {'bending', 'membrane'}
+        The regulariser's finite differences (see :class:`~o3dreg.ElasticLevel`).
+    loss : RobustLoss, optional
+        The robust loss of both distance terms (default plain least squares).
+    checkers : sequence of CorrespondenceChecker
+        Bound to masks for this level: before the robust scales are estimated, or after them
+        for those measured in scales (``needs_scale``).
+    target_has_boundary : bool
+        Whether the whole target has open edges (``target`` may be a simplified copy).
+    min_jacobian_determinant : float or None
+        The folding guard's threshold (``None``: no guard).
+    normals : (n, 3) ndarray or None
+        Template normals turned to the target's orientation, for the normal-angle checker.
+    prior : LatticeDeformation or None
+        The coarser levels' map, whose Jacobian the folding guard adds to this level's.
+    barycentre_offsets : (n, 3) ndarray or None
+        The barycentre correction's offsets (see :class:`~o3dreg.Barycentre`).
     """
 
     def __init__(

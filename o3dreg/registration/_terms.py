@@ -6,9 +6,10 @@ and what their Jacobian rows with respect to the level's unknowns ``u`` are made
 :class:`TermBlock`; the rows themselves are built on demand), and :meth:`normal_share` gives the
 term's share ``(J^T J, J^T r)`` of the normal equations. The data terms' shares go through
 per-point 3x3 matrices on the level's fixed pattern (``_assembly``), never through ``J``. The
-level cost is the sum of the terms (:class:`~o3dreg.registration._cost.LevelProblem`); a new
-distance term is a class here with those two methods (tests/test_terms.py checks the contract
-for every term).
+level cost is the sum of the terms (:class:`~o3dreg.registration._cost.LevelProblem`). A new
+distance term is a class here with those two methods, built from its public value type in
+:mod:`o3dreg.registration.terms` (tests/registration/test_terms.py checks the contract for
+every term).
 
 The moved points are ``y = base + W u`` with ``W`` the constant sparse trilinear weights of the
 free nodes (see ``_cost``).
