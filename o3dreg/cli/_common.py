@@ -67,6 +67,24 @@ def positive_int(text: str) -> int:
     return value
 
 
+# -- the options several commands share: one definition each ------------------------------------
+def add_json_option(parser: argparse.ArgumentParser) -> None:
+    """``--json``: the command's result as JSON on standard output."""
+    parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+
+
+def add_jobs_option(parser: argparse.ArgumentParser) -> None:
+    """``--jobs``: registrations run side by side, one process each."""
+    parser.add_argument(
+        "--jobs", type=positive_int, default=1, help="parallel registrations (processes)"
+    )
+
+
+def add_overwrite_option(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--overwrite``: replace ``what`` (the files the command writes) instead of refusing."""
+    parser.add_argument("--overwrite", action="store_true", help=f"replace {what}")
+
+
 def standard_deviations(text: str) -> float:
     """A multiple of a mode's standard deviation, at most 100 either way, for ``type=``
     (``1e308`` wrote meshes of inf coordinates)."""

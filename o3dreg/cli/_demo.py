@@ -8,7 +8,7 @@ import sys
 
 from ..app.demo import run_demo
 from ..io.mesh import atomic_write_text
-from ._common import emit, emit_json, positive_int, process_pool
+from ._common import add_jobs_option, add_json_option, emit, emit_json, process_pool
 
 MARKER = ".o3dreg-demo"
 
@@ -40,10 +40,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--patients", type=int, default=8, help="patients in the model (default 8)")
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic population")
-    p.add_argument(
-        "--jobs", type=positive_int, default=1, help="parallel registrations (processes)"
-    )
-    p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+    add_jobs_option(p)
+    add_json_option(p)
     p.set_defaults(func=run)
 
 

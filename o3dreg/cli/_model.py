@@ -29,6 +29,9 @@ from ..shape.landmark_transfer import (
 from ..shape.model import ShapeModel
 from ..shape.statismo import read_statismo
 from ._common import (
+    add_jobs_option,
+    add_json_option,
+    add_overwrite_option,
     all_or_nothing,
     check_outputs,
     emit,
@@ -83,9 +86,7 @@ def add_parser(subparsers: Any) -> None:
     build.add_argument("template", help="template mesh (moves; ~1k-4k vertices)")
     build.add_argument("targets", nargs="+", help="patient meshes")
     build.add_argument("-o", "--output", required=True, help="model folder (created)")
-    build.add_argument(
-        "--jobs", type=positive_int, default=1, help="parallel registrations (processes)"
-    )
+    add_jobs_option(build)
     build.add_argument("--scheduler", help="Dask scheduler ADDRESS (tcp://host:8786) to run on")
     build.add_argument("--force", action="store_true", help="register finished patients again")
     add_registration_options(build)
@@ -104,12 +105,10 @@ def add_parser(subparsers: Any) -> None:
         "--scaling", action="store_true", help="similarity Procrustes (size removed)"
     )
     build.add_argument("--slide", action="store_true", help="slide semilandmarks before the PCA")
-    build.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="rebuild a folder that already holds a model (finished registrations are reused)",
+    add_overwrite_option(
+        build, "a folder that already holds a model (finished registrations are reused)"
     )
-    build.add_argument("--json", action="store_true", help="print the report as JSON")
+    add_json_option(build)
     build.set_defaults(func=run_build)
 
     model = subparsers.add_parser("model", help="inspect and use a shape model")
@@ -120,7 +119,7 @@ def add_parser(subparsers: Any) -> None:
         metavar="MODEL",
         help="model folder (o3dreg build-model) or statismo / scalismo .h5 file",
     )
-    info.add_argument("--json", action="store_true")
+    add_json_option(info)
     info.set_defaults(func=run_info)
     modes = sub.add_parser("modes", help="write mean and mode meshes (Figure 6)")
     modes.add_argument(
@@ -139,8 +138,8 @@ def add_parser(subparsers: Any) -> None:
     modes.add_argument(
         "-o", "--output", help="folder (default MODEL/modes; MODEL_modes beside a .h5 file)"
     )
-    modes.add_argument("--overwrite", action="store_true", help="replace existing mesh files")
-    modes.add_argument("--json", action="store_true")
+    add_overwrite_option(modes, "existing mesh files")
+    add_json_option(modes)
     modes.set_defaults(func=run_modes)
     fit = sub.add_parser(
         "fit",
@@ -163,10 +162,10 @@ def add_parser(subparsers: Any) -> None:
     fit.add_argument(
         "-o", "--output", help="write predicted landmarks (.mrk.json, .fcsv, .csv, .pp; LPS)"
     )
-    fit.add_argument("--overwrite", action="store_true", help="replace an existing --output")
+    add_overwrite_option(fit, "an existing --output")
     fit.add_argument("--modes", type=positive_int, default=None, help="modes used (default all)")
     fit.add_argument("--regularization", type=float, default=None, help="noise variance (mm^2)")
-    fit.add_argument("--json", action="store_true")
+    add_json_option(fit)
     fit.set_defaults(func=run_fit)
     _add_explore(sub)
     model.set_defaults(func=lambda args: (model.print_help(), 2)[1])
@@ -461,7 +460,7 @@ def _add_explore(sub: Any) -> None:
         metavar="X,Y,Z",
         help="world direction shown upwards at first (default 0,0,1; write --up=0,0,-1)",
     )
-    explore.add_argument("--overwrite", action="store_true", help="replace an existing page")
+    add_overwrite_option(explore, "an existing page")
     explore.set_defaults(func=run_explore)
 
 

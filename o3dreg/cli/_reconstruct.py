@@ -24,7 +24,7 @@ from ..mesh.cleaning import (
 )
 from ..volume.isosurface import isosurface
 from ..volume.readers import read_volume
-from ._common import check_outputs
+from ._common import add_json_option, add_overwrite_option, check_outputs
 
 logger = logging.getLogger("o3dreg")
 
@@ -85,8 +85,8 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument(
         "--decimate", type=int, default=None, metavar="N", help="decimate to about N vertices"
     )
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    parser.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+    add_overwrite_option(parser, "an existing output file")
+    add_json_option(parser)
     parser.set_defaults(func=run)
 
 

@@ -21,7 +21,15 @@ from ..io.mesh import (
 from ..registration.landmark_start import registration_landmarks
 from ..registration.options import default_levels
 from ..registration.result import ElasticRegistrationResult, LevelReport
-from ._common import all_or_nothing, check_outputs, emit, emit_json, write_json
+from ._common import (
+    add_json_option,
+    add_overwrite_option,
+    all_or_nothing,
+    check_outputs,
+    emit,
+    emit_json,
+    write_json,
+)
 from ._registration_options import add_registration_options, settings_from_args
 
 logger = logging.getLogger("o3dreg")
@@ -75,8 +83,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="also write an interactive page (template, patient, distance colours; offline)",
     )
-    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
-    p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
+    add_overwrite_option(p, "existing output files")
+    add_json_option(p)
     p.set_defaults(func=run)
 
 

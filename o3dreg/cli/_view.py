@@ -11,7 +11,7 @@ import open3d as o3d
 from ..app.render import BACKENDS, OPEN3D_TIME_LIMIT, render_mesh
 from ..io.mesh import read_triangle_mesh
 from ..registration.distance import SurfaceDistanceQuery
-from ._common import check_outputs, emit, int_list
+from ._common import add_overwrite_option, check_outputs, emit, int_list
 
 EPILOG = """examples:
   o3dreg view template.ply patient.ply
@@ -42,7 +42,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--screenshot", metavar="PNG", help="write a picture instead of opening a window"
     )
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --screenshot file")
+    add_overwrite_option(p, "an existing --screenshot file")
     p.add_argument(
         "--backend",
         choices=BACKENDS,
