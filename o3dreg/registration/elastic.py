@@ -4,6 +4,13 @@ Berar, Desvignes, Bailly, Payan (2005), "3D meshes registration: application to 
 model", section 2.2: a rigid pre-alignment, then a coarse-to-fine hierarchy of trilinear
 transformations of space minimising the symmetric distance of eq. (3) plus a regularisation, by
 Levenberg-Marquardt.
+
+The registration in three pieces: :func:`_coarse_to_fine` here, a short driver over the levels
+(as scikit-image's ``_coarse_to_fine``); each level's problem, :class:`LevelProblem`
+(``_cost``: residuals, Jacobian, normal equations of the terms in ``_terms``); the solver
+objects of ``_solvers`` that minimise it (Levenberg-Marquardt, or SciPy's ``least_squares``).
+What is minimised comes from the strategies a :class:`~o3dreg.DistanceEstimation` holds
+(``terms``, ``losses``, ``checkers``).
 """
 
 from __future__ import annotations
