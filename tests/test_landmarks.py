@@ -35,13 +35,67 @@ def test_vertex_and_barycentric_landmarks(pop):
     np.testing.assert_allclose(bary.positions(tv)[0], expected)
 
 
-def test_points_map_to_nearest_template_surface_point(pop):
+def test_points_keep_their_place_and_snap_only_when_asked(pop):
     (tv, tf), _, _, _, _ = pop
     centre = tv[tf[10]].mean(axis=0)
     normal = np.cross(tv[tf[10, 1]] - tv[tf[10, 0]], tv[tf[10, 2]] - tv[tf[10, 0]])
     normal /= np.linalg.norm(normal)
-    lm = TemplateLandmarks.from_points((tv, tf), [centre + 0.5 * normal])
-    np.testing.assert_allclose(lm.positions(tv)[0], centre, atol=1e-9)
+    point = centre + 0.5 * normal
+    lm = TemplateLandmarks.from_points((tv, tf), [point])
+    # On the template itself (the identity) a landmark off the surface is where it was given:
+    # foot point plus the offset in the frame there, exact to rounding of mm-sized coordinates.
+    np.testing.assert_allclose(lm.positions(tv)[0], point, atol=1e-9)
+    # The depth is measured along the blended vertex normal, a few degrees from the triangle's
+    # own normal on this smooth template: cos(5 deg) = 0.996 of the 0.5 offset.
+    assert abs(abs(lm.depths[0]) - 0.5) < 0.01
+    snapped = TemplateLandmarks.from_points((tv, tf), [point], on_surface=True)
+    np.testing.assert_allclose(snapped.positions(tv)[0], centre, atol=1e-9)
+    np.testing.assert_allclose(lm.on_surface().positions(tv)[0], centre, atol=1e-9)
+    with pytest.raises(TypeError, match="on_surface"):
+        TemplateLandmarks.from_points((tv, tf), [point], on_surface=1)
+
+
+def _random_rotation(seed: int) -> np.ndarray:
+    q, r = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.6, 2.5])
+def test_similarity_carries_off_surface_landmarks_exactly(pop, scale):
+    (tv, tf), _, _, _, _ = pop
+    rng = np.random.default_rng(3)
+    # Landmarks 0.3-3 mm off the surface, on both sides, as annotations inside a bone lie.
+    picks = rng.choice(len(tf), 6, replace=False)
+    feet = tv[tf[picks]].mean(axis=1)
+    normals = np.cross(tv[tf[picks, 1]] - tv[tf[picks, 0]], tv[tf[picks, 2]] - tv[tf[picks, 0]])
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    points = feet + rng.uniform(-3.0, 3.0, (6, 1)) * normals
+    original = points.copy()
+    lm = TemplateLandmarks.from_points((tv, tf), points)
+    np.testing.assert_array_equal(points, original)  # input not modified
+    rotation, shift = _random_rotation(5), np.array([12.0, -40.0, 7.5])
+    moved = scale * tv @ rotation.T + shift
+    # The frame rotates with the mesh and the offset scales with its size, so a rigid motion or
+    # a uniform scaling carries the landmark exactly (to rounding of 100-mm coordinates).
+    np.testing.assert_allclose(
+        lm.positions(moved), scale * points @ rotation.T + shift, atol=1e-9 * scale * 100
+    )
+
+
+def test_procrustes_commutes_with_landmark_positions(pop):
+    from o3dreg import generalized_procrustes
+
+    (tv, tf), _, truths, _, _ = pop
+    points = tv[tf[[3, 50, 90]]].mean(axis=1) + np.array([[0.0, 0.0, 1.5]])
+    lm = TemplateLandmarks.from_points((tv, tf), points)
+    shapes = np.stack(truths[:4])
+    gpa = generalized_procrustes(shapes, scaling=True)
+    for k in range(4):
+        # Procrustes moves each shape by a similarity: its landmarks move with it exactly.
+        t = gpa.transformations[k]
+        expected = lm.positions(shapes[k]) @ t[:3, :3].T + t[:3, 3]
+        np.testing.assert_allclose(lm.positions(gpa.shapes[k]), expected, atol=1e-8)
 
 
 def test_landmarks_outside_the_template(pop):

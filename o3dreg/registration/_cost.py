@@ -147,6 +147,9 @@ class LevelProblem:
     target_points : (k, 3) ndarray or None
         Target vertices for the symmetric term; ``None`` disables it.
     symmetric_weight, regularization : float
+    barycentre_counted : bool
+        Weigh each barycentre row by the target points it stands for (see
+        :class:`~o3dreg.registration._terms.BarycentreTerm`).
     """
 
     def __init__(
@@ -165,6 +168,7 @@ class LevelProblem:
         normals: np.ndarray | None = None,
         prior: Any = None,
         barycentre_offsets: np.ndarray | None = None,
+        barycentre_counted: bool = False,
     ) -> None:
         self.lattice = lattice
         self.robust = robustness or Robustness()
@@ -196,7 +200,11 @@ class LevelProblem:
             None
             if self.target_points is None
             else BarycentreTerm(
-                self.assembly, self.target_points, symmetric_weight, barycentre_offsets
+                self.assembly,
+                self.target_points,
+                symmetric_weight,
+                barycentre_offsets,
+                barycentre_counted,
             )
         )
         self.terms: list[ResidualTerm] = [self.surface]

@@ -401,6 +401,7 @@ def _coarse_to_fine(
             normals=normals,
             prior=deformation if deformation.levels else None,
             barycentre_offsets=offsets,
+            barycentre_counted=estimation_method.barycentre_weighting == "count",
         )
         last_problem = problem
         info = solve(problem, level.criteria or criteria, level.solver)
