@@ -21,6 +21,7 @@ a template is that surface decimated to ``--template-vertices``.
 
     python benchmarks/bench_landmarks.py                       # 8 x 7 pairs, both methods
     python benchmarks/bench_landmarks.py --templates 2 --skip-peer --skip-prediction
+    python benchmarks/bench_landmarks.py --skip-peer --barycentre-weighting uniform
 
 Prints the figures and the ratios against the peer measured in the same run; skips with a message
 where the data are absent. Nothing derived from the masks is written.
@@ -98,6 +99,11 @@ def main() -> int:
     parser.add_argument("--templates", help="comma-separated template indices (default all)")
     parser.add_argument("--skip-peer", action="store_true")
     parser.add_argument("--skip-prediction", action="store_true")
+    parser.add_argument(
+        "--barycentre-weighting",
+        choices=["count", "uniform"],
+        help="o3dreg's DistanceEstimation.barycentre_weighting (default: the library default)",
+    )
     args = parser.parse_args()
     folder = data_dir()
     if not (folder / "masks").is_dir() or not (folder / "landmarks").is_dir():
@@ -108,6 +114,11 @@ def main() -> int:
 
     logging.getLogger("o3dreg").setLevel(logging.ERROR)
     data = load(args.template_vertices)
+    estimation = (
+        None
+        if args.barycentre_weighting is None
+        else o3dreg.DistanceEstimation(barycentre_weighting=args.barycentre_weighting)
+    )
     ids = sorted(data)
     chosen = ids if args.templates is None else [ids[int(k)] for k in args.templates.split(",")]
     methods = ["o3dreg"] + ([] if args.skip_peer else ["nricp_amberg"])
@@ -121,7 +132,7 @@ def main() -> int:
         for b, pid in enumerate(p for p in ids if p != tid):
             surface, truth = data[pid]["surface"], data[pid]["landmarks"]
             start = time.perf_counter()
-            result = o3dreg.registration_elastic(template, surface)
+            result = o3dreg.registration_elastic(template, surface, estimation_method=estimation)
             seconds["o3dreg"] += time.perf_counter() - start
             statuses.append(result.status)
             vectors["o3dreg"][a, b] = result.transform(data[tid]["landmarks"]) - truth
