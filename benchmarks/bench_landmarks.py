@@ -17,7 +17,9 @@ a template is that surface decimated to ``--template-vertices``.
 * **Prediction** (the paper's goal): for every template and every held-out patient, a shape model
   of the other 6 patients' semilandmark meshes (the transfer's registrations),
   :func:`~o3dreg.predict_landmarks` of the template's annotations (with their depth) on the
-  held-out patient.
+  held-out patient; the same fit read with the landmarks snapped onto the surface, and with the
+  landmarks averaged from the annotations of the template and the model's 6 patients
+  (``TemplateLandmarks.from_annotated_shapes``).
 
     python benchmarks/bench_landmarks.py                       # 8 x 7 pairs, both methods
     python benchmarks/bench_landmarks.py --templates 2 --skip-peer --skip-prediction
@@ -182,7 +184,7 @@ def main() -> int:
 
     if args.skip_prediction:
         return 0
-    predicted, snapped = [], []
+    predicted, snapped, pooled = [], [], []
     for tid in chosen:
         template = data[tid]["template"]
         attached = TemplateLandmarks.from_points(template, data[tid]["landmarks"])
@@ -194,6 +196,13 @@ def main() -> int:
             predicted.append(pred.positions - data[held]["landmarks"])
             on_surface = attached.on_surface().positions(pred.fit.vertices)
             snapped.append(on_surface - data[held]["landmarks"])
+            # The model's landmarks from the annotations of all its patients (template included).
+            annotated = TemplateLandmarks.from_annotated_shapes(
+                template,
+                [template[0]] + [shapes[tid, p] for p in train],
+                [data[tid]["landmarks"]] + [data[p]["landmarks"] for p in train],
+            )
+            pooled.append(annotated.positions(pred.fit.vertices) - data[held]["landmarks"])
     pv = np.array(predicted).reshape(len(chosen), len(ids) - 1, len(LABELS), 3)
     pe = np.linalg.norm(pv, axis=-1)
     systematic, random = decompose(pv)
@@ -211,6 +220,15 @@ def main() -> int:
         f"{'  snapped':<18}{se.mean():>7.2f}"
         + "".join(f"{e:>8.2f}" for e in se.reshape(-1, len(LABELS)).mean(axis=0))
         + f"{se.max():>7.2f}   (the same fits, landmarks moved onto the surface)"
+    )
+    qv = np.array(pooled).reshape(pv.shape)
+    qe = np.linalg.norm(qv, axis=-1)
+    systematic, random = decompose(qv)
+    print(
+        f"{'  7 annotations':<18}{qe.mean():>7.2f}"
+        + "".join(f"{e:>8.2f}" for e in qe.mean(axis=(0, 1)))
+        + f"{qe.max():>7.2f}{systematic:>9.2f}{random:>8.2f}   (the same fits, landmarks "
+        "averaged from the annotations of the template and the 6 model patients)"
     )
     return 0
 

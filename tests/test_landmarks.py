@@ -157,3 +157,31 @@ def test_predict_landmarks_on_new_patient(pop):
     other = TemplateLandmarks.from_vertices((tv[:-1], tf[:-10] % (len(tv) - 1)), np.array([0]))
     with pytest.raises(ValueError, match="another template"):
         predict_landmarks(model, other, targets[9])
+
+
+def test_landmarks_from_annotated_shapes_average_the_annotations(pop):
+    (tv, tf), _, _, _, _ = pop
+    feet = tv[tf[[4, 60]]].mean(axis=1)
+    normals = np.cross(
+        tv[tf[[4, 60], 1]] - tv[tf[[4, 60], 0]], tv[tf[[4, 60], 2]] - tv[tf[[4, 60], 0]]
+    )
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    truth = feet - 1.5 * normals  # 1.5 mm inside, as annotations on voxel centres lie
+    shapes, annotations = [], []
+    for k, scale in enumerate((0.8, 1.0, 1.3)):
+        rotation, shift = _random_rotation(10 + k), np.array([5.0 * k, -3.0, 20.0])
+        shapes.append(scale * tv @ rotation.T + shift)
+        annotations.append(scale * truth @ rotation.T + shift)
+    # Every patient is a similarity of the template, annotated at the same anatomical point:
+    # each reads back exactly onto it, and so does their mean (rounding of 100-mm coordinates).
+    lm = TemplateLandmarks.from_annotated_shapes((tv, tf), shapes, annotations, ["a", "b"])
+    np.testing.assert_allclose(lm.positions(tv), truth, atol=1e-9)
+    # Placement errors of +-e on two patients cancel in the mean.
+    errors = np.array([[[0.6, 0.0, 0.0]] * 2, [[-0.6, 0.0, 0.0]] * 2])
+    plain = [tv, tv]
+    lm = TemplateLandmarks.from_annotated_shapes((tv, tf), plain, truth + errors)
+    np.testing.assert_allclose(lm.positions(tv), truth, atol=1e-6)
+    with pytest.raises(ValueError, match="one annotation per shape"):
+        TemplateLandmarks.from_annotated_shapes((tv, tf), plain, truth[None])
+    with pytest.raises(ValueError, match="semilandmark meshes"):
+        TemplateLandmarks.from_annotated_shapes((tv, tf), [tv[:-1]], truth[None])

@@ -299,6 +299,66 @@ class TemplateLandmarks:
         """Positions on every shape of a batch: ``(s, l, 3)`` for ``(s, n, 3)`` shapes."""
         return np.stack([self.positions(s) for s in shapes])
 
+    @classmethod
+    def from_annotated_shapes(
+        cls,
+        template: Any,
+        shapes: Any,
+        points: Any,
+        labels: Any = None,
+        *,
+        max_distance: float | None = None,
+    ) -> TemplateLandmarks:
+        """Landmarks of the template from the annotations of several registered patients.
+
+        Each patient's annotation is attached to its semilandmark mesh (the template's triangles
+        on the patient, e.g. a registration's ``result.vertices``) as :meth:`from_points` does,
+        read back on the template (same triangle, barycentric coordinates and local offset),
+        and the template positions are averaged over the patients. One annotator's placement
+        error on one patient then weighs ``1 / s``: the landmarks a shape model built from the
+        same patients predicts best on average.
+
+        Parameters
+        ----------
+        template : open3d.geometry.TriangleMesh or (vertices, faces)
+        shapes : (s, n, 3) array_like or sequence of (n, 3) array_like
+            The patients' semilandmark meshes' vertices, in each patient's coordinates.
+        points : (s, l, 3) array_like
+            Each patient's annotation of the same ``l`` landmarks, in its coordinates.
+        labels : sequence of str, optional
+        max_distance : float, optional
+            As in :meth:`from_points`, for each patient's annotation and its mesh, and for the
+            averaged positions and the template.
+
+        Returns
+        -------
+        TemplateLandmarks
+            Attached to the template with their (averaged) offsets.
+        """
+        v, f = as_mesh_arrays(template, "template")
+        x = np.asarray(shapes, dtype=np.float64)
+        if x.ndim != 3 or x.shape[1:] != v.shape or x.shape[0] < 1:
+            raise ValueError(
+                f"`shapes` must be (s, {v.shape[0]}, 3) semilandmark meshes of the template, "
+                f"got shape {x.shape}"
+            )
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 3 or pts.shape[0] != x.shape[0] or pts.shape[2] != 3:
+            raise ValueError(
+                f"`points` must be ({x.shape[0]}, l, 3): one annotation per shape, got {pts.shape}"
+            )
+        if not (np.isfinite(x).all() and np.isfinite(pts).all()):
+            raise ValueError("`shapes` and `points` must be finite")
+        back = np.stack(
+            [
+                cls.from_points(
+                    (shape, f), annotation, labels, max_distance=max_distance
+                ).positions(v)
+                for shape, annotation in zip(x, pts)
+            ]
+        )
+        return cls.from_points((v, f), back.mean(axis=0), labels, max_distance=max_distance)
+
 
 def mesh_size(vertices: np.ndarray) -> float:
     """RMS distance of ``vertices (n, 3)`` from their centroid (1 for a single point)."""
