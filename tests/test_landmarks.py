@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from _helpers import population
+from _helpers import FAST, population
 
 from o3dreg import (
     TemplateLandmarks,
@@ -15,6 +15,7 @@ from o3dreg import (
     load_template_landmarks,
     predict_landmarks,
     read_landmarks,
+    registration_elastic,
     write_landmarks,
 )
 
@@ -185,3 +186,25 @@ def test_landmarks_from_annotated_shapes_average_the_annotations(pop):
         TemplateLandmarks.from_annotated_shapes((tv, tf), plain, truth[None])
     with pytest.raises(ValueError, match="semilandmark meshes"):
         TemplateLandmarks.from_annotated_shapes((tv, tf), [tv[:-1]], truth[None])
+
+
+def test_registration_carries_off_surface_landmarks(pop):
+    (tv, tf), _, _, _, _ = pop
+    feet = tv[tf[[4, 60, 200]]].mean(axis=1)
+    points = feet + np.array([[0.0, 0.0, 1.0], [0.5, -1.0, 0.0], [0.0, 2.0, 0.0]])
+    lm = TemplateLandmarks.from_points((tv, tf), points)
+    # A mesh registered onto itself from the identity: every template vertex is its own target
+    # barycentre and on the surface, so nothing moves and both ways of carrying a landmark (the
+    # map of space, the semilandmark mesh) leave it where it was (exactly: zero displacement).
+    same = registration_elastic((tv, tf), (tv, tf), init=np.eye(4), levels=FAST)
+    np.testing.assert_allclose(same.transform(points), points, atol=1e-9)
+    np.testing.assert_allclose(lm.positions(same.vertices), points, atol=1e-9)
+    # A known rigid motion of the target, given as the start: the map of space and the
+    # semilandmark mesh carry the landmark with it (to rounding of 100-mm coordinates).
+    rotation, shift = _random_rotation(2), np.array([30.0, -5.0, 12.0])
+    motion = np.eye(4)
+    motion[:3, :3], motion[:3, 3] = rotation, shift
+    moved = registration_elastic((tv, tf), (tv @ rotation.T + shift, tf), init=motion, levels=FAST)
+    expected = points @ rotation.T + shift
+    np.testing.assert_allclose(moved.transform(points), expected, atol=1e-8)
+    np.testing.assert_allclose(lm.positions(moved.vertices), expected, atol=1e-8)
