@@ -19,7 +19,8 @@ a template is that surface decimated to ``--template-vertices``.
   :func:`~o3dreg.predict_landmarks` of the template's annotations (with their depth) on the
   held-out patient; the same fit read with the landmarks snapped onto the surface, and with the
   landmarks averaged from the annotations of the template and the model's 6 patients
-  (``TemplateLandmarks.from_annotated_shapes``).
+  (``TemplateLandmarks.from_annotated_shapes``); with a rigid model (size kept, the paper) and a
+  similarity model (``build_shape_model(scaling=True)``).
 
     python benchmarks/bench_landmarks.py                       # 8 x 7 pairs, both methods
     python benchmarks/bench_landmarks.py --templates 2 --skip-peer --skip-prediction
@@ -184,51 +185,51 @@ def main() -> int:
 
     if args.skip_prediction:
         return 0
-    predicted, snapped, pooled = [], [], []
-    for tid in chosen:
-        template = data[tid]["template"]
-        attached = TemplateLandmarks.from_points(template, data[tid]["landmarks"])
-        others = [p for p in ids if p != tid]
-        for held in others:
-            train = [p for p in others if p != held]
-            model = build_shape_model([shapes[tid, p] for p in train], template[1])
-            pred = predict_landmarks(model, attached, data[held]["surface"])
-            predicted.append(pred.positions - data[held]["landmarks"])
-            on_surface = attached.on_surface().positions(pred.fit.vertices)
-            snapped.append(on_surface - data[held]["landmarks"])
-            # The model's landmarks from the annotations of all its patients (template included).
-            annotated = TemplateLandmarks.from_annotated_shapes(
-                template,
-                [template[0]] + [shapes[tid, p] for p in train],
-                [data[tid]["landmarks"]] + [data[p]["landmarks"] for p in train],
-            )
-            pooled.append(annotated.positions(pred.fit.vertices) - data[held]["landmarks"])
-    pv = np.array(predicted).reshape(len(chosen), len(ids) - 1, len(LABELS), 3)
-    pe = np.linalg.norm(pv, axis=-1)
-    systematic, random = decompose(pv)
     print(
         f"\nprediction: model of 6 patients' semilandmark meshes, predict_landmarks on the 7th "
-        f"({pe.size // len(LABELS)} predictions), mm"
+        f"({len(chosen) * (len(ids) - 1)} predictions), mm"
     )
     print(
-        f"{'predict_landmarks':<18}{pe.mean():>7.2f}"
-        + "".join(f"{e:>8.2f}" for e in pe.mean(axis=(0, 1)))
-        + f"{pe.max():>7.2f}{systematic:>9.2f}{random:>8.2f}"
+        f"{'model':<12}{'landmarks':<14}{'mean':>7}"
+        + "".join(f"{lab:>8}" for lab in LABELS)
+        + f"{'max':>7}{'system.':>9}{'random':>8}"
     )
-    se = np.linalg.norm(np.array(snapped), axis=-1)
+    for scaling in (False, True):
+        rows: dict[str, list[np.ndarray]] = {"template": [], "snapped": [], "7 annotations": []}
+        for tid in chosen:
+            template = data[tid]["template"]
+            attached = TemplateLandmarks.from_points(template, data[tid]["landmarks"])
+            others = [p for p in ids if p != tid]
+            for held in others:
+                train = [p for p in others if p != held]
+                model = build_shape_model(
+                    [shapes[tid, p] for p in train], template[1], scaling=scaling
+                )
+                pred = predict_landmarks(model, attached, data[held]["surface"])
+                truth = data[held]["landmarks"]
+                rows["template"].append(pred.positions - truth)
+                rows["snapped"].append(attached.on_surface().positions(pred.fit.vertices) - truth)
+                # The landmarks from the annotations of all the model's patients and the template.
+                annotated = TemplateLandmarks.from_annotated_shapes(
+                    template,
+                    [template[0]] + [shapes[tid, p] for p in train],
+                    [data[tid]["landmarks"]] + [data[p]["landmarks"] for p in train],
+                )
+                rows["7 annotations"].append(annotated.positions(pred.fit.vertices) - truth)
+        for name, found in rows.items():
+            v = np.array(found).reshape(len(chosen), len(ids) - 1, len(LABELS), 3)
+            e = np.linalg.norm(v, axis=-1)
+            systematic, random = decompose(v)
+            print(
+                f"{'similarity' if scaling else 'rigid':<12}{name:<14}{e.mean():>7.2f}"
+                + "".join(f"{x:>8.2f}" for x in e.mean(axis=(0, 1)))
+                + f"{e.max():>7.2f}{systematic:>9.2f}{random:>8.2f}"
+            )
     print(
-        f"{'  snapped':<18}{se.mean():>7.2f}"
-        + "".join(f"{e:>8.2f}" for e in se.reshape(-1, len(LABELS)).mean(axis=0))
-        + f"{se.max():>7.2f}   (the same fits, landmarks moved onto the surface)"
-    )
-    qv = np.array(pooled).reshape(pv.shape)
-    qe = np.linalg.norm(qv, axis=-1)
-    systematic, random = decompose(qv)
-    print(
-        f"{'  7 annotations':<18}{qe.mean():>7.2f}"
-        + "".join(f"{e:>8.2f}" for e in qe.mean(axis=(0, 1)))
-        + f"{qe.max():>7.2f}{systematic:>9.2f}{random:>8.2f}   (the same fits, landmarks "
-        "averaged from the annotations of the template and the 6 model patients)"
+        "model: rigid = build_shape_model(scaling=False) (size kept, the paper), similarity = "
+        "scaling=True (size removed, fitted with a scale); landmarks: the template's annotations "
+        "with their depth, the same snapped onto the surface, the mean of the template's and the "
+        "6 model patients' annotations (TemplateLandmarks.from_annotated_shapes)"
     )
     return 0
 
