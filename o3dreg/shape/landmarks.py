@@ -452,6 +452,12 @@ def predict_landmarks(
 ) -> LandmarkPrediction:
     """Predict template landmarks on a new patient: fit ``model`` to its surface, read them off.
 
+    The landmarks are read on the fitted instance as :meth:`TemplateLandmarks.positions` does:
+    each at its barycentric point plus its offset in the local frame there, so a landmark
+    defined inside the bone is predicted inside the patient's bone at the same depth (scaled
+    with the instance's size). Nothing is moved onto the surface unless the landmarks were made
+    so (``on_surface``).
+
     Parameters
     ----------
     model : ShapeModel
