@@ -135,6 +135,9 @@ class LevelProblem:
         The coarser levels' map, whose Jacobian the folding guard adds to this level's.
     barycentre_offsets : (n, 3) ndarray or None
         The barycentre correction's offsets (see :class:`~o3dreg.Barycentre`).
+    barycentre_counted : bool
+        Weigh each barycentre row by the target points it stands for (see
+        :class:`~o3dreg.Barycentre`'s ``weighting``).
     """
 
     def __init__(
@@ -156,6 +159,7 @@ class LevelProblem:
         normals: np.ndarray | None = None,
         prior: Any = None,
         barycentre_offsets: np.ndarray | None = None,
+        barycentre_counted: bool = False,
     ) -> None:
         self.lattice = lattice
         self.loss = loss or L2Loss()
@@ -188,7 +192,11 @@ class LevelProblem:
             None
             if self.target_points is None
             else BarycentreTerm(
-                self.assembly, self.target_points, symmetric_weight, barycentre_offsets
+                self.assembly,
+                self.target_points,
+                symmetric_weight,
+                barycentre_offsets,
+                barycentre_counted,
             )
         )
         self.terms: list[ResidualTerm] = [self.surface]

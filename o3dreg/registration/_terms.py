@@ -178,7 +178,10 @@ class BarycentreTerm:
     (assigned at every accepted point of Levenberg-Marquardt and held fixed for its trial steps
     and in the Jacobian, as an ICP step does), averaged with the target points' robust weights
     ``v_j``; ``s_i = sqrt(w_s * mean_j v_j) * m_i`` with ``m_i`` the support mask of point
-    ``i``: a template point with no data of its own gets no row, so data near a cut cannot pull
+    ``i`` (``counted``: ``sqrt(w_s * (N / M) * sum_j v_j) * m_i``, ``N`` template and ``M``
+    target points, so that the rows weigh what the target points they stand for weigh: the
+    block is then the target->template distance ``(N / M) sum_j v_j |t_j - y_i|^2`` up to a
+    constant): a template point with no data of its own gets no row, so data near a cut cannot pull
     the unsupported part of the template into the covered part. Every template point keeps a
     (possibly zero) row, so the residual vector keeps its length. With ``offsets``,
     ``b_i - offset_i`` replaces ``b_i`` (the template's own Voronoi centroid bias, see
@@ -193,11 +196,13 @@ class BarycentreTerm:
         target_points: np.ndarray,
         weight: float,
         offsets: np.ndarray | None = None,
+        counted: bool = False,
     ) -> None:
         self.assembly = assembly
         self.target_points = target_points
         self.sqrt_ws = float(np.sqrt(weight))
         self.offsets = offsets
+        self.counted = counted
         self._nn_bound = np.inf
         # Search state of :meth:`measure`: the positions, nearest template point, gap between
         # the nearest and second-nearest distance at each target point's last search.
@@ -290,14 +295,20 @@ class BarycentreTerm:
                 axis=1,
             )
             bary = sums / np.where(vsum > 0, vsum, 1.0)[:, None]
-            assigned = vsum / np.maximum(counts, 1)
+            if self.counted:
+                assigned = vsum / (self.target_points.shape[0] / n)
+            else:
+                assigned = vsum / np.maximum(counts, 1)
         else:
             sums = np.stack(
                 [np.bincount(nearest, self.target_points[:, c], minlength=n) for c in range(3)],
                 axis=1,
             )
             bary = sums / np.maximum(counts, 1)[:, None]
-            assigned = (counts > 0).astype(np.float64)
+            if self.counted:
+                assigned = counts / (self.target_points.shape[0] / n)
+            else:
+                assigned = (counts > 0).astype(np.float64)
         if w.support is not None:
             assigned = assigned * w.support
         scale = self.sqrt_ws * np.sqrt(assigned)

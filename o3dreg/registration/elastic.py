@@ -467,6 +467,7 @@ class _Hierarchy:
             normals=normals,
             prior=deformation if deformation.levels else None,
             barycentre_offsets=offsets,
+            barycentre_counted=self.barycentre is not None and self.barycentre.weighting == "count",
         )
         return problem, use
 

@@ -13,7 +13,10 @@ from dataclasses import dataclass
 
 from .._validation import check_positive
 
-__all__ = ["Barycentre", "DistanceTerm", "PointToSurface"]
+__all__ = ["BARYCENTRE_WEIGHTINGS", "Barycentre", "DistanceTerm", "PointToSurface"]
+
+#: How the barycentre rows are weighted (:attr:`Barycentre.weighting`).
+BARYCENTRE_WEIGHTINGS = ("count", "uniform")
 
 
 @dataclass(frozen=True)
@@ -48,14 +51,26 @@ class Barycentre(DistanceTerm):
         At most this many target vertices per template vertex enter the term (an even spatial
         subsample of a denser target), so that a million-vertex target costs no more per
         iteration than one of tens of thousands. Default 10.
+    weighting : {'count', 'uniform'}
+        Weight of template vertex ``i``'s row. ``'count'`` (default): the number of target
+        vertices whose nearest template vertex it is, relative to the mean (robust weights
+        summed), so that the term is the target -> template distance itself up to a constant.
+        ``'uniform'``: one unit per template vertex that has any target vertex (eq. 3 read
+        literally); a part of the target the template does not reach yet then pulls as one
+        vertex.
     """
 
     weight: float = 1.0
     correction: bool = False
     target_points_per_source_point: float = 10.0
+    weighting: str = "count"
 
     def __post_init__(self) -> None:
         check_positive(self.weight, "weight", allow_zero=True)
         if not isinstance(self.correction, bool):
             raise TypeError(f"`correction` must be a bool, got {type(self.correction).__name__}")
         check_positive(self.target_points_per_source_point, "target_points_per_source_point")
+        if self.weighting not in BARYCENTRE_WEIGHTINGS:
+            raise ValueError(
+                f"`weighting` must be one of {BARYCENTRE_WEIGHTINGS}, got {self.weighting!r}"
+            )

@@ -1,11 +1,18 @@
 """Anatomical landmarks defined on the template and carried to every patient.
 
-A landmark is a point of a template triangle, stored as the triangle index and barycentric
-coordinates, so it has a position on *any* mesh with the template's triangulation: each
-registered patient's semilandmark mesh, the model mean, a fitted model instance. Landmarks are
-read from CSV, 3D Slicer markups (``.mrk.json``, ``.fcsv``) or MeshLab picked points (``.pp``) by
-:func:`o3dreg.io.landmarks.read_landmarks` (converted to LPS, the meshes' system); positions are
-mapped to the nearest template surface point.
+A landmark is attached to a template triangle: the triangle index, the barycentric coordinates
+of its foot point on that triangle, and its offset from the foot point in the local frame there
+(two tangent directions and the surface normal). It therefore has a position on *any* mesh with
+the template's triangulation: each registered patient's semilandmark mesh, the model mean, a
+fitted model instance. A landmark inside the bone (annotations placed on voxel centres lie
+0.5-4 mm below a marching-cubes surface) keeps its depth; a landmark on the surface has a zero
+offset. Landmarks are read from CSV, 3D Slicer markups (``.mrk.json``, ``.fcsv``) or MeshLab
+picked points (``.pp``) by :func:`o3dreg.io.landmarks.read_landmarks` (converted to LPS, the
+meshes' system).
+
+The offset is measured in the template's size (the RMS distance of its vertices from their
+centroid) and rotates with the local frame, so a rigid motion or a uniform scaling of the mesh
+carries the landmark exactly, and the identity leaves it where it was given.
 """
 
 from __future__ import annotations
@@ -48,9 +55,20 @@ class TemplateLandmarks:
     triangles : (l,) int ndarray
         Template triangle holding each landmark.
     barycentric : (l, 3) ndarray
-        Barycentric coordinates in that triangle (non-negative, summing to 1).
+        Barycentric coordinates in that triangle (non-negative, summing to 1) of each
+        landmark's foot point.
+    faces : (m, 3) int ndarray
+        The template's triangles.
     number_of_vertices : int
         Vertex count of the template (meshes evaluated must have it).
+    offsets : (l, 3) ndarray or None
+        Each landmark's offset from its foot point in the local frame there (first tangent,
+        second tangent, outward normal; see :meth:`frames`), in units of :attr:`size`: a
+        landmark 2 mm inside a template of size 40 mm has ``offsets[:, 2] = -0.05``. ``None``:
+        every landmark on the surface.
+    size : float
+        The template's size (RMS distance of its vertices from their centroid) the offsets are
+        measured in; a mesh of another size scales them by its own.
     """
 
     labels: tuple[str, ...]
@@ -58,6 +76,8 @@ class TemplateLandmarks:
     barycentric: np.ndarray = field(repr=False)
     faces: np.ndarray = field(repr=False)
     number_of_vertices: int = 0
+    offsets: np.ndarray | None = field(default=None, repr=False)
+    size: float = 1.0
 
     def __repr__(self) -> str:
         return f"TemplateLandmarks({len(self.labels)} landmarks: {', '.join(self.labels[:6])})"
@@ -98,7 +118,7 @@ class TemplateLandmarks:
                 raise ValueError(f"`indices[{k}]` = {int(i)} is a vertex on no template triangle")
             tri[k] = rows[0]
             bary[k, cols[0]] = 1.0
-        return cls(labels_, tri, bary, f, v.shape[0])
+        return cls(labels_, tri, bary, f, v.shape[0], None, mesh_size(v))
 
     @classmethod
     def from_barycentric(
@@ -126,26 +146,43 @@ class TemplateLandmarks:
                 "`barycentric` rows must be >= 0 and sum to 1 (a point inside its triangle), "
                 f"got {bary[off].tolist()} (landmarks outside the template)"
             )
-        return cls(_labels(labels, tri.size), tri.astype(np.int64), bary, f, v.shape[0])
+        return cls(
+            _labels(labels, tri.size), tri.astype(np.int64), bary, f, v.shape[0], None, mesh_size(v)
+        )
 
     @classmethod
     def from_points(
-        cls, template: Any, points: Any, labels: Any = None, *, max_distance: float | None = None
+        cls,
+        template: Any,
+        points: Any,
+        labels: Any = None,
+        *,
+        max_distance: float | None = None,
+        on_surface: bool = False,
     ) -> TemplateLandmarks:
-        """Landmarks at the template surface points nearest to ``points`` (e.g. Slicer markups).
+        """Landmarks at given positions (e.g. Slicer markups), attached to the template surface.
+
+        Each point is attached to the template triangle holding its nearest surface point (the
+        foot point) and keeps its offset from it: :meth:`positions` on the template returns
+        ``points`` (to rounding), on a registered or fitted mesh the point at the same depth.
 
         Parameters
         ----------
         template : open3d.geometry.TriangleMesh or (vertices, faces)
         points : (l, 3) array_like
-            Positions in template coordinates.
+            Positions in template coordinates. Not modified.
         labels : sequence of str, optional
         max_distance : float, optional
             Points farther than this from the template surface raise ``ValueError`` (landmarks
             outside the template). Default 5 % of the template's bounding-box diagonal.
+        on_surface : bool, optional
+            Move each landmark onto its foot point (offset 0). Default ``False``: landmarks
+            keep their depth.
         """
         v, f = as_mesh_arrays(template, "template")
         pts = as_points(points, "points")
+        if not isinstance(on_surface, bool):
+            raise TypeError(f"`on_surface` must be a bool, got {type(on_surface).__name__}")
         if max_distance is None:
             max_distance = 0.05 * float(np.linalg.norm(np.ptp(v, axis=0)))
         else:
@@ -159,30 +196,174 @@ class TemplateLandmarks:
                 f"`points` must lie within {max_distance:.3g} of the template surface "
                 f"(landmarks outside the template): {which}"
             )
-        bary = barycentric(v[f[face]], closest)
-        return cls(labels_, face.astype(np.int64), bary, f, v.shape[0])
+        tri = face.astype(np.int64)
+        bary = barycentric(v[f[tri]], closest)
+        if on_surface:
+            return cls(labels_, tri, bary, f, v.shape[0], None, mesh_size(v))
+        plain = cls(labels_, tri, bary, f, v.shape[0], None, mesh_size(v))
+        foot, frames = plain.frames(v)
+        # The offset in the frame's axes (rows of ``frames``), in units of the template's size.
+        local = np.einsum("lad,ld->la", frames, pts - foot) / plain.size
+        return cls(labels_, tri, bary, f, v.shape[0], local, plain.size)
 
-    def positions(self, vertices: Any) -> np.ndarray:
-        """Landmark positions on a mesh with the template's triangulation, ``(l, 3)``.
+    def frames(self, vertices: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Foot points and local frames of the landmarks on a mesh with the template's triangles.
 
         Parameters
         ----------
         vertices : (n, 3) array_like or open3d.geometry.TriangleMesh
-            Vertices of the template, of a registered patient's semilandmark mesh, of the model
-            mean or of a fitted instance.
+            The mesh's vertices. Not modified.
+
+        Returns
+        -------
+        feet : (l, 3) ndarray
+            The points of the landmarks' triangles at their barycentric coordinates.
+        frames : (l, 3, 3) ndarray
+            Orthonormal rows per landmark: the first tangent (the triangle's first edge, made
+            orthogonal to the normal), the second tangent, and the outward normal (the
+            barycentric blend of the area-weighted vertex normals; the triangle's own normal
+            where that blend vanishes). A rigid motion of the mesh rotates the frames with it.
         """
+        v = self._vertices(vertices)
+        corners = v[self.faces[self.triangles]]  # (l, 3, 3)
+        feet = np.einsum("lk,lkd->ld", self.barycentric, corners)
+        cross = np.cross(
+            v[self.faces[:, 1]] - v[self.faces[:, 0]], v[self.faces[:, 2]] - v[self.faces[:, 0]]
+        )
+        vertex_normals = np.zeros_like(v)
+        for k in range(3):
+            np.add.at(vertex_normals, self.faces[:, k], cross)
+        normal = np.einsum(
+            "lk,lkd->ld", self.barycentric, vertex_normals[self.faces[self.triangles]]
+        )
+        own = cross[self.triangles]
+        length = np.linalg.norm(normal, axis=1)
+        flat = length <= 1e-12 * np.maximum(np.linalg.norm(own, axis=1), 1e-300)
+        normal[flat] = own[flat]
+        normal = normal / np.maximum(np.linalg.norm(normal, axis=1), 1e-300)[:, None]
+        edge = corners[:, 1] - corners[:, 0]
+        first = edge - (edge * normal).sum(axis=1)[:, None] * normal
+        first = first / np.maximum(np.linalg.norm(first, axis=1), 1e-300)[:, None]
+        second = np.cross(normal, first)
+        return feet, np.stack([first, second, normal], axis=1)
+
+    def _vertices(self, vertices: Any) -> np.ndarray:
         v = as_points(vertices, "vertices")
         if v.shape[0] != self.number_of_vertices:
             raise ValueError(
                 f"`vertices` must have the template's {self.number_of_vertices} vertices, "
                 f"got {v.shape[0]}"
             )
-        corners = v[self.faces[self.triangles]]  # (l, 3, 3)
-        return np.einsum("lk,lkd->ld", self.barycentric, corners)
+        return v
+
+    @property
+    def depths(self) -> np.ndarray:
+        """Signed distance of each landmark along the template's outward normal at its foot
+        point, in the template's units (negative: inside), ``(l,)``."""
+        if self.offsets is None:
+            return np.zeros(len(self.labels))
+        return self.offsets[:, 2] * self.size
+
+    def positions(self, vertices: Any) -> np.ndarray:
+        """Landmark positions on a mesh with the template's triangulation, ``(l, 3)``.
+
+        The foot point at the landmark's barycentric coordinates, plus its offset in the local
+        frame there (:meth:`frames`), scaled by the mesh's size relative to the template's.
+
+        Parameters
+        ----------
+        vertices : (n, 3) array_like or open3d.geometry.TriangleMesh
+            Vertices of the template, of a registered patient's semilandmark mesh, of the model
+            mean or of a fitted instance. Not modified.
+        """
+        v = self._vertices(vertices)
+        if self.offsets is None or not self.offsets.any():
+            corners = v[self.faces[self.triangles]]  # (l, 3, 3)
+            return np.einsum("lk,lkd->ld", self.barycentric, corners)
+        feet, frames = self.frames(v)
+        return feet + mesh_size(v) * np.einsum("la,lad->ld", self.offsets, frames)
+
+    def on_surface(self) -> TemplateLandmarks:
+        """The same landmarks moved onto their foot points (zero offsets)."""
+        return TemplateLandmarks(
+            self.labels,
+            self.triangles,
+            self.barycentric,
+            self.faces,
+            self.number_of_vertices,
+            None,
+            self.size,
+        )
 
     def carry(self, shapes: Any) -> np.ndarray:
         """Positions on every shape of a batch: ``(s, l, 3)`` for ``(s, n, 3)`` shapes."""
         return np.stack([self.positions(s) for s in shapes])
+
+    @classmethod
+    def from_annotated_shapes(
+        cls,
+        template: Any,
+        shapes: Any,
+        points: Any,
+        labels: Any = None,
+        *,
+        max_distance: float | None = None,
+    ) -> TemplateLandmarks:
+        """Landmarks of the template from the annotations of several registered patients.
+
+        Each patient's annotation is attached to its semilandmark mesh (the template's triangles
+        on the patient, e.g. a registration's ``result.vertices``) as :meth:`from_points` does,
+        read back on the template (same triangle, barycentric coordinates and local offset),
+        and the template positions are averaged over the patients. One annotator's placement
+        error on one patient then weighs ``1 / s``: the landmarks a shape model built from the
+        same patients predicts best on average.
+
+        Parameters
+        ----------
+        template : open3d.geometry.TriangleMesh or (vertices, faces)
+        shapes : (s, n, 3) array_like or sequence of (n, 3) array_like
+            The patients' semilandmark meshes' vertices, in each patient's coordinates.
+        points : (s, l, 3) array_like
+            Each patient's annotation of the same ``l`` landmarks, in its coordinates.
+        labels : sequence of str, optional
+        max_distance : float, optional
+            As in :meth:`from_points`, for each patient's annotation and its mesh, and for the
+            averaged positions and the template.
+
+        Returns
+        -------
+        TemplateLandmarks
+            Attached to the template with their (averaged) offsets.
+        """
+        v, f = as_mesh_arrays(template, "template")
+        x = np.asarray(shapes, dtype=np.float64)
+        if x.ndim != 3 or x.shape[1:] != v.shape or x.shape[0] < 1:
+            raise ValueError(
+                f"`shapes` must be (s, {v.shape[0]}, 3) semilandmark meshes of the template, "
+                f"got shape {x.shape}"
+            )
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 3 or pts.shape[0] != x.shape[0] or pts.shape[2] != 3:
+            raise ValueError(
+                f"`points` must be ({x.shape[0]}, l, 3): one annotation per shape, got {pts.shape}"
+            )
+        if not (np.isfinite(x).all() and np.isfinite(pts).all()):
+            raise ValueError("`shapes` and `points` must be finite")
+        back = np.stack(
+            [
+                cls.from_points(
+                    (shape, f), annotation, labels, max_distance=max_distance
+                ).positions(v)
+                for shape, annotation in zip(x, pts)
+            ]
+        )
+        return cls.from_points((v, f), back.mean(axis=0), labels, max_distance=max_distance)
+
+
+def mesh_size(vertices: np.ndarray) -> float:
+    """RMS distance of ``vertices (n, 3)`` from their centroid (1 for a single point)."""
+    size = float(np.sqrt(((vertices - vertices.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    return size if size > 0 else 1.0
 
 
 def _labels(labels: Any, count: int) -> tuple[str, ...]:
@@ -196,15 +377,20 @@ def _labels(labels: Any, count: int) -> tuple[str, ...]:
 
 # -- files ------------------------------------------------------------------------------------------
 def load_template_landmarks(
-    path: str | os.PathLike[str], template: Any, *, max_distance: float | None = None
+    path: str | os.PathLike[str],
+    template: Any,
+    *,
+    max_distance: float | None = None,
+    on_surface: bool = False,
 ) -> TemplateLandmarks:
     """Read landmarks and attach them to the template surface.
 
     A CSV with columns ``label,vertex`` gives template vertices; ``label,triangle,b0,b1,b2``
     gives triangles and barycentric coordinates; positions (``label,l,p,s`` CSV, Slicer
     ``.mrk.json`` / ``.fcsv``, MeshLab ``.pp``: see :func:`~o3dreg.read_landmarks`, which
-    converts them to LPS, the template's system) are mapped to the nearest template surface
-    point (see :meth:`TemplateLandmarks.from_points`).
+    converts them to LPS, the template's system) are attached to the nearest template surface
+    point and keep their offset from it, unless ``on_surface`` (see
+    :meth:`TemplateLandmarks.from_points`).
     """
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`path` must be a path, got {type(path).__name__}")
@@ -231,7 +417,9 @@ def load_template_landmarks(
                     raise
                 raise ValueError(f"`path`: {path!r} has malformed landmark rows: {exc}") from exc
     labels, points = read_landmarks(path)
-    return TemplateLandmarks.from_points(template, points, labels, max_distance=max_distance)
+    return TemplateLandmarks.from_points(
+        template, points, labels, max_distance=max_distance, on_surface=on_surface
+    )
 
 
 # -- prediction -------------------------------------------------------------------------------------
@@ -263,6 +451,12 @@ def predict_landmarks(
     model: Any, landmarks: TemplateLandmarks, target: Any, **fit_options: Any
 ) -> LandmarkPrediction:
     """Predict template landmarks on a new patient: fit ``model`` to its surface, read them off.
+
+    The landmarks are read on the fitted instance as :meth:`TemplateLandmarks.positions` does:
+    each at its barycentric point plus its offset in the local frame there, so a landmark
+    defined inside the bone is predicted inside the patient's bone at the same depth (scaled
+    with the instance's size). Nothing is moved onto the surface unless the landmarks were made
+    so (``on_surface``).
 
     Parameters
     ----------

@@ -157,18 +157,32 @@ def test_outliers_with_a_robust_loss(bunny_warped):
         template, noisy, init=np.eye(4), levels=FAST, estimation_method=DistanceEstimation.paper()
     )
     # The defaults without the island filter (which alone removes this debris): the Cauchy loss
-    # and the masks.
+    # and the masks, with one unit of weight per barycentre row.
     robust = registration_elastic(
+        template,
+        noisy,
+        init=np.eye(4),
+        levels=FAST,
+        estimation_method=DistanceEstimation(
+            min_target_component=None, barycentre_weighting="uniform"
+        ),
+    )
+    # 5% debris triangles: the robust options keep the error within 1.5x of the clean case and
+    # below the plain least-squares error.
+    assert err(robust) < 1.5 * err(clean)
+    assert err(robust) < err(plain)
+    # With rows weighted by the target points they stand for, debris that the island filter
+    # does not remove pulls harder (1.6x the clean error with the barycentre term at full
+    # weight on 8 cells): still below plain least squares, and the verdict says so.
+    counted = registration_elastic(
         template,
         noisy,
         init=np.eye(4),
         levels=FAST,
         estimation_method=DistanceEstimation(min_target_component=None),
     )
-    # 5% debris triangles: the robust options keep the error within 1.5x of the clean case and
-    # below the plain least-squares error.
-    assert err(robust) < 1.5 * err(clean)
-    assert err(robust) < err(plain)
+    assert err(counted) < err(plain)
+    assert counted.status != "ok", counted.warnings
     # The defaults ignore the debris islands: the debris-free registration exactly.
     default = registration_elastic(template, noisy, init=np.eye(4), levels=FAST)
     np.testing.assert_array_equal(default.vertices, clean.vertices)
@@ -300,11 +314,19 @@ def test_connected_parts_are_registered_separately():
         return dx[split:].mean() - dx[:split].mean()
 
     # The plates slide 6 mm relative to each other. An in-plane shift is seen only at the rims,
-    # so neither recovers all of it, but one map of space drags the plates together (measured
-    # 1.2 mm with the robust defaults, 3.2 mm with the earlier plain ones) where one hierarchy
-    # per plate does not (4.0 mm; each plate alone does the same). Both runs are deterministic.
+    # so neither recovers all of it, but one map of space drags the plates together where one
+    # hierarchy per plate does not (each plate alone does the same). Both runs are deterministic.
     assert relative_shift(parts) > relative_shift(joint) + 0.3
-    assert err(parts) < err(joint)
+    # The parts' error is below the joint map's with one unit per barycentre row (1.0 against
+    # 2.3 mm). With rows counted (the default) the joint map's error on these two thin plates
+    # moves between 1.2 and 2.4 mm with rounding, against 1.7-1.8 mm for the parts: no order
+    # between them to assert there.
+    uniform = DistanceEstimation(barycentre_weighting="uniform")
+    joint_u = registration_elastic((tv, tf), (dv, df), init=np.eye(4), estimation_method=uniform)
+    parts_u = registration_elastic(
+        (tv, tf), (dv, df), init=np.eye(4), parts="connected", estimation_method=uniform
+    )
+    assert err(parts_u) < err(joint_u)
     np.testing.assert_array_equal(np.unique(parts.part_labels[:split]), [0])
     np.testing.assert_array_equal(np.unique(parts.part_labels[split:]), [1])
     assert len(parts.part_deformations) == 2

@@ -95,7 +95,10 @@ def test_the_flags_and_the_strategies_are_one_estimation():
     assert DistanceEstimation().checkers == (BoundaryChecker(), NormalAngleChecker(90.0))
     paper = DistanceEstimation.paper()
     assert paper == DistanceEstimation.compose(
-        loss=L2Loss(), checkers=[], min_target_component=None
+        terms=[PointToSurface(), Barycentre(weighting="uniform")],
+        loss=L2Loss(),
+        checkers=[],
+        min_target_component=None,
     )
     assert DistanceEstimation(symmetric=False).terms == (PointToSurface(),)
 

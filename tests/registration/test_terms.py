@@ -276,3 +276,38 @@ def test_the_barycentre_assignment_is_exact_along_any_path():
         expected_distance, expected = brute_force_nearest(targets, y)
         np.testing.assert_array_equal(nearest, expected)
         np.testing.assert_allclose(distance, expected_distance, rtol=1e-12)
+
+
+@pytest.mark.parametrize("robust", [False, True])
+def test_counted_barycentre_rows_are_the_target_to_template_distance(robust):
+    # With rows weighted by the target points they stand for, the block's squared norm is the
+    # target->template sum (N / M) sum_j v_j |t_j - y_nn(j)|^2 less the scatter of the target
+    # points about their barycentres (which does not depend on y): the identity
+    # sum_j v_j |t_j - y|^2 = V |b - y|^2 + sum_j v_j |t_j - b|^2 for b the v-weighted mean.
+    # Exact to rounding (sums of ~1e4 squares of mm-sized numbers).
+    from o3dreg.registration._terms import BarycentreTerm, Geometry, Weights
+
+    rng = np.random.default_rng(7)
+    y = rng.normal(size=(40, 3)) * 10.0
+    targets = rng.normal(size=(900, 3)) * 12.0
+    counted = BarycentreTerm(None, targets, 1.0, counted=True)  # type: ignore[arg-type]
+    uniform = BarycentreTerm(None, targets, 1.0)  # type: ignore[arg-type]
+    _, nearest = counted.measure(y)
+    g = Geometry(np.zeros(0), y, *(np.zeros(0),) * 4, None, nearest)
+    v = rng.uniform(0.2, 1.0, targets.shape[0]) if robust else None
+    bary, scale = counted.targets(g, Weights(target=v))
+    block = ((scale[:, None] * (y - bary)) ** 2).sum()
+    vv = np.ones(targets.shape[0]) if v is None else v
+    direct = (vv * ((targets - y[nearest]) ** 2).sum(axis=1)).sum()
+    scatter = (vv * ((targets - bary[nearest]) ** 2).sum(axis=1)).sum()
+    ratio = y.shape[0] / targets.shape[0]
+    np.testing.assert_allclose(block, ratio * (direct - scatter), rtol=1e-10)
+    # The same barycentres; uniform rows weigh each template point by its mean target weight.
+    ubary, uscale = uniform.targets(g, Weights(target=v))
+    np.testing.assert_allclose(ubary, bary)
+    counts = np.bincount(nearest, minlength=y.shape[0])
+    assigned = counts > 0
+    np.testing.assert_allclose(
+        uscale[assigned] ** 2,
+        np.bincount(nearest, vv, minlength=y.shape[0])[assigned] / counts[assigned],
+    )
