@@ -213,12 +213,10 @@ class DistanceEstimation:
         template surface (computed at the start of every level). The paper's term (``False``,
         default) slides the vertices of an unevenly sampled template along the surface towards
         an even spacing (Lloyd's relaxation), which costs correspondence accuracy; the correction
-        removes most of that drift when the target is much denser than the template (measured
-        on the bunny, 3k -> 36k: mean correspondence error 0.173% -> 0.146% of the diagonal,
-        target->template mean 0.141 -> 0.097 mm). It assumes that density ratio: on targets
-        as coarse as the template it moves vertices that are already in place, and it weakens
-        the spreading of the paper's cone -> sphere case (sphere->cone mean 0.31 -> 0.61 mm with the
-        term at every level).
+        removes most of that drift when the target is much denser than the template. It
+        assumes that density ratio: on targets as coarse as the template it moves vertices that
+        are already in place, and it weakens the spreading of the paper's cone -> sphere case
+        (figures in docs/registration.md).
     barycentre_weighting : {'count', 'uniform'}
         Weight of template vertex ``i``'s barycentre row. ``'count'`` (default): the number of
         target vertices whose nearest template vertex it is, relative to the mean (``n_i N /
@@ -228,8 +226,8 @@ class DistanceEstimation:
         assigned to the few template vertices on its edge, and pulls them with the weight of
         all its points. ``'uniform'``: one unit per template vertex that has any target vertex
         (eq. 3 read literally); such a part then pulls as one vertex, and a template smaller
-        than the patient stops short of it (measured on 8 CT mandibles, 56 template ->
-        patient pairs: docs/shape-model.md).
+        than the patient stops short of it (docs/shape-model.md: 8 CT mandibles, 56 template ->
+        patient pairs).
     target_points_per_source_point : float
         At most this many target vertices per template vertex enter the barycentre term (an even
         spatial subsample of the target when it is denser). Default 10: every barycentre still
@@ -476,20 +474,17 @@ def default_levels() -> list[ElasticLevel]:
     Bending energy with weight 0.1 on every level; the barycentre term at full weight on the two
     coarse levels, 0.3 at 8 cells, none at 16.
 
-    The regularisation was chosen on the bunny under known warps of 2-10% of its diagonal and on
-    the paper's cone -> sphere case (docs/registration.md records the sweep): 1.0 is too stiff
-    for large warps, 0.01 leaves the Jacobian determinant lower for no gain in accuracy.
+    The regularisation: 1.0 is too stiff for large warps, 0.01 leaves the Jacobian determinant
+    lower for no gain in accuracy (the sweep on the bunny under known warps and on the paper's
+    cone -> sphere case is in docs/registration.md).
 
     The barycentre term spreads the template over the whole target, a large-scale effect the
     coarse levels settle; on a fine lattice it also slides each template vertex towards the
     centroid of its Voronoi cell of target points (Lloyd's relaxation), which costs
     correspondence accuracy and, as its assignments change at every evaluation, twice the
-    evaluations. Measured (bunny, 3k -> 36k, medium warp, paper's plain least squares): mean
-    correspondence error 0.180% of the diagonal with the term at every level, 0.085% with this
-    schedule (single distance: 0.092%); the cone -> sphere of Table 1 keeps its spreading
-    (sphere -> cone mean 0.7 mm, against 0.3 mm with the term at every level and 33.6 mm with
-    the single distance). ``symmetric_scale=1`` on every level is eq. (3) at every level, the
-    published method.
+    evaluations. This schedule keeps the spreading (the cone -> sphere of Table 1) and most of
+    the single distance's accuracy on warps of one surface (figures in docs/registration.md).
+    ``symmetric_scale=1`` on every level is eq. (3) at every level, the published method.
     """
     return [
         ElasticLevel(resolution=r, symmetric_scale=s)

@@ -7,7 +7,7 @@ the template's triangulation: each registered patient's semilandmark mesh, the m
 fitted model instance. A landmark inside the bone (annotations placed on voxel centres lie
 0.5-4 mm below a marching-cubes surface) keeps its depth; a landmark on the surface has a zero
 offset. Landmarks are read from CSV, 3D Slicer markups (``.mrk.json``, ``.fcsv``) or MeshLab
-picked points (``.pp``) by :func:`o3dreg.io.landmarks.read_landmarks` (converted to LPS, the
+picked points (``.pp``) by :func:`o3dreg.read_landmarks` (converted to LPS, the
 meshes' system).
 
 The offset is measured in the template's size (the RMS distance of its vertices from their
