@@ -1,4 +1,4 @@
-"""Robustness of the elastic registration on imperfect targets (issues 6 and 11): partial targets,
+"""Robustness of the elastic registration on imperfect targets: partial targets,
 a template covering more than the target, outliers, and two nearby plates that move differently.
 
 The case: a ~3k-vertex template decimated from the bundled bunny, registered onto the full bunny
@@ -21,7 +21,7 @@ included (``registration_elastic``'s default ``init``), default levels.
 A template vertex *remains* when its true position lies on the part of the target that is still
 there; ``err kept`` is the mean correspondence error (distance to the true position) over those,
 ``x clean`` its ratio to the clean case's error over the same vertices with the same settings.
-Targets (issue 11): cuts and the front half within 1.5x, outliers within 1.2x, with the default
+Aims: cuts and the front half within 1.5x, outliers within 1.2x, with the default
 settings. Every row runs with the defaults and with ``paper`` =
 ``DistanceEstimation.paper()`` (plain least squares, eq. 3 of the paper); the clean and outlier
 rows also with ``islands`` = the defaults but ``min_target_component=None`` (the robust loss and
