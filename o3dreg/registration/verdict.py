@@ -28,6 +28,7 @@ import numpy as np
 
 from .._geometry import apply_transformation, bounds, face_doubled_areas
 from .._validation import as_mesh_arrays
+from ..mesh.cleaning import mesh_components
 from .distance import SurfaceDistanceQuery
 from .result import RigidStart
 from .rigid import MIN_TARGET_TRIANGLES
@@ -51,11 +52,22 @@ DISTANCE_FAILED = 0.05
 #: The same for target vertices to the registered template. Looser: a target may hold more than
 #: the template models (a longer scan, debris the cleaning kept).
 TARGET_DISTANCE_SUSPECT = 0.05
+#: A target component that the registration did not reach (no supported template vertex has its
+#: closest point there) and whose area, with that of the other unreached ones, is at most this
+#: fraction of the reached components' is left out of the target -> template distances: an
+#: island (debris, a neighbouring bone) the template does not model. A larger unreached part
+#: may be what the template should have fitted, and is judged.
+UNREACHED_AREA_FRACTION = 0.5
 #: Fraction of template vertices the target supports: half is expected when the template
 #: covers twice the target (a face-only scan, a partial bone); below 30% most of the shape is
 #: invented by the regularisation.
 SUPPORTED_SUSPECT = 0.3
 SUPPORTED_FAILED = 0.1
+#: A target smaller than the template (a large cut) cannot support more than about the ratio
+#: of the areas: the suspect fraction is then :data:`SUPPORTED_SUSPECT` times that ratio over
+#: this one (a target of at least half the template's area keeps the plain threshold; a 70% cut
+#: of a sphere, 30% of its area, supports ~28% of a right registration's vertices).
+SUPPORTED_AREA_RATIO = 0.5
 #: Sizes (RMS radius about the centroid) of the rigidly aligned template and the target
 #: differing by more than this factor: different units (see registration.rigid.MAX_SIZE_RATIO).
 SIZE_RATIO_FAILED = 3.0
@@ -133,7 +145,7 @@ def judge(
     findings += _degenerate_target(source_moments, target_moments, ft)
     findings += _folds(result)
     findings += _distances(result, vt, ft, forward, backward)
-    findings += _support(result)
+    findings += _support(result, source_moments[0], target_moments[0])
     findings += _sizes(source_moments, target_moments, fs, ft)
     status = worst_status(*(s for s, _ in findings))
     return dataclasses.replace(
@@ -278,6 +290,11 @@ def _distances(
         backward = SurfaceDistanceQuery(result.vertices, result.faces).distance(vt)
     b95 = float(np.percentile(backward, 95))
     if b95 > TARGET_DISTANCE_SUSPECT * diagonal:
+        reached = _reached(result, vt, ft)
+        if reached is not None:
+            diagonal = _diagonal(vt[reached])
+            b95 = float(np.percentile(backward[reached], 95))
+    if b95 > TARGET_DISTANCE_SUSPECT * diagonal:
         out.append(
             (
                 "suspect",
@@ -288,12 +305,34 @@ def _distances(
     return out
 
 
-def _support(result: Any) -> list[tuple[str, str]]:
+def _reached(result: Any, vt: np.ndarray, ft: np.ndarray) -> np.ndarray | None:
+    """The target vertices of the components the registration reached, when the others are
+    islands it may ignore (:data:`UNREACHED_AREA_FRACTION`); ``None`` to judge them all."""
+    components = mesh_components(vt, ft)
+    if len(components) < 2:
+        return None
+    points = result.vertices
+    supported = getattr(result, "supported", None)
+    if supported is not None and supported.any():
+        points = points[supported]
+    face = SurfaceDistanceQuery(vt, ft).closest_few(points)[1]
+    used = np.zeros(len(components), dtype=bool)
+    used[components.labels[face]] = True
+    if components.areas[~used].sum() > UNREACHED_AREA_FRACTION * components.areas[used].sum():
+        return None
+    reached = np.zeros(vt.shape[0], dtype=bool)
+    reached[ft[used[components.labels]].ravel()] = True
+    return reached
+
+
+def _support(result: Any, area_s: float, area_t: float) -> list[tuple[str, str]]:
     supported = getattr(result, "supported", None)
     if supported is None or supported.size == 0:
         return []
     fraction = float(np.count_nonzero(supported)) / supported.size
-    if fraction < SUPPORTED_SUSPECT:
+    # What the target can support: about the ratio of the areas where it is the smaller.
+    coverable = min(1.0, area_t / area_s / SUPPORTED_AREA_RATIO) if area_s > 0.0 else 1.0
+    if fraction < SUPPORTED_FAILED or fraction < SUPPORTED_SUSPECT * coverable:
         status = "failed" if fraction < SUPPORTED_FAILED else "suspect"
         return [
             (
