@@ -275,3 +275,25 @@ def test_an_island_the_registration_did_not_reach_is_no_finding(spheres):
     judged = assess_registration(wrong, source, target)
     assert judged.status != "ok"
     assert any("parts of the target" in w for w in judged.warnings)
+
+
+def test_a_noisy_target_is_judged_beyond_its_noise(spheres):
+    # The 44 mm sphere with isotropic noise of 5% of its diagonal per axis: its vertices lie off
+    # any smooth surface by that much, and the right registration (1.5% of the diagonal) was
+    # suspect for them. The target -> template threshold grows by twice the measured noise, by
+    # at most half of itself: the template moved by 7% of the diagonal is still suspect.
+    from o3dreg.registration.verdict import noise_level
+
+    source, (v, f), _ = spheres
+    diagonal = np.linalg.norm(np.ptp(v, axis=0))
+    noisy = (v + 0.05 * diagonal * np.random.default_rng(0).normal(size=v.shape), f)
+    assert noise_level(*noisy) == pytest.approx(0.05 * diagonal, rel=0.15)
+    assert noise_level(v, f) < 0.001 * diagonal
+    result = registration_elastic(source, noisy, init=np.eye(4), levels=LEVELS)
+    err = np.linalg.norm(result.vertices - 1.1 * source[0], axis=1)
+    assert err.mean() < 0.02 * diagonal
+    assert result.status == "ok", result.warnings
+    moved = dataclasses.replace(result, vertices=result.vertices + [0.07 * diagonal, 0.0, 0.0])
+    judged = assess_registration(moved, source, noisy)
+    assert judged.status != "ok"
+    assert any("parts of the target" in w for w in judged.warnings)
