@@ -7,8 +7,10 @@ a threshold stated here with its reason:
 * folds: the map of space is not one-to-one where a cell's Jacobian determinant is ``<= 0``;
 * flipped triangles: template triangles turned inside out;
 * distances large for the target's size (95th percentiles both ways, over the target's
-  bounding-box diagonal);
-* the fraction of template vertices the target supports;
+  bounding-box diagonal), target components the registration did not reach left out when they
+  are small (islands), the target -> template threshold grown by the target's measured noise;
+* the fraction of template vertices the target supports, against what a target smaller than
+  the template (a large cut) can support;
 * a rigid start with two distinct, almost equally good poses (a near-symmetric shape);
 * sizes that still differ by a large factor after the rigid step (different units);
 * a degenerate target (a few triangles, or almost no area next to the template).
@@ -33,7 +35,13 @@ from .distance import SurfaceDistanceQuery
 from .result import RigidStart
 from .rigid import MIN_TARGET_TRIANGLES
 
-__all__ = ["STATUSES", "assess_registration", "population_outliers", "worst_status"]
+__all__ = [
+    "STATUSES",
+    "assess_registration",
+    "noise_level",
+    "population_outliers",
+    "worst_status",
+]
 
 #: The verdicts, best first.
 STATUSES = ("ok", "suspect", "failed")
@@ -71,8 +79,9 @@ SUPPORTED_SUSPECT = 0.3
 SUPPORTED_FAILED = 0.1
 #: A target smaller than the template (a large cut) cannot support more than about the ratio
 #: of the areas: the suspect fraction is then :data:`SUPPORTED_SUSPECT` times that ratio over
-#: this one (a target of at least half the template's area keeps the plain threshold; a 70% cut
-#: of a sphere, 30% of its area, supports ~28% of a right registration's vertices).
+#: this one (a target of at least half the template's area keeps the plain threshold; a sphere
+#: cut to its bottom 20% of height, a quarter of the template's area, supports 23% of a right
+#: registration's vertices).
 SUPPORTED_AREA_RATIO = 0.5
 #: Sizes (RMS radius about the centroid) of the rigidly aligned template and the target
 #: differing by more than this factor: different units (see registration.rigid.MAX_SIZE_RATIO).
