@@ -6,7 +6,7 @@ under a known smooth warp (5% of the diagonal, seed 1), **as a user runs it**: t
 included (``registration_elastic``'s default ``init``), default levels.
 
 * cut f: the target's triangles above ``(1 - f)`` of its height (y, the bunny's up axis) are
-  removed, ``f`` = 10%, 25%, 40% (the vault of a skull missing);
+  removed, ``f`` = 10%, 20%, 25%, 40% (the vault of a skull missing);
 * front half: only the target's triangles in the half of its x extent holding the head are kept
   (a face scan under a full-head template: the template covers twice the target);
 * outliers p: debris triangles (edge 1% of the diagonal, random orientation) at uniform random
@@ -121,7 +121,7 @@ def scenarios(case) -> list[tuple[str, str, o3d.geometry.TriangleMesh, np.ndarra
     """(name, kind, target, which template vertices remain) for every scenario."""
     truth = case.truth
     out = [("clean", "clean", case.target, np.ones(truth.shape[0], dtype=bool))]
-    for f in (0.10, 0.25, 0.40):
+    for f in (0.10, 0.20, 0.25, 0.40):
         target, cut = cut_top(case.target, f)
         out.append((f"cut {int(100 * f)}%", "cut", target, truth[:, 1] <= cut))
     target, cut = front_half(case.target)

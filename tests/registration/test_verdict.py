@@ -224,3 +224,76 @@ def test_the_verdicts_moments_are_the_surface_integrals(monkeypatch):
     assert moments(v, f) == pytest.approx((area, size), rel=1e-12)
     assert moments(v, f[:0]) == (0.0, None)
     assert moments(np.zeros((3, 3)), np.array([[0, 1, 2]])) == (0.0, None)
+
+
+def _sphere_arrays(vertices, scale=1.0, shift=(0.0, 0.0, 0.0)):
+    s = synthetic_form("sphere", vertices)
+    s.scale(scale, center=(0.0, 0.0, 0.0))
+    return np.asarray(s.vertices) + np.asarray(shift), np.asarray(s.triangles)
+
+
+def test_a_large_cut_is_not_suspect_for_its_small_support(spheres):
+    # The 44 mm sphere cut to its bottom 20% of height (a fifth of its area): the right
+    # registration supports 23% of the template's vertices, all the target can support; the
+    # threshold scales with the target's area relative to the template's.
+    source, patient, _ = spheres
+    v, f = patient
+    cut = v[:, 2].min() + 0.2 * np.ptp(v[:, 2])
+    target = (v, f[v[f].mean(axis=1)[:, 2] <= cut])
+    result = registration_elastic(source, target, init=np.eye(4), levels=LEVELS)
+    truth = 1.1 * source[0]
+    err = np.linalg.norm(result.vertices - truth, axis=1)[truth[:, 2] <= cut]
+    assert err.mean() < 0.02 * np.linalg.norm(np.ptp(v, axis=0))
+    assert result.supported.mean() < 0.3
+    assert result.status == "ok", result.warnings
+    # Supporting much less than the target could stays suspect, and 5% fails, as on a whole
+    # target (the same vertices on the target, fewer of them counted as supported).
+    n = result.vertices.shape[0]
+    for fraction, status in ((0.12, "suspect"), (0.05, "failed")):
+        supported = np.zeros(n, dtype=bool)
+        supported[np.flatnonzero(result.supported)[: int(fraction * n)]] = True
+        judged = assess_registration(
+            dataclasses.replace(result, supported=supported), source, target
+        )
+        assert judged.status == status, fraction
+
+
+def test_an_island_the_registration_did_not_reach_is_no_finding(spheres):
+    # The 44 mm sphere with a far island of 30% of its size (debris, a neighbouring bone that
+    # the island filter keeps): the registration is right and the island is not the template's.
+    source, patient, _ = spheres
+    iv, i_f = _sphere_arrays(400, 0.33, (150.0, 0.0, 0.0))
+    v, f = patient
+    target = (np.vstack([v, iv]), np.vstack([f, i_f + v.shape[0]]))
+    result = registration_elastic(source, target, init=np.eye(4), levels=LEVELS)
+    err = np.linalg.norm(result.vertices - 1.1 * source[0], axis=1)
+    assert err.mean() < 0.01 * np.linalg.norm(np.ptp(v, axis=0))
+    assert result.status == "ok", result.warnings
+    assert assess_registration(result, source, target).status == "ok"
+    # The template fitted onto the island instead: the large piece it did not reach is judged.
+    wrong = dataclasses.replace(result, vertices=0.33 * source[0] * 1.1 + [150.0, 0.0, 0.0])
+    judged = assess_registration(wrong, source, target)
+    assert judged.status != "ok"
+    assert any("parts of the target" in w for w in judged.warnings)
+
+
+def test_a_noisy_target_is_judged_beyond_its_noise(spheres):
+    # The 44 mm sphere with isotropic noise of 5% of its diagonal per axis: its vertices lie off
+    # any smooth surface by that much, and the right registration (1.5% of the diagonal) was
+    # suspect for them. The target -> template threshold grows by twice the measured noise, by
+    # at most half of itself: the template moved by 7% of the diagonal is still suspect.
+    from o3dreg.registration.verdict import noise_level
+
+    source, (v, f), _ = spheres
+    diagonal = np.linalg.norm(np.ptp(v, axis=0))
+    noisy = (v + 0.05 * diagonal * np.random.default_rng(0).normal(size=v.shape), f)
+    assert noise_level(*noisy) == pytest.approx(0.05 * diagonal, rel=0.15)
+    assert noise_level(v, f) < 0.001 * diagonal
+    result = registration_elastic(source, noisy, init=np.eye(4), levels=LEVELS)
+    err = np.linalg.norm(result.vertices - 1.1 * source[0], axis=1)
+    assert err.mean() < 0.02 * diagonal
+    assert result.status == "ok", result.warnings
+    moved = dataclasses.replace(result, vertices=result.vertices + [0.07 * diagonal, 0.0, 0.0])
+    judged = assess_registration(moved, source, noisy)
+    assert judged.status != "ok"
+    assert any("parts of the target" in w for w in judged.warnings)
