@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import dataclasses
+import functools
 import hashlib
 import json
 import logging
@@ -668,18 +669,24 @@ def _run_batch(
         if callback is not None:
             callback(record)
 
+    def settle(i: int, outcome_of: Callable[[], tuple[Any, float]]) -> None:
+        """Record patient ``i`` from its registration (an interruption is not a failure)."""
+        try:
+            outcome = outcome_of()
+        except KeyboardInterrupt:
+            raise
+        except Exception as exc:
+            finish(i, None, exc)
+        else:
+            finish(i, outcome, None)
+
     try:
         if executor is None:
             for i in todo:
                 bar.set_postfix_str(f"current: {names[i]}")
-                try:
-                    outcome = _register_one(template, targets[i], inits[i], settings)
-                except KeyboardInterrupt:
-                    raise
-                except Exception as exc:
-                    finish(i, None, exc)
-                else:
-                    finish(i, outcome, None)
+                settle(
+                    i, functools.partial(_register_one, template, targets[i], inits[i], settings)
+                )
         else:
             futures = {
                 executor.submit(_register_one, template, targets[i], inits[i], settings): i
@@ -687,15 +694,7 @@ def _run_batch(
             }
             try:
                 for future in cf.as_completed(futures):
-                    i = futures[future]
-                    try:
-                        outcome = future.result()
-                    except KeyboardInterrupt:
-                        raise
-                    except Exception as exc:
-                        finish(i, None, exc)
-                    else:
-                        finish(i, outcome, None)
+                    settle(futures[future], future.result)
             except BaseException:
                 for future in futures:
                     future.cancel()
