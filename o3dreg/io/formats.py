@@ -554,52 +554,50 @@ def _xml_array(name: str, type_name: str, values: np.ndarray, ascii: bool, ncomp
 
 def write_vtp(path: str, vertices: np.ndarray, faces: np.ndarray, *, ascii: bool = False) -> None:
     """Write a VTK XML ``PolyData`` file (version 1.0, inline base64 or ascii data)."""
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
     m = len(faces)
-    parts = [
-        '<?xml version="1.0"?>',
-        '<VTKFile type="PolyData" version="1.0" byte_order="LittleEndian" header_type="UInt64">',
-        "<PolyData>",
-        f'<Piece NumberOfPoints="{len(vertices)}" NumberOfVerts="0" NumberOfLines="0" '
-        f'NumberOfStrips="0" NumberOfPolys="{m}">',
-        "<Points>",
-        _xml_array("Points", "Float64", vertices, ascii, 3),
-        "</Points>",
-        "<Polys>",
-        _xml_array("connectivity", "Int64", faces.reshape(-1), ascii, 1),
-        _xml_array("offsets", "Int64", 3 * np.arange(1, m + 1, dtype=np.int64), ascii, 1),
-        "</Polys>",
-        "</Piece>",
-        "</PolyData>",
-        "</VTKFile>",
-        "",
-    ]
-    with open(path, "w", encoding="ascii") as fh:
-        fh.write("\n".join(parts))
+    piece = f'NumberOfVerts="0" NumberOfLines="0" NumberOfStrips="0" NumberOfPolys="{m}"'
+    _write_vtk_xml(path, "PolyData", piece, "Polys", vertices, faces, ascii)
 
 
 def write_vtu(path: str, vertices: np.ndarray, faces: np.ndarray, *, ascii: bool = False) -> None:
     """Write a VTK XML ``UnstructuredGrid`` file of triangle cells (VTK type 5)."""
+    types = np.full(len(faces), _VTK_TRIANGLE, dtype=np.uint8)
+    _write_vtk_xml(
+        path, "UnstructuredGrid", f'NumberOfCells="{len(faces)}"', "Cells", vertices, faces,
+        ascii, _xml_array("types", "UInt8", types, ascii, 1),
+    )  # fmt: skip
+
+
+def _write_vtk_xml(
+    path: str,
+    kind: str,
+    piece: str,
+    cells: str,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    ascii: bool,
+    *extra: str,
+) -> None:
+    """A VTK XML file (version 1.0) of one piece: the points, then the triangles under the
+    element ``cells`` (connectivity, offsets and the ``extra`` arrays)."""
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     m = len(faces)
     parts = [
         '<?xml version="1.0"?>',
-        '<VTKFile type="UnstructuredGrid" version="1.0" byte_order="LittleEndian" '
-        'header_type="UInt64">',
-        "<UnstructuredGrid>",
-        f'<Piece NumberOfPoints="{len(vertices)}" NumberOfCells="{m}">',
+        f'<VTKFile type="{kind}" version="1.0" byte_order="LittleEndian" header_type="UInt64">',
+        f"<{kind}>",
+        f'<Piece NumberOfPoints="{len(vertices)}" {piece}>',
         "<Points>",
         _xml_array("Points", "Float64", vertices, ascii, 3),
         "</Points>",
-        "<Cells>",
+        f"<{cells}>",
         _xml_array("connectivity", "Int64", faces.reshape(-1), ascii, 1),
         _xml_array("offsets", "Int64", 3 * np.arange(1, m + 1, dtype=np.int64), ascii, 1),
-        _xml_array("types", "UInt8", np.full(m, _VTK_TRIANGLE, dtype=np.uint8), ascii, 1),
-        "</Cells>",
+        *extra,
+        f"</{cells}>",
         "</Piece>",
-        "</UnstructuredGrid>",
+        f"</{kind}>",
         "</VTKFile>",
         "",
     ]
