@@ -234,13 +234,13 @@ class LevelProblem:
         keep = support(self.checkers, self.base, dist, face, closest)
         self.sigma = self.loss.scale or robust_scale(dist[keep], floor)
         if self.barycentre is not None:
-            if keep.all():
-                # Every point supported: the scale's assignment is the first evaluation's.
-                self._start_assignment = e, _ = self.barycentre.measure(self.base)
-            else:
-                e, _ = cKDTree(self.base[keep] if keep.any() else self.base).query(
-                    self.barycentre.target_points
-                )
+            # The first evaluation's assignment; the scale is measured to the supported points
+            # only, whose nearest is the same wherever the nearest of all is supported.
+            self._start_assignment = e, nearest = self.barycentre.measure(self.base)
+            lost = ~keep[nearest] if keep.any() else np.zeros(e.shape, dtype=bool)
+            if lost.any():
+                e = e.copy()
+                e[lost], _ = cKDTree(self.base[keep]).query(self.barycentre.target_points[lost])
             self.sigma_symmetric = self.loss.scale or robust_scale(e, floor)
 
     # -- folding ----------------------------------------------------------------------------------
