@@ -30,6 +30,7 @@ the unsupported part of the template into the covered part.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -138,6 +139,9 @@ class LevelProblem:
     barycentre_counted : bool
         Weigh each barycentre row by the target points it stands for (see
         :class:`~o3dreg.Barycentre`'s ``weighting``).
+    pool : Executor or None
+        One worker thread for the barycentre term's k-d tree queries, which then run while the
+        point-to-surface query of the same points runs (``None``: one after the other).
     """
 
     def __init__(
@@ -160,8 +164,10 @@ class LevelProblem:
         prior: Any = None,
         barycentre_offsets: np.ndarray | None = None,
         barycentre_counted: bool = False,
+        pool: Executor | None = None,
     ) -> None:
         self.lattice = lattice
+        self.pool = pool
         self.loss = loss or L2Loss()
         self.min_jacobian_determinant = min_jacobian_determinant
         self.base = points + previous
@@ -230,6 +236,7 @@ class LevelProblem:
         (``u = 0``), over the correspondences the other checkers accept (the distance checker
         itself is measured in these scales)."""
         floor = SCALE_FLOOR * float(lattice.cell_size.min())
+        self._prefetch(self.base)
         self._start = dist, face, closest = self.target.closest(self.base)
         keep = support(self.checkers, self.base, dist, face, closest)
         self.sigma = self.loss.scale or robust_scale(dist[keep], floor)
@@ -326,6 +333,9 @@ class LevelProblem:
         y = self.moved(u)
         at_start = not u.any()
         found = self._start if at_start else None
+        if not (at_start and self._start_assignment is not None):
+            # Needed now, or by :meth:`reweighted` if a trial step is accepted.
+            self._prefetch(y)
         dist, closest, grad, face = self.surface.measure(y, found)
         if weights_of is None:
             e = nearest = None
@@ -347,6 +357,11 @@ class LevelProblem:
         if self.barycentre is not None and not reassign:
             targets = weights_of.terms[1].targets
         return self._assemble(geometry, weights, targets)
+
+    def _prefetch(self, y: np.ndarray) -> None:
+        """Start the barycentre term's assignment at ``y`` on the worker thread, if any."""
+        if self.barycentre is not None and self.pool is not None:
+            self.barycentre.prefetch(y, self.pool)
 
     def reweighted(self, ev: Evaluation) -> Evaluation:
         """``ev`` with the weights, masks and barycentre assignment of its own point (no new

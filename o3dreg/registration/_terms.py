@@ -17,7 +17,9 @@ free nodes (see ``_cost``).
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Protocol
@@ -213,6 +215,31 @@ class BarycentreTerm:
         self._path_mark = np.zeros(0)
         self._gap = np.zeros(0)
         self._nearest = np.zeros(0, dtype=np.int64)
+        #: The array a :meth:`prefetch` measures and the future of that measure.
+        self._pending: tuple[np.ndarray, Future] | None = None
+
+    def prefetch(self, y: np.ndarray, pool: Executor) -> None:
+        """Start :meth:`measure` of ``y`` on ``pool`` (one worker thread), for a later
+        ``measure(y)`` of the same array to collect.
+
+        The k-d tree query releases the GIL and libigl's point-to-surface query, which the
+        caller runs meanwhile, holds it: this returns once the worker is inside its query
+        (or done), so that both run at once. The worker keeps its own references to the tree
+        and the points, so an interrupt of the caller cannot free them under it.
+        """
+        self._settle()
+        searching = threading.Event()
+        future = pool.submit(self._measure, y, searching.set)
+        future.add_done_callback(lambda _: searching.set())
+        searching.wait()
+        self._pending = (y, future)
+
+    def _settle(self) -> None:
+        """Wait for a prefetch still running (the search state is the worker's until then)."""
+        if self._pending is not None:
+            _, future = self._pending
+            self._pending = None
+            future.result()
 
     def measure(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest moved template point of every target point (exact), and its distance.
@@ -229,6 +256,17 @@ class BarycentreTerm:
         bounded search prunes more); the few points without a neighbour inside it are searched
         again unbounded.
         """
+        if self._pending is not None and self._pending[0] is y:
+            _, future = self._pending
+            self._pending = None
+            return future.result()
+        self._settle()
+        return self._measure(y)
+
+    def _measure(
+        self, y: np.ndarray, searching: Callable[[], object] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`measure`, calling ``searching`` just before the k-d tree query."""
         t = self.target_points
         if self._last is None or self._last.shape != y.shape:
             search = np.ones(t.shape[0], dtype=bool)
@@ -247,6 +285,8 @@ class BarycentreTerm:
             own = self._path[self._nearest] - self._path_mark
             search = own + (self._moved - self._mark) >= self._gap
         self._last = y.copy()
+        if searching is not None and not search.any():
+            searching()
         if search.any():
             # One thread (SciPy's default): a threaded query is joined from Python, and an
             # interrupt (Ctrl-C, SIGTERM) during the join unwinds while its threads still read
@@ -254,6 +294,8 @@ class BarycentreTerm:
             tree = cKDTree(y, leafsize=32)
             points = t[search]
             k = min(2, y.shape[0])
+            if searching is not None:
+                searching()
             e, nearest = tree.query(points, k=k, distance_upper_bound=self._nn_bound)
             e, nearest = e.reshape(-1, k), nearest.reshape(-1, k)
             # The radius each point was searched within (a second neighbour beyond it is at

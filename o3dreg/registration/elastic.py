@@ -18,6 +18,8 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import Executor, ThreadPoolExecutor
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -53,7 +55,7 @@ from .result import (
     RigidStart,
     SurfaceDistances,
 )
-from .rigid import default_start
+from .rigid import default_start, usable_cores
 from .terms import Barycentre
 from .verdict import judge, with_rigid_start
 
@@ -350,20 +352,21 @@ def _coarse_to_fine(
     history: list[LevelReport] = []
     failures: list[str] = []
     problem: LevelProblem | None = None
-    for k, level in enumerate(levels_):
-        start = time.perf_counter()
-        problem, use = hierarchy.problem(level, previous, deformation)
-        info = solve(problem, level.criteria or criteria, level.solver)
-        level_lattice = problem.scatter(info.evaluation.u)
-        deformation = deformation.with_level(level_lattice)
-        previous = previous + level_lattice.displacement(points)
-        report = _level_report(level, problem, info, use.size, time.perf_counter() - start)
-        _log_level(k, len(levels_), report)
-        history.append(report)
-        if not info.success:
-            failures.append(f"level {k + 1} ({level.resolution} cells): {info.message}")
-        if callback is not None:
-            callback(report)
+    with hierarchy.worker() as pool:
+        for k, level in enumerate(levels_):
+            start = time.perf_counter()
+            problem, use = hierarchy.problem(level, previous, deformation, pool)
+            info = solve(problem, level.criteria or criteria, level.solver)
+            level_lattice = problem.scatter(info.evaluation.u)
+            deformation = deformation.with_level(level_lattice)
+            previous = previous + level_lattice.displacement(points)
+            report = _level_report(level, problem, info, use.size, time.perf_counter() - start)
+            _log_level(k, len(levels_), report)
+            history.append(report)
+            if not info.success:
+                failures.append(f"level {k + 1} ({level.resolution} cells): {info.message}")
+            if callback is not None:
+                callback(report)
     return hierarchy.fit(deformation, points + previous, history, failures, problem)
 
 
@@ -419,11 +422,24 @@ class _Hierarchy:
             orientation, samples,
         )  # fmt: skip
 
+    def worker(self) -> AbstractContextManager[Executor | None]:
+        """One worker thread for the barycentre term's k-d tree queries, which then run beside
+        libigl's queries (see :meth:`LevelProblem.evaluate`); none on one core or without
+        the term."""
+        if self.barycentre is None or usable_cores() < 2:
+            return nullcontext(None)
+        return ThreadPoolExecutor(1, thread_name_prefix="o3dreg-barycentre")
+
     def problem(
-        self, level: ElasticLevel, previous: np.ndarray, deformation: LatticeDeformation
+        self,
+        level: ElasticLevel,
+        previous: np.ndarray,
+        deformation: LatticeDeformation,
+        pool: Executor | None = None,
     ) -> tuple[LevelProblem, np.ndarray]:
         """The problem of ``level`` from the template moved by the coarser levels
-        (``previous``, ``deformation``), and the template points it is posed on."""
+        (``previous``, ``deformation``), and the template points it is posed on (``pool``:
+        see :meth:`worker`)."""
         points, surface = self.points, self.surface
         lattice = TrilinearLattice.zeros(self.origin, self.size, (level.resolution,) * 3)
         active = self._active(level, points + previous)
@@ -468,6 +484,7 @@ class _Hierarchy:
             prior=deformation if deformation.levels else None,
             barycentre_offsets=offsets,
             barycentre_counted=self.barycentre is not None and self.barycentre.weighting == "count",
+            pool=pool,
         )
         return problem, use
 
