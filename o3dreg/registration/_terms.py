@@ -22,7 +22,7 @@ from collections.abc import Callable
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import scipy.sparse as sp
@@ -215,31 +215,28 @@ class BarycentreTerm:
         self._path_mark = np.zeros(0)
         self._gap = np.zeros(0)
         self._nearest = np.zeros(0, dtype=np.int64)
-        #: The array a :meth:`prefetch` measures and the future of that measure.
-        self._pending: tuple[np.ndarray, Future] | None = None
+        #: The array a :meth:`prefetch` searches at, its plan and the future of its search.
+        self._pending: tuple[np.ndarray, Any, Future | None] | None = None
 
     def prefetch(self, y: np.ndarray, pool: Executor) -> None:
-        """Start :meth:`measure` of ``y`` on ``pool`` (one worker thread), for a later
-        ``measure(y)`` of the same array to collect.
+        """Start the k-d tree search of :meth:`measure` at ``y`` on ``pool`` (one worker
+        thread), for a later ``measure(y)`` of the same array to collect.
 
         The k-d tree query releases the GIL and libigl's point-to-surface query, which the
-        caller runs meanwhile, holds it: this returns once the worker is inside its query
-        (or done), so that both run at once. The worker keeps its own references to the tree
-        and the points, so an interrupt of the caller cannot free them under it.
+        caller runs meanwhile, holds it: this returns once the worker is inside its query, so
+        that both run at once. The worker only queries (with its own references to the tree
+        and the points, which an interrupt of the caller cannot free under it); the search
+        state is kept on the calling thread.
         """
         self._settle()
-        searching = threading.Event()
-        future = pool.submit(self._measure, y, searching.set)
-        future.add_done_callback(lambda _: searching.set())
-        searching.wait()
-        self._pending = (y, future)
-
-    def _settle(self) -> None:
-        """Wait for a prefetch still running (the search state is the worker's until then)."""
-        if self._pending is not None:
-            _, future = self._pending
-            self._pending = None
-            future.result()
+        plan = self._plan(y)
+        future = None
+        if plan is not None:
+            searching = threading.Event()
+            future = pool.submit(_nearest_two, *plan[1:], self._nn_bound, searching.set)
+            future.add_done_callback(lambda _: searching.set())
+            searching.wait()
+        self._pending = (y, plan, future)
 
     def measure(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest moved template point of every target point (exact), and its distance.
@@ -257,16 +254,25 @@ class BarycentreTerm:
         again unbounded.
         """
         if self._pending is not None and self._pending[0] is y:
-            _, future = self._pending
-            self._pending = None
-            return future.result()
+            return self._settle()
         self._settle()
-        return self._measure(y)
+        plan = self._plan(y)
+        found = None if plan is None else _nearest_two(*plan[1:], self._nn_bound)
+        return self._record(y, plan, found)
 
-    def _measure(
-        self, y: np.ndarray, searching: Callable[[], object] | None = None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`measure`, calling ``searching`` just before the k-d tree query."""
+    def _settle(self) -> tuple[np.ndarray, np.ndarray]:
+        """Record a prefetched search (a trial step's that was not collected as well: the
+        search state has moved to its point)."""
+        if self._pending is None:
+            return np.zeros(0), np.zeros(0, dtype=np.int64)
+        y, plan, future = self._pending
+        self._pending = None
+        return self._record(y, plan, None if future is None else future.result())
+
+    def _plan(self, y: np.ndarray) -> tuple[np.ndarray, Any, np.ndarray, int] | None:
+        """Move the search state to ``y``; the target points to search again (a mask), the
+        k-d tree of ``y``, those points and how many neighbours to find, or ``None`` when none
+        needs it."""
         t = self.target_points
         if self._last is None or self._last.shape != y.shape:
             search = np.ones(t.shape[0], dtype=bool)
@@ -285,30 +291,23 @@ class BarycentreTerm:
             own = self._path[self._nearest] - self._path_mark
             search = own + (self._moved - self._mark) >= self._gap
         self._last = y.copy()
-        if searching is not None and not search.any():
-            searching()
-        if search.any():
-            # One thread (SciPy's default): a threaded query is joined from Python, and an
-            # interrupt (Ctrl-C, SIGTERM) during the join unwinds while its threads still read
-            # the tree, a crash at exit.
-            tree = cKDTree(y, leafsize=32)
-            points = t[search]
-            k = min(2, y.shape[0])
-            if searching is not None:
-                searching()
-            e, nearest = tree.query(points, k=k, distance_upper_bound=self._nn_bound)
-            e, nearest = e.reshape(-1, k), nearest.reshape(-1, k)
-            # The radius each point was searched within (a second neighbour beyond it is at
-            # least that far): the bound, or none for the points searched again unbounded.
-            bound = np.full(e.shape[0], self._nn_bound)
-            missed = ~np.isfinite(e[:, 0])
-            if missed.any():
-                e2, n2 = tree.query(points[missed], k=k)
-                e[missed], nearest[missed] = e2.reshape(-1, k), n2.reshape(-1, k)
-                bound[missed] = np.inf
+        if not search.any():
+            return None
+        return search, cKDTree(y, leafsize=32), t[search], min(2, y.shape[0])
+
+    def _record(
+        self,
+        y: np.ndarray,
+        plan: tuple[np.ndarray, Any, np.ndarray, int] | None,
+        found: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Keep what a search ``found`` for the points of ``plan``; the assignment at ``y``."""
+        if plan is not None and found is not None:
+            search = plan[0]
+            e, nearest, bound = found
             first = nearest[:, 0]
             second = np.full(e.shape[0], np.inf)
-            if k == 2:
+            if e.shape[1] == 2:
                 # Exact ties (symmetric shapes) go to the smaller index, whatever the tree's
                 # order; a second neighbour beyond the search radius is at least that far.
                 tied = e[:, 1] == e[:, 0]
@@ -319,7 +318,7 @@ class BarycentreTerm:
             self._mark[search] = self._moved
             self._path_mark[search] = self._path[first]
         nearest = self._nearest.copy()
-        distance = np.sqrt(((t - y[nearest]) ** 2).sum(axis=1))
+        distance = np.sqrt(((self.target_points - y[nearest]) ** 2).sum(axis=1))
         self._nn_bound = 2.0 * float(np.percentile(distance, 99)) if distance.size else np.inf
         return distance, nearest
 
@@ -378,6 +377,33 @@ class BarycentreTerm:
 
     def normal_share(self, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]:
         return _data_share(self.assembly, block)
+
+
+def _nearest_two(
+    tree: Any,
+    points: np.ndarray,
+    k: int,
+    bound: float,
+    searching: Callable[[], object] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``k`` nearest sites (two, or one for a tree of one site) of ``points`` in ``tree``,
+    searched within ``bound`` first and the points without a neighbour inside it again
+    unbounded; the radius each point was searched within. ``searching`` is called just before the query.
+
+    One thread (SciPy's default) per query: a threaded query is joined from Python, and an
+    interrupt (Ctrl-C, SIGTERM) during the join unwinds while its threads still read the tree.
+    """
+    if searching is not None:
+        searching()
+    e, nearest = tree.query(points, k=k, distance_upper_bound=bound)
+    e, nearest = e.reshape(-1, k), nearest.reshape(-1, k)
+    radius = np.full(e.shape[0], bound)
+    missed = ~np.isfinite(e[:, 0])
+    if missed.any():
+        e2, n2 = tree.query(points[missed], k=k)
+        e[missed], nearest[missed] = e2.reshape(-1, k), n2.reshape(-1, k)
+        radius[missed] = np.inf
+    return e, nearest, radius
 
 
 def _stencils() -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
