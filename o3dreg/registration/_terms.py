@@ -28,6 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from .._geometry import row_norms
 from ._assembly import NormalAssembly, symmetric_outer
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
@@ -283,7 +284,7 @@ class BarycentreTerm:
             self._gap = np.zeros(t.shape[0])
             self._nearest = np.zeros(t.shape[0], dtype=np.int64)
         else:
-            step = np.sqrt(((y - self._last) ** 2).sum(axis=1))
+            step = row_norms(y - self._last)
             self._moved += float(step.max())
             self._path += step
             # The nearest point has come at most its own path nearer or farther, any other at
@@ -318,7 +319,7 @@ class BarycentreTerm:
             self._mark[search] = self._moved
             self._path_mark[search] = self._path[first]
         nearest = self._nearest.copy()
-        distance = np.sqrt(((self.target_points - y[nearest]) ** 2).sum(axis=1))
+        distance = row_norms(self.target_points - y[nearest])
         self._nn_bound = 2.0 * float(np.percentile(distance, 99)) if distance.size else np.inf
         return distance, nearest
 

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .._geometry import apply_transformation, bounds, face_doubled_areas
+from .._geometry import apply_transformation, bounds
 from .._validation import as_mesh_arrays
 from ..mesh.cleaning import mesh_components
 from .distance import SurfaceDistanceQuery
@@ -195,11 +195,15 @@ def moments(vertices: np.ndarray, faces: np.ndarray) -> Moments:
         return 0.0, None
     cols = [np.ascontiguousarray(vertices[:, i]) for i in range(3)]
     area, first, second = 0.0, np.zeros(3), np.zeros(3)
-    # In blocks of triangles: a million-triangle target needs no (m,) temporaries.
+    # In blocks of triangles: a million-triangle target needs no (m,) temporaries. Each corner
+    # coordinate is gathered once, for the areas and the moments both.
     for start in range(0, faces.shape[0], MOMENTS_BLOCK):
         block = faces[start : start + MOMENTS_BLOCK]
         a, b, c = ([col[block[:, k]] for col in cols] for k in range(3))
-        areas = 0.5 * face_doubled_areas(vertices, block)
+        u = [bi - ai for ai, bi in zip(a, b)]
+        w = [ci - ai for ai, ci in zip(a, c)]
+        cross = [u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]]
+        areas = 0.5 * np.sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2])
         area += float(areas.sum())
         for i in range(3):
             s = a[i] + b[i] + c[i]
