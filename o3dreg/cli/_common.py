@@ -6,6 +6,7 @@ import argparse
 import concurrent.futures as cf
 import contextlib
 import math
+import multiprocessing
 import os
 import signal
 import sys
@@ -187,12 +188,14 @@ def process_pool(jobs: int) -> Iterator[cf.ProcessPoolExecutor | None]:
     if jobs <= 1:
         yield None
         return
+    # The pool's workers are the child processes started after it (it has no public handle).
+    before = set(multiprocessing.active_children())
     pool = cf.ProcessPoolExecutor(jobs, initializer=_die_with_parent)
     try:
         yield pool
     except BaseException:
         # shutdown(wait=True) would wait for every running registration: end them now.
-        workers = list(getattr(pool, "_processes", {}).values())  # no public handle
+        workers = [p for p in multiprocessing.active_children() if p not in before]
         pool.shutdown(wait=False, cancel_futures=True)
         for worker in workers:
             worker.terminate()

@@ -52,3 +52,34 @@ def test_workers_end_when_the_command_is_killed(tmp_path):
     while any(_alive(p) for p in workers) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not any(_alive(p) for p in workers)
+
+
+def test_workers_busy_at_an_interrupt_are_ended_not_waited_for(tmp_path):
+    # An exception in the block (Ctrl-C raises KeyboardInterrupt there) ends the running workers
+    # at once: the command must not wait a minute for two 60 s tasks.
+    code = textwrap.dedent(
+        """
+        import os, sys, time
+        from o3dreg.cli._common import process_pool
+        try:
+            with process_pool(2) as pool:
+                pids = {f.result() for f in [pool.submit(os.getpid) for _ in range(8)]}
+                busy = [pool.submit(time.sleep, 60) for _ in range(2)]
+                print(" ".join(map(str, sorted(pids))), flush=True)
+                time.sleep(0.5)
+                raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            print("interrupted", flush=True)
+        """
+    )
+    start = time.monotonic()
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=50,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )  # fmt: skip
+    lines = out.stdout.split("\n")
+    workers = [int(p) for p in lines[0].split()]
+    assert lines[1] == "interrupted", out.stderr
+    # Terminated workers end in well under the tasks' 60 s (the interpreter's start included).
+    assert time.monotonic() - start < 30
+    assert workers and not any(_alive(p) for p in workers)
