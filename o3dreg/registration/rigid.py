@@ -545,29 +545,35 @@ def _check_sizes(covs: np.ndarray, covt: np.ndarray) -> None:
         )
 
 
-#: Open3D on one thread while any rigid step runs (``with _single_thread():``): its ICP sums over
-#: threads in no fixed order, so two runs on the same input could differ in the last bits and,
-#: through the candidate ranking, pick different poses. The thread count is process-wide, so
-#: overlapping rigid steps (nested, or in two threads) share one hold: the first to enter saves
-#: the caller's count and the last to leave restores it.
-_open3d_threads_lock = threading.Lock()
-_open3d_threads_held = [0, 0]  # [holders, the caller's count]
+class _SingleThreadHold:
+    """Open3D on one thread while any rigid step runs (``with _single_thread():``): its ICP sums
+    over threads in no fixed order, so two runs on the same input could differ in the last bits
+    and, through the candidate ranking, pick different poses. The thread count is process-wide,
+    so overlapping rigid steps (nested, or in two threads) share one hold: the first to enter
+    saves the caller's count and the last to leave restores it."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._holders = 0
+        self._callers_count = 0
+
+    @contextmanager
+    def __call__(self) -> Iterator[None]:
+        with self._lock:
+            if self._holders == 0:
+                self._callers_count = o3d.utility.get_max_threads()
+                o3d.utility.set_max_threads(1)
+            self._holders += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._holders -= 1
+                if self._holders == 0:
+                    o3d.utility.set_max_threads(self._callers_count)
 
 
-@contextmanager
-def _single_thread() -> Iterator[None]:
-    with _open3d_threads_lock:
-        if _open3d_threads_held[0] == 0:
-            _open3d_threads_held[1] = o3d.utility.get_max_threads()
-            o3d.utility.set_max_threads(1)
-        _open3d_threads_held[0] += 1
-    try:
-        yield
-    finally:
-        with _open3d_threads_lock:
-            _open3d_threads_held[0] -= 1
-            if _open3d_threads_held[0] == 0:
-                o3d.utility.set_max_threads(_open3d_threads_held[1])
+_single_thread = _SingleThreadHold()
 
 
 class _CandidateSearch:
