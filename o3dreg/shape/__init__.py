@@ -1,7 +1,7 @@
 """Stage 3: semilandmark meshes to shape models (Procrustes, sliding, PCA, fitting, quality)."""
 
 from .build import build_shape_model
-from .fit import ModelFit, fit_shape_model
+from .fit import ModelFit, assess_model_fit, fit_shape_model
 from .landmark_transfer import (
     LandmarkPrediction,
     TemplateLandmarks,
@@ -26,6 +26,7 @@ __all__ = [
     "ShapeProjection",
     "SlidingResult",
     "TemplateLandmarks",
+    "assess_model_fit",
     "build_shape_model",
     "compactness",
     "fit_shape_model",
