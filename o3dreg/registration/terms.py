@@ -8,8 +8,9 @@ share of the normal equations) from what the level offers (:class:`TermContext`)
 problem (``o3dreg.registration._cost``) sums the bound terms and the level's regulariser
 (:attr:`~o3dreg.ElasticLevel.regularization`).
 
-A new term is one class here (a subclass of :class:`DistanceTerm` with ``bind``, and its level
-class in ``_terms``) plus one entry in the contract tests (tests/registration/test_terms.py);
+A new term is one class here (a subclass of :class:`DistanceTerm` whose ``bind`` returns a
+``PullTerm`` of ``_terms`` when the term pulls points towards points, or its own level class
+there) plus one entry in the contract tests (tests/registration/test_terms.py);
 :meth:`DistanceEstimation.compose <o3dreg.DistanceEstimation.compose>` takes it as it is.
 """
 
@@ -139,15 +140,17 @@ class Barycentre(DistanceTerm):
         weight = self.weight * context.symmetric_scale
         if weight <= 0:
             return None
-        budget = self.target_points_per_source_point
         offsets = None
         if self.correction:
             if context.voronoi_offsets is None:
-                raise ValueError("`correction` needs the level's Voronoi offsets, not offered")
+                raise ValueError(
+                    "`correction=True` needs the Voronoi offsets the level did not offer "
+                    "(TermContext.voronoi_offsets)"
+                )
             offsets = context.voronoi_offsets()
         return BarycentreTerm(
             context.assembly,
-            context.target_sample(budget),
+            context.target_sample(self.target_points_per_source_point),
             weight,
             offsets,
             counted=self.weighting == "count",

@@ -227,6 +227,19 @@ def test_the_estimation_holds_the_terms_it_is_given():
         DistanceEstimation(more_terms=closest)
 
 
+def test_a_term_says_what_the_level_does_not_offer(level):
+    # A level posed without the template's Voronoi offsets cannot correct the barycentres.
+    with pytest.raises(ValueError, match="`correction=True`"):
+        problem_of(level, [Barycentre(correction=True)], "plain")
+    # A term with no rows at a level (weight times the level's symmetric_scale is 0) is left out.
+    points, target, lattice, _ = level
+    off = level_problem(
+        points, target, lattice, terms=[PointToSurface(), Barycentre()], symmetric_scale=0.0
+    )
+    assert [t.name for t in off.terms] == ["point-to-surface", "regulariser"]
+    assert not off.reassigns
+
+
 @pytest.mark.parametrize("loss", ["linear", "huber", "cauchy", "tukey"])
 def test_kernel_weight_is_the_derivative_of_its_loss_over_r(loss):
     # w(r) = rho'(r) / r: integrate w(r) r numerically and compare with the closed-form rho.
