@@ -115,8 +115,9 @@ class LevelProblem:
     target : SurfaceDistanceQuery
         The target surface.
     terms : sequence of DistanceTerm
-        The distance terms, bound to the level (see :class:`~o3dreg.registration.terms.
-        TermContext`); a term whose ``bind`` gives ``None`` has no rows here.
+        The distance terms, each bound to the level with what it offers (``TermContext`` of
+        :mod:`o3dreg.registration.terms`); a term whose ``bind`` gives ``None`` has no rows
+        here.
     regularization : float
         The regulariser's ``lambda``.
     energy : {'bending', 'membrane'}
