@@ -21,7 +21,7 @@ from pydicom.dataset import FileDataset, FileMetaDataset
 from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 from scipy.spatial.transform import Rotation
 
-from o3dreg import ElasticLevel
+from o3dreg import Barycentre, ElasticLevel, PointToSurface
 from o3dreg.registration._cost import LevelProblem
 from o3dreg.registration.distance import SurfaceDistanceQuery
 from o3dreg.registration.lattice import TrilinearLattice
@@ -84,20 +84,26 @@ def level_problem(
     symmetric_weight: float = 1.0,
     regularization: float = 0.3,
     energy: str = "bending",
+    terms: Any = None,
     **options: Any,
 ) -> LevelProblem:
     """One level's problem from the identity: every point free (active), no earlier displacement,
-    the whole target as its own samples for the symmetric term; ``options`` as LevelProblem's."""
+    the whole target as the barycentre term's points; ``terms`` default point-to-surface and a
+    barycentre term of ``symmetric_weight`` with uniform rows; ``options`` as LevelProblem's."""
+    if terms is None:
+        terms = [PointToSurface()]
+        if symmetric_weight > 0:
+            terms.append(Barycentre(symmetric_weight, weighting="uniform"))
     return LevelProblem(
         points=points,
         previous=np.zeros_like(points),
         lattice=lattice,
         active=np.ones(points.shape[0], dtype=bool),
         target=SurfaceDistanceQuery(*target),
-        target_points=target[0],
-        symmetric_weight=symmetric_weight,
+        terms=terms,
         regularization=regularization,
         energy=energy,
+        target_sample=lambda per_point: target[0],
         **options,
     )
 

@@ -231,7 +231,11 @@ def _canonical(value: Any) -> Any:
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {
             "type": type(value).__name__,
-            **{f.name: _canonical(getattr(value, f.name)) for f in dataclasses.fields(value)},
+            **{
+                f.name: _canonical(getattr(value, f.name))
+                for f in dataclasses.fields(value)
+                if not (f.metadata.get("keyed_when_set") and getattr(value, f.name) == f.default)
+            },
         }
     if isinstance(value, np.ndarray):
         return {"array": _digest(value)}

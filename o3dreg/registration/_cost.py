@@ -1,60 +1,57 @@
 """The cost of one level, eq. (3) of Berar et al. (2005), with its analytic Jacobian: the sum of
-the residual terms of ``_terms`` weighted by the kernels and checkers of ``_robust``.
+the distance terms a :class:`~o3dreg.DistanceEstimation` holds (bound to the level, ``_terms``)
+and the level's regulariser, weighted by the loss and the checkers.
 
 Unknowns ``u`` are the displacements of the level's free lattice nodes, node-major
 (``[u_0x, u_0y, u_0z, u_1x, ...]``). The template points ``x`` (rigidly aligned) are fixed, so the
 moved points ``y = x + prev(x) + W u`` are linear in ``u`` with the constant sparse matrix ``W`` of
-trilinear weights (8 nodes per point). Residual blocks:
+trilinear weights (8 nodes per point). Every evaluation measures the point-to-surface
+correspondences of the moved points once (AABB tree): the point-to-surface term, the weights,
+the checkers and the level's report read them. A term with correspondences of its own (the
+barycentre term: the nearest template point of every target point) measures them too, and
+trial steps hold them (:meth:`LevelProblem.evaluate`).
 
-(a) ``d(y_i, S)`` for every template vertex: point-to-surface distance to the target (AABB tree);
-    its derivative is the unit vector from the closest point (point-to-plane on the surface);
-(b) ``sqrt(w_s) (y_i - b_i)`` for every template vertex that is the nearest template vertex of at
-    least one target vertex, ``b_i`` the barycentre of those target vertices (re-assigned at every
-    evaluation, held fixed in the Jacobian as an ICP step does);
-(c) ``sqrt(lambda N / E) (D u)`` over the ``E`` finite-difference stencils of the lattice that
-    touch a free node: second differences (thin-plate bending energy, free for affine motion) or
-    first differences (membrane energy). Fixed nodes keep a zero increment.
-
-Robustness enters as per-row weights, recomputed at every evaluation and held fixed in
-the Jacobian (iteratively reweighted least squares inside Levenberg-Marquardt): block (a) becomes
-``sqrt(w_i) d_i`` with Jacobian ``sqrt(w_i) grad_i (x) W_i``, where ``w_i`` is the robust-loss
-weight of ``d_i`` (see :class:`~o3dreg.DistanceEstimation`) times 0/1 masks (closest point beyond
-the target's open boundary, incompatible normals, distance beyond ``max_distance_factor``
-scales). Block (b) averages the target vertices with their own robust weights ``v_j`` (of the
-distance to their nearest template vertex) and scales row ``i`` by
-``sqrt(w_s * mean_j v_j) * m_i`` with ``m_i`` the 0/1 support mask of template vertex ``i``: a
-template vertex with no data of its own gets no barycentre row, so data near a cut cannot pull
-the unsupported part of the template into the covered part.
+Robustness enters as per-row weights, recomputed at every accepted point and held fixed in
+the Jacobian (iteratively reweighted least squares inside Levenberg-Marquardt): the
+point-to-surface rows become ``sqrt(w_i) d_i`` with Jacobian ``sqrt(w_i) grad_i (x) W_i``, where
+``w_i`` is the robust-loss weight of ``d_i`` (see :class:`~o3dreg.DistanceEstimation`) times the
+0/1 masks of the checkers (closest point beyond the target's open boundary, incompatible
+normals, distance beyond ``max_distance_factor`` scales). A term's own correspondences get
+weights of their own (:meth:`~o3dreg.registration._terms.DistanceTermAtLevel.own_weights`,
+in a scale of their own); the masks ``m_i`` of the template points are offered to every term
+(the barycentre term gives a template point with no data of its own no row, so data near a cut
+cannot pull the unsupported part of the template into the covered part).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
 from .._geometry import det3
 from ..mesh.distinct import distinct
 from ._assembly import NormalAssembly
 from ._robust import CorrespondenceMask, robust_scale, support
 from ._terms import (
-    BarycentreTerm,
+    DistanceTermAtLevel,
     Geometry,
-    PointToSurfaceTerm,
     RegulariserTerm,
     ResidualTerm,
+    RobustStart,
     TermBlock,
+    TermState,
     Weights,
 )
-from .checkers import CheckerContext, CorrespondenceChecker
+from .checkers import CheckerContext, CorrespondenceChecker, bound_masks
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
 from .losses import L2Loss, RobustLoss
+from .terms import DistanceTerm, TermContext
 
 __all__ = ["SCALE_FLOOR", "Evaluation", "LevelProblem", "bound_masks"]
 
@@ -72,19 +69,22 @@ class Evaluation:
 
     u: np.ndarray
     cost: float
-    cost_distance: float
-    cost_symmetric: float
-    cost_regularization: float
     distances: np.ndarray
     moved: np.ndarray
     weights: np.ndarray | None = None
     support: np.ndarray | None = None
-    target_weights: np.ndarray | None = None
+    #: Per distance term, the robust weights of its own correspondences.
+    own_weights: tuple[np.ndarray | None, ...] = ()
     geometry: Geometry | None = None
     terms: tuple[TermBlock, ...] = ()
+    #: The names of the terms, in the order of :attr:`terms`.
+    names: tuple[str, ...] = ()
+    #: Whether the terms' own correspondences are those of an earlier point (a trial step).
+    held: bool = False
 
-    #: Whether the barycentre term's assignment is that of an earlier point (a trial step).
-    held_assignment: bool = False
+    def cost_of(self, name: str) -> float:
+        """The cost of the terms called ``name`` (0 when there is none)."""
+        return sum((b.cost for b, n in zip(self.terms, self.names) if n == name), 0.0)
 
     @property
     def residuals(self) -> np.ndarray:
@@ -100,8 +100,8 @@ class Evaluation:
 class LevelProblem:
     """Residuals and Jacobian of one lattice level for a fixed set of template points.
 
-    The cost is the sum of :attr:`terms` (point-to-surface, barycentre when the symmetric
-    weight is positive, regulariser), in that order in the residual vector.
+    The cost is the sum of :attr:`terms`: the distance terms bound to the level, in the order
+    given, then the regulariser; the residual vector follows that order.
 
     Parameters
     ----------
@@ -115,14 +115,25 @@ class LevelProblem:
         Points whose cells are refined; the nodes of those cells are the unknowns.
     target : SurfaceDistanceQuery
         The target surface.
-    target_points : (k, 3) ndarray or None
-        Target vertices for the symmetric term; ``None`` disables it.
-    symmetric_weight, regularization : float
-        The barycentre term's weight at this level; the regulariser's ``lambda``.
+    terms : sequence of DistanceTerm
+        The distance terms, each bound to the level with what it offers (``TermContext`` of
+        :mod:`o3dreg.registration.terms`); a term whose ``bind`` gives ``None`` has no rows
+        here.
+    regularization : float
+        The regulariser's ``lambda``.
     energy : {'bending', 'membrane'}
         The regulariser's finite differences (see :class:`~o3dreg.ElasticLevel`).
+    target_sample : callable, optional
+        ``target_sample(per_point)``: target vertices for the terms that measure from the
+        target (default all vertices of ``target``).
+    indices : (n,) int ndarray, optional
+        The numbers of ``points`` among the template's vertices (default ``0 .. n-1``).
+    symmetric_scale : float
+        The level's :attr:`~o3dreg.ElasticLevel.symmetric_scale`.
+    voronoi_offsets : callable, optional
+        The barycentre correction's offsets (see :class:`~o3dreg.Barycentre`).
     loss : RobustLoss, optional
-        The robust loss of both distance terms (default plain least squares).
+        The robust loss of every distance term (default plain least squares).
     checkers : sequence of CorrespondenceChecker
         Bound to masks for this level: before the robust scales are estimated, or after them
         for those measured in scales (``needs_scale``).
@@ -134,14 +145,10 @@ class LevelProblem:
         Template normals turned to the target's orientation, for the normal-angle checker.
     prior : LatticeDeformation or None
         The coarser levels' map, whose Jacobian the folding guard adds to this level's.
-    barycentre_offsets : (n, 3) ndarray or None
-        The barycentre correction's offsets (see :class:`~o3dreg.Barycentre`).
-    barycentre_counted : bool
-        Weigh each barycentre row by the target points it stands for (see
-        :class:`~o3dreg.Barycentre`'s ``weighting``).
     pool : Executor or None
-        One worker thread for the barycentre term's k-d tree queries, which then run while the
-        point-to-surface query of the same points runs (``None``: one after the other).
+        One worker thread on which the distance terms find their own correspondences (the
+        barycentre term's k-d tree queries) while the point-to-surface query of the same
+        points runs (``None``: one after the other).
     """
 
     def __init__(
@@ -151,19 +158,20 @@ class LevelProblem:
         lattice: TrilinearLattice,
         active: np.ndarray,
         target: SurfaceDistanceQuery,
-        target_points: np.ndarray | None,
-        symmetric_weight: float,
+        terms: Sequence[DistanceTerm],
         regularization: float,
         energy: str = "bending",
         *,
+        target_sample: Callable[[float], np.ndarray] | None = None,
+        indices: np.ndarray | None = None,
+        symmetric_scale: float = 1.0,
+        voronoi_offsets: Callable[[], np.ndarray] | None = None,
         loss: RobustLoss | None = None,
         checkers: Sequence[CorrespondenceChecker] = (),
         target_has_boundary: bool = True,
         min_jacobian_determinant: float | None = None,
         normals: np.ndarray | None = None,
         prior: Any = None,
-        barycentre_offsets: np.ndarray | None = None,
-        barycentre_counted: bool = False,
         pool: Executor | None = None,
     ) -> None:
         self.lattice = lattice
@@ -173,7 +181,6 @@ class LevelProblem:
         self.base = points + previous
         self._points = points
         self.target = target
-        self.target_points = target_points if symmetric_weight > 0 else None
         n = points.shape[0]
         nodes, weights = lattice.weights(points)
         free_nodes = distinct(nodes[active], lattice.number_of_nodes)
@@ -193,22 +200,18 @@ class LevelProblem:
             self.regulariser.node_gram,
             cells=nodes[:, 0],
         )
-        self.surface = PointToSurfaceTerm(self.assembly, target)
-        self.barycentre = (
-            None
-            if self.target_points is None
-            else BarycentreTerm(
-                self.assembly,
-                self.target_points,
-                symmetric_weight,
-                barycentre_offsets,
-                barycentre_counted,
-            )
+        offered = TermContext(
+            self.assembly,
+            self.base,
+            np.arange(n) if indices is None else indices,
+            target,
+            target_sample or (lambda per_point: target.vertices),
+            symmetric_scale,
+            voronoi_offsets,
         )
-        self.terms: list[ResidualTerm] = [self.surface]
-        if self.barycentre is not None:
-            self.terms.append(self.barycentre)
-        self.terms.append(self.regulariser)
+        bound = (term.bind(offered) for term in terms)
+        self.distance_terms: list[DistanceTermAtLevel] = [t for t in bound if t is not None]
+        self.terms: list[ResidualTerm] = [*self.distance_terms, self.regulariser]
         context = CheckerContext(target, target_has_boundary, normals)
         # The masks of the checkers, in the order they are combined; those measured in robust
         # scales are bound once the scales are known.
@@ -217,38 +220,33 @@ class LevelProblem:
         )
         scaled = [c for c in checkers if c.needs_scale]
         self._robust = not isinstance(self.loss, L2Loss) or bool(scaled)
-        self.sigma = self.sigma_symmetric = 1.0
-        # The closest points (and barycentre assignment) at the level start, shared by the scales
-        # and the first evaluation.
+        self.sigma = 1.0
+        # The closest points at the level start, shared by the scales and the first evaluation.
         self._start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._start_assignment: tuple[np.ndarray, np.ndarray] | None = None
         if self._robust:
-            self._estimate_scales(lattice)
+            self._estimate_scales(lattice, scaled, context)
         self.checkers += bound_masks(scaled, replace(context, sigma=self.sigma))
-        # The scaled checkers also judge the barycentre term's target -> template distances.
-        self.target_checkers = bound_masks(scaled, replace(context, sigma=self.sigma_symmetric))
         self._fold = None
         if min_jacobian_determinant is not None and self.number_of_unknowns:
             self._fold = self._fold_samples(prior, active)
 
-    def _estimate_scales(self, lattice: TrilinearLattice) -> None:
-        """The robust scales ``sigma`` of both distance terms from the data at the level start
-        (``u = 0``), over the correspondences the other checkers accept (the distance checker
-        itself is measured in these scales)."""
+    def _estimate_scales(
+        self,
+        lattice: TrilinearLattice,
+        scaled: list[CorrespondenceChecker],
+        context: CheckerContext,
+    ) -> None:
+        """The robust scale ``sigma`` of the point-to-surface distances from the data at the
+        level start (``u = 0``), over the correspondences the other checkers accept (the
+        distance checker itself is measured in this scale); then each distance term's own."""
         floor = SCALE_FLOOR * float(lattice.cell_size.min())
-        self._prefetch(self.base)
+        self._prefetch(self.base)  # collected by the terms' start
         self._start = dist, face, closest = self.target.closest(self.base)
         keep = support(self.checkers, self.base, dist, face, closest)
         self.sigma = self.loss.scale or robust_scale(dist[keep], floor)
-        if self.barycentre is not None:
-            # The first evaluation's assignment; the scale is measured to the supported points
-            # only, whose nearest is the same wherever the nearest of all is supported.
-            self._start_assignment = e, nearest = self.barycentre.measure(self.base)
-            lost = ~keep[nearest] if keep.any() else np.zeros(e.shape, dtype=bool)
-            if lost.any():
-                e = e.copy()
-                e[lost], _ = cKDTree(self.base[keep]).query(self.barycentre.target_points[lost])
-            self.sigma_symmetric = self.loss.scale or robust_scale(e, floor)
+        start = RobustStart(self.base, keep, self.loss, floor, scaled, context)
+        for term in self.distance_terms:
+            term.start(start)
 
     # -- folding ----------------------------------------------------------------------------------
     def _fold_samples(
@@ -277,10 +275,10 @@ class LevelProblem:
 
     @property
     def reassigns(self) -> bool:
-        """Whether the cost re-assigns target points to template points (the barycentre term):
+        """Whether a term re-assigns correspondences at every evaluation (the barycentre term):
         Levenberg-Marquardt's accepted steps are then a linearly converging fixed-point
         iteration (see ``_solvers._extrapolation``)."""
-        return self.barycentre is not None
+        return any(term.reassigns for term in self.distance_terms)
 
     @property
     def guards_folding(self) -> bool:
@@ -314,17 +312,17 @@ class LevelProblem:
         """Residuals (and Jacobian blocks, built on demand) at ``u``.
 
         With ``weights_of``, the evaluation of a trial step from that earlier point: its robust
-        weights and 0/1 masks are those of ``weights_of``, and so is the barycentre term's
-        assignment of target points to template points. Levenberg-Marquardt compares a trial
-        with the current point under one linearisation (one weighted least-squares problem, as
-        in iteratively reweighted least squares and in ICP, whose assignments are fixed while
-        the transformation is solved for): measured under its own weights, a step that brings
-        more template points into support would count their distances as a cost increase and
-        be rejected although it moved towards the data, and a changing assignment makes the
-        quadratic model's predictions meaningless. :meth:`reweighted` then gives the accepted
-        point its own weights and assignment.
+        weights and 0/1 masks are those of ``weights_of``, and so are the terms' own
+        correspondences (the barycentre term's assignment of target points to template points).
+        Levenberg-Marquardt compares a trial with the current point under one linearisation
+        (one weighted least-squares problem, as in iteratively reweighted least squares and in
+        ICP, whose assignments are fixed while the transformation is solved for): measured under
+        its own weights, a step that brings more template points into support would count their
+        distances as a cost increase and be rejected although it moved towards the data, and a
+        changing assignment makes the quadratic model's predictions meaningless.
+        :meth:`reweighted` then gives the accepted point its own weights and correspondences.
 
-        With ``reassign`` (and ``weights_of``), the barycentre term's assignment is that of ``u``
+        With ``reassign`` (and ``weights_of``), the terms' own correspondences are those of ``u``
         itself while the weights and masks stay those of ``weights_of``: a point reached by
         extrapolating several steps (see ``_solvers``) is compared with the current one under
         the same weights (a jump cannot look better by pushing points into rejection), each
@@ -333,103 +331,87 @@ class LevelProblem:
         y = self.moved(u)
         at_start = not u.any()
         found = self._start if at_start else None
-        if not (at_start and self._start_assignment is not None):
-            # Needed now, or by :meth:`reweighted` if a trial step is accepted.
-            self._prefetch(y)
-        dist, closest, grad, face = self.surface.measure(y, found)
+        # The terms' own correspondences at y, needed now or by :meth:`reweighted` if a trial
+        # step is accepted, found while libigl answers.
+        self._prefetch(y, at_start)
+        dist, closest, grad, face = self.target.gradient(y, return_faces=True, found=found)
         if weights_of is None:
-            e = nearest = None
-            if self.barycentre is not None:
-                if at_start and self._start_assignment is not None:
-                    e, nearest = self._start_assignment
-                else:
-                    e, nearest = self.barycentre.measure(y)
-            geometry = Geometry(u, y, dist, closest, grad, face, e, nearest)
+            own = tuple(term.correspond(y, at_start) for term in self.distance_terms)
+            geometry = Geometry(u, y, dist, closest, grad, face, own)
             return self._assemble(geometry, self._weights(geometry))
         assert weights_of.geometry is not None
-        held = weights_of.geometry
-        e, nearest = held.target_distances, held.nearest
-        if reassign and self.barycentre is not None:
-            e, nearest = self.barycentre.measure(y)
-        geometry = Geometry(u, y, dist, closest, grad, face, e, nearest)
-        weights = Weights(weights_of.weights, weights_of.support, weights_of.target_weights)
-        targets = None
-        if self.barycentre is not None and not reassign:
-            targets = weights_of.terms[1].targets
-        return self._assemble(geometry, weights, targets)
+        own = weights_of.geometry.own
+        if reassign:
+            own = tuple(term.correspond(y) for term in self.distance_terms)
+        geometry = Geometry(u, y, dist, closest, grad, face, own)
+        weights = Weights(weights_of.weights, weights_of.support, weights_of.own_weights)
+        held = None
+        if not reassign:
+            held = tuple(block.held for block in weights_of.terms[: len(self.distance_terms)])
+        return self._assemble(geometry, weights, held)
 
-    def _prefetch(self, y: np.ndarray) -> None:
-        """Start the barycentre term's assignment at ``y`` on the worker thread, if any."""
-        if self.barycentre is not None and self.pool is not None:
-            self.barycentre.prefetch(y, self.pool)
+    def _prefetch(self, y: np.ndarray, at_start: bool = False) -> None:
+        """Start the terms' own correspondences at ``y`` on the worker thread, if any."""
+        if self.pool is not None:
+            for term in self.distance_terms:
+                term.prefetch(y, self.pool, at_start)
 
     def reweighted(self, ev: Evaluation) -> Evaluation:
-        """``ev`` with the weights, masks and barycentre assignment of its own point (no new
+        """``ev`` with the weights, masks and own correspondences of its own point (no new
         point-to-surface query)."""
         g = ev.geometry
         assert g is not None
-        if ev.held_assignment and self.barycentre is not None:
-            e, nearest = self.barycentre.measure(g.moved)
-            g = Geometry(g.u, g.moved, g.distances, g.closest, g.gradients, g.faces, e, nearest)
+        if ev.held:
+            g = replace(g, own=tuple(term.correspond(g.moved) for term in self.distance_terms))
         return self._assemble(g, self._weights(g))
 
     def _weights(self, g: Geometry) -> Weights:
         """Per-point weights (robust kernel times the checkers' support), support masks and
-        per-target-point weights of the barycentre term at the geometry ``g``."""
+        each distance term's weights of its own correspondences at the geometry ``g``."""
+        unweighted: tuple[np.ndarray | None, ...] = (None,) * len(self.distance_terms)
         if not (self.checkers or self._robust):
-            return Weights()
+            return Weights(own=unweighted)
         mask = support(self.checkers, g.moved, g.distances, g.faces, g.closest)
         w = self.loss.weight(g.distances, self.sigma) * mask
-        v = None
-        if self._robust and g.target_distances is not None:
-            e = g.target_distances
-            v = self.loss.weight(e, self.sigma_symmetric)
-            for checker in self.target_checkers:
-                v = v * checker.check(g.moved, e, g.faces, g.closest)
-        return Weights(w, mask, v)
+        own = unweighted
+        if self._robust:
+            own = tuple(t.own_weights(g, f) for t, f in zip(self.distance_terms, g.own))
+        return Weights(w, mask, own)
 
-    def _assemble(
-        self,
-        g: Geometry,
-        w: Weights,
-        targets: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> Evaluation:
-        surface = self.surface.linearise(g, w)
-        regulariser = self.regulariser.linearise(g, w)
-        blocks: tuple[TermBlock, ...] = (surface, regulariser)
-        cost_sym = 0.0
-        barycentre = None
-        if self.barycentre is not None:
-            barycentre = self.barycentre.linearise(g, w, targets)
-            blocks = (surface, barycentre, regulariser)
-            cost_sym = barycentre.cost
-        cost_d = surface.cost
-        cost_r = regulariser.cost
+    def _assemble(self, g: Geometry, w: Weights, held: tuple[Any, ...] | None = None) -> Evaluation:
+        """The terms' blocks at ``g`` under ``w`` (``held``: per distance term, what the trial
+        step holds of the point it starts at)."""
+        blocks = []
+        for k, term in enumerate(self.distance_terms):
+            state = TermState(g.own[k], w.own[k], None if held is None else held[k])
+            blocks.append(term.linearise(g, w, state))
+        blocks.append(self.regulariser.linearise(g, w))
+        cost = 0.0
+        for block in blocks:
+            cost += block.cost
         return Evaluation(
             u=g.u,
-            cost=cost_d + cost_sym + cost_r,
-            cost_distance=cost_d,
-            cost_symmetric=cost_sym,
-            cost_regularization=cost_r,
+            cost=cost,
             distances=g.distances,
             moved=g.moved,
             weights=w.point,
             support=w.support,
-            target_weights=w.target,
+            own_weights=w.own,
             geometry=g,
-            terms=blocks,
-            held_assignment=targets is not None,
+            terms=tuple(blocks),
+            names=tuple(term.name for term in self.terms),
+            held=held is not None,
         )
 
     def normal_equations(self, ev: Evaluation) -> tuple[sp.bsr_matrix, np.ndarray]:
         """``J^T J`` and ``J^T r``, the sum of the terms' shares, assembled on the level's fixed
-        pattern (``_assembly``): the data terms' per-point metrics and right-hand sides are
+        pattern (``_assembly``): the distance terms' per-point metrics and right-hand sides are
         summed first, then scattered once."""
         n = ev.moved.shape[0]
         metric = np.zeros((n, 6))
         isotropic = None
         rhs = np.zeros((n, 3))
-        for block in ev.terms[:-1]:  # the data terms
+        for block in ev.terms[: len(self.distance_terms)]:
             assert block.rhs is not None
             if block.metric is not None:
                 metric += block.metric
@@ -441,11 +423,3 @@ class LevelProblem:
         assert regulariser is not None
         g = self.assembly.vector(rhs) + regulariser
         return A, g
-
-
-def bound_masks(
-    checkers: Sequence[CorrespondenceChecker], context: CheckerContext
-) -> list[CorrespondenceMask]:
-    """The masks of ``checkers`` at a level (those that reject something there)."""
-    masks = (checker.bind(context) for checker in checkers)
-    return [mask for mask in masks if mask is not None]

@@ -1,15 +1,22 @@
 """The residual terms of one level's cost, eq. (3) of Berar et al. (2005) plus the regulariser.
 
-Every term has the same contract: from what an evaluation measured (:class:`Geometry`) and the
-weights of the current linearisation (:class:`Weights`), :meth:`linearise` gives its residuals
-and what their Jacobian rows with respect to the level's unknowns ``u`` are made of (a
+Every term has the same contract (:class:`ResidualTerm`): from what an evaluation measured
+(:class:`Geometry`), the weights of the current linearisation (:class:`Weights`) and what the
+term has of its own there (:class:`TermState`), :meth:`linearise` gives its residuals and what
+their Jacobian rows with respect to the level's unknowns ``u`` are made of (a
 :class:`TermBlock`; the rows themselves are built on demand), and :meth:`normal_share` gives the
-term's share ``(J^T J, J^T r)`` of the normal equations. The data terms' shares go through
+term's share ``(J^T J, J^T r)`` of the normal equations. The distance terms' shares go through
 per-point 3x3 matrices on the level's fixed pattern (``_assembly``), never through ``J``. The
-level cost is the sum of the terms (:class:`~o3dreg.registration._cost.LevelProblem`). A new
-distance term is a class here with those two methods, built from its public value type in
-:mod:`o3dreg.registration.terms` (tests/registration/test_terms.py checks the contract for
-every term).
+level cost is the sum of the terms (:class:`~o3dreg.registration._cost.LevelProblem`).
+
+A distance term is a :class:`DistanceTermAtLevel`, made for one level by ``bind`` of its
+public value type (:mod:`o3dreg.registration.terms`). Besides the contract it may use hooks,
+whose defaults suit a term that reads only the shared point-to-surface geometry:
+:meth:`~DistanceTermAtLevel.correspond` (correspondences of its own, measured at every
+evaluation and held for the trial steps from it), :meth:`~DistanceTermAtLevel.start` and
+:meth:`~DistanceTermAtLevel.own_weights` (a robust scale and weights of those correspondences),
+and :attr:`~DistanceTermAtLevel.reassigns`. The barycentre term uses them all.
+tests/registration/test_terms.py checks the contract for every term.
 
 The moved points are ``y = base + W u`` with ``W`` the constant sparse trilinear weights of the
 free nodes (see ``_cost``).
@@ -18,11 +25,11 @@ free nodes (see ``_cost``).
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import scipy.sparse as sp
@@ -30,13 +37,20 @@ from scipy.spatial import cKDTree
 
 from .._geometry import row_norms
 from ._assembly import NormalAssembly, symmetric_outer
-from .distance import SurfaceDistanceQuery
+from ._robust import CorrespondenceMask, robust_scale
+from .checkers import CheckerContext, CorrespondenceChecker, bound_masks
 from .lattice import TrilinearLattice
+
+if TYPE_CHECKING:
+    from .losses import RobustLoss
 
 
 @dataclass
 class Geometry:
-    """What one evaluation measured at ``u``, before any weighting."""
+    """What one evaluation measured at ``u``, before any weighting: the shared point-to-surface
+    correspondences of the moved points, and what each distance term measured itself
+    (``own``, in the order of the terms; ``None`` for a term without correspondences of its
+    own)."""
 
     u: np.ndarray
     moved: np.ndarray
@@ -44,8 +58,7 @@ class Geometry:
     closest: np.ndarray
     gradients: np.ndarray
     faces: np.ndarray
-    target_distances: np.ndarray | None
-    nearest: np.ndarray | None
+    own: tuple[Any, ...] = ()
 
 
 @dataclass
@@ -53,12 +66,25 @@ class Weights:
     """The weights of one linearisation (``None`` where unweighted).
 
     ``point``: per template point, robust weight times support; ``support``: the 0/1 masks of
-    the correspondence checkers; ``target``: per target point of the barycentre term.
+    the correspondence checkers; ``own``: per distance term, the robust weights of its own
+    correspondences (the barycentre term: per target point).
     """
 
     point: np.ndarray | None = None
     support: np.ndarray | None = None
-    target: np.ndarray | None = None
+    own: tuple[np.ndarray | None, ...] = ()
+
+
+@dataclass(frozen=True)
+class TermState:
+    """What one distance term has of its own at an evaluation: its correspondences
+    (``found``, from :meth:`DistanceTermAtLevel.correspond`), their robust weights, and the
+    linearisation data held from the point a trial step starts at (``held``, its block's
+    :attr:`TermBlock.held`; ``None``: made from ``found``)."""
+
+    found: Any = None
+    weights: np.ndarray | None = None
+    held: Any = None
 
 
 @dataclass
@@ -67,11 +93,11 @@ class TermBlock:
     share are made of.
 
     ``jacobian`` is built on demand (Levenberg-Marquardt needs only the cost of a trial step,
-    and only the normal equations at accepted points). A data term's rows are ``W_i (x) v_i``
-    (point-to-surface, ``v_i`` a row vector) or ``s_i W_i (x) I_3`` (barycentre); its share of
-    ``J^T J`` is then ``sum_i (W_i^T W_i) (x) M_i`` with ``metric`` the 6 entries of every
-    ``M_i`` and ``isotropic`` a further ``c_i I``, its share of ``J^T r`` is ``sum_i W_i^T f_i``
-    with ``rhs`` the ``f_i`` (see ``_assembly``).
+    and only the normal equations at accepted points). A distance term's rows are
+    ``W_i (x) v_i`` (point-to-surface, ``v_i`` a row vector) or ``s_i W_i (x) I_3``
+    (barycentre); its share of ``J^T J`` is then ``sum_i (W_i^T W_i) (x) M_i`` with ``metric``
+    the 6 entries of every ``M_i`` and ``isotropic`` a further ``c_i I``, its share of
+    ``J^T r`` is ``sum_i W_i^T f_i`` with ``rhs`` the ``f_i`` (see ``_assembly``).
     """
 
     value: np.ndarray | Callable[[], np.ndarray] = field(repr=False)
@@ -81,8 +107,8 @@ class TermBlock:
     metric: np.ndarray | None = None
     isotropic: np.ndarray | None = None
     rhs: np.ndarray | None = None
-    #: The barycentre term's ``(b, s)`` of the assignment this block was made with.
-    targets: tuple[np.ndarray, np.ndarray] | None = None
+    #: What a trial step from this point holds of the term (the barycentre term: its ``(b, s)``).
+    held: Any = None
     #: ``J^T r`` of a term whose share does not go through per-point metrics (the regulariser).
     gradient: np.ndarray | None = None
 
@@ -107,58 +133,95 @@ class ResidualTerm(Protocol):
 
     name: str
 
-    def linearise(self, g: Geometry, w: Weights) -> TermBlock: ...
+    def linearise(self, g: Geometry, w: Weights, state: TermState) -> TermBlock: ...
 
     def normal_share(self, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]: ...
 
 
-def _data_share(assembly: NormalAssembly, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]:
-    """A data term's ``(J^T J, J^T r)`` from its per-point metric and right-hand side."""
-    assert block.rhs is not None
-    n = block.rhs.shape[0]
-    metric = block.metric if block.metric is not None else np.zeros((n, 6))
-    A = assembly.matrix(metric, block.isotropic, with_gram=False)
-    return A, assembly.vector(block.rhs)
+@dataclass(frozen=True)
+class RobustStart:
+    """What a level knows when it estimates its robust scales, at ``u = 0``.
 
-
-class PointToSurfaceTerm:
-    """(a) ``sqrt(w_i) d(y_i, S)`` for every template point: the distance to the target surface.
-
-    Its derivative is ``sqrt(w_i)`` times the unit vector from the closest point (point-to-plane
-    on the surface), so row ``i`` of ``J`` is ``W_i (x) v_i`` with ``v_i = sqrt(w_i) grad_i``;
-    its share of ``J^T J`` has ``M_i = v_i v_i^T``, of ``J^T r`` ``f_i = r_i v_i``.
+    Attributes
+    ----------
+    points : (n, 3) ndarray
+        The level's template points moved by the coarser levels.
+    keep : (n,) bool ndarray
+        Their point-to-surface correspondences that the checkers not measured in scales accept.
+    loss : RobustLoss
+        The loss of every distance term.
+    floor : float
+        The smallest robust scale of the level.
+    checkers : sequence of CorrespondenceChecker
+        The checkers measured in robust scales (``needs_scale``), to bind with a term's own.
+    context : CheckerContext
+        The level's checker context (without a scale).
     """
 
-    name = "point-to-surface"
+    points: np.ndarray
+    keep: np.ndarray
+    loss: RobustLoss
+    floor: float
+    checkers: Sequence[CorrespondenceChecker]
+    context: CheckerContext
 
-    def __init__(self, assembly: NormalAssembly, target: SurfaceDistanceQuery) -> None:
+
+class DistanceTermAtLevel:
+    """A distance term of one level: the :class:`ResidualTerm` contract (:meth:`linearise`,
+    :meth:`normal_share` through per-point metrics) and hooks whose defaults suit a term that
+    reads only the shared point-to-surface geometry.
+
+    Parameters
+    ----------
+    assembly : NormalAssembly
+        The level's trilinear weights ``W`` and normal-equation pattern.
+    """
+
+    name = "distance term"
+    #: Whether :meth:`correspond` re-assigns points at every evaluation: Levenberg-Marquardt's
+    #: accepted steps are then a linearly converging fixed-point iteration, which the solver
+    #: extrapolates (see ``_solvers._extrapolation``).
+    reassigns = False
+
+    def __init__(self, assembly: NormalAssembly) -> None:
         self.assembly = assembly
-        self.target = target
-        self.number_of_unknowns = 3 * assembly.W.shape[1]
 
-    def measure(
-        self, y: np.ndarray, found: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Distances, closest points, gradients and closest faces of the points ``y``
-        (``found``: ``target.closest(y)`` when the caller has it)."""
-        dist, closest, grad, face = self.target.gradient(y, return_faces=True, found=found)
-        return dist, closest, grad, face
+    @property
+    def number_of_unknowns(self) -> int:
+        return 3 * self.assembly.W.shape[1]
 
-    def linearise(self, g: Geometry, w: Weights) -> TermBlock:
-        dist, rows = g.distances, g.gradients
-        r = dist
-        if w.point is not None:
-            sw = np.sqrt(w.point)
-            r = sw * dist
-            rows = rows * sw[:, None]
-        return TermBlock(
-            r,
-            lambda: self._jacobian(rows),
-            metric=symmetric_outer(rows),
-            rhs=r[:, None] * rows,
-        )
+    def start(self, robust: RobustStart) -> None:
+        """Estimate what the robust weights of :meth:`own_weights` need (called once, at the
+        level start, when the level is robust)."""
 
-    def _jacobian(self, rows: np.ndarray) -> sp.csr_matrix:
+    def correspond(self, y: np.ndarray, at_start: bool = False) -> Any:
+        """The term's own correspondences at the moved points ``y`` (``at_start``: ``y`` is
+        the level's start), or ``None`` when it has none."""
+        return None
+
+    def prefetch(self, y: np.ndarray, pool: Executor, at_start: bool = False) -> None:
+        """Start finding :meth:`correspond`'s correspondences at ``y`` on ``pool`` (one worker
+        thread), while the level queries libigl for the same points; ``correspond`` of the
+        same array collects them. Nothing by default."""
+
+    def own_weights(self, g: Geometry, found: Any) -> np.ndarray | None:
+        """Robust weights of the correspondences ``found`` at ``g`` (``None``: unweighted)."""
+        return None
+
+    def linearise(self, g: Geometry, w: Weights, state: TermState) -> TermBlock:
+        raise NotImplementedError
+
+    def normal_share(self, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]:
+        """``(J^T J, J^T r)`` from the block's per-point metric and right-hand side."""
+        assert block.rhs is not None
+        n = block.rhs.shape[0]
+        metric = block.metric if block.metric is not None else np.zeros((n, 6))
+        A = self.assembly.matrix(metric, block.isotropic, with_gram=False)
+        return A, self.assembly.vector(block.rhs)
+
+    def point_rows(self, rows: np.ndarray) -> sp.csr_matrix:
+        """The Jacobian of one residual per point with derivative ``rows[i]`` (a row vector)
+        with respect to ``y_i``: row ``i`` is ``W_i (x) rows[i]``."""
         W = self.assembly.W
         n = rows.shape[0]
         return sp.csr_matrix(
@@ -170,11 +233,96 @@ class PointToSurfaceTerm:
             shape=(n, self.number_of_unknowns),
         )
 
-    def normal_share(self, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]:
-        return _data_share(self.assembly, block)
+    def isotropic_rows(self, scale: np.ndarray) -> sp.csr_matrix:
+        """The Jacobian of the residuals ``scale_i (y_i - c_i)`` (3 per point, ``c_i`` fixed):
+        rows ``scale_i W_i (x) I_3``."""
+        Wx = sp.kron(self.assembly.W, sp.identity(3), format="csr")  # (3n, 3m)
+        return sp.diags(np.repeat(scale, 3), format="csr") @ Wx
 
 
-class BarycentreTerm:
+class PointToSurfaceTerm(DistanceTermAtLevel):
+    """(a) ``sqrt(w_i) d(y_i, S)`` for every template point: the distance to the target surface.
+
+    Its derivative is ``sqrt(w_i)`` times the unit vector from the closest point (point-to-plane
+    on the surface), so row ``i`` of ``J`` is ``W_i (x) v_i`` with ``v_i = sqrt(w_i) grad_i``;
+    its share of ``J^T J`` has ``M_i = v_i v_i^T``, of ``J^T r`` ``f_i = r_i v_i``. It reads
+    the point-to-surface geometry every evaluation measures (the weights, checkers and the
+    verdict need it too).
+    """
+
+    name = "point-to-surface"
+
+    def linearise(self, g: Geometry, w: Weights, state: TermState) -> TermBlock:
+        dist, rows = g.distances, g.gradients
+        r = dist
+        if w.point is not None:
+            sw = np.sqrt(w.point)
+            r = sw * dist
+            rows = rows * sw[:, None]
+        return TermBlock(
+            r,
+            lambda: self.point_rows(rows),
+            metric=symmetric_outer(rows),
+            rhs=r[:, None] * rows,
+        )
+
+
+class PullTerm(DistanceTermAtLevel):
+    """``s_i (y_i - c_i)`` for every point (3 residuals each): each moved point pulled towards
+    a point ``c_i`` of its own with the weight ``s_i^2``.
+
+    ``pulls(g, w, state) -> (c, s)`` gives them at an evaluation; they are held over the trial
+    steps from it (as ICP holds its pairs while it solves for the motion), so the rows are
+    ``s_i W_i (x) I_3`` and the share of ``J^T J`` is ``s_i^2 I`` per point. A point with
+    ``s_i = 0`` has zero rows. The barycentre term is one (its ``c_i`` the barycentres); so is
+    a term pulling given template points to given target points.
+
+    Parameters
+    ----------
+    assembly : NormalAssembly
+        The level's trilinear weights ``W`` and normal-equation pattern.
+    pulls : callable, optional
+        ``pulls(g, w, state) -> (c, s)``, ``(n, 3)`` and ``(n,)``; a subclass may override
+        :meth:`pulls` instead.
+    name : str
+        The term's name.
+    """
+
+    name = "pull"
+
+    def __init__(
+        self,
+        assembly: NormalAssembly,
+        pulls: Callable[[Geometry, Weights, TermState], tuple[np.ndarray, np.ndarray]]
+        | None = None,
+        name: str | None = None,
+    ) -> None:
+        super().__init__(assembly)
+        self._pulls = pulls
+        if name is not None:
+            self.name = name
+
+    def pulls(self, g: Geometry, w: Weights, state: TermState) -> tuple[np.ndarray, np.ndarray]:
+        """The points ``c`` and row scales ``s`` at ``g`` under ``w``."""
+        if self._pulls is None:
+            raise NotImplementedError("a PullTerm needs `pulls`")
+        return self._pulls(g, w, state)
+
+    def linearise(self, g: Geometry, w: Weights, state: TermState) -> TermBlock:
+        """The block at ``g``; with ``state.held``, the ``(c, s)`` of the point a trial step
+        starts at."""
+        c, s = state.held if state.held is not None else self.pulls(g, w, state)
+        r = s[:, None] * (g.moved - c)
+        return TermBlock(
+            r.ravel(),
+            lambda: self.isotropic_rows(s),
+            isotropic=s * s,
+            rhs=s[:, None] * r,
+            held=(c, s),
+        )
+
+
+class BarycentreTerm(PullTerm):
     """(b) ``s_i (y_i - b_i)`` for every template point: the target-to-template half of eq. (3).
 
     ``b_i`` is the barycentre of the target points whose nearest moved template point is ``i``
@@ -189,9 +337,14 @@ class BarycentreTerm:
     (possibly zero) row, so the residual vector keeps its length. With ``offsets``,
     ``b_i - offset_i`` replaces ``b_i`` (the template's own Voronoi centroid bias, see
     ``elastic._barycentre_offsets``). Its share of ``J^T J`` is ``s_i^2 I`` per point.
+
+    Its correspondences (:meth:`correspond`) are the nearest template point of every target
+    point and that distance ``e_j``; their robust weights ``v_j`` use a scale of their own and
+    the checkers measured in scales.
     """
 
     name = "barycentre"
+    reassigns = True
 
     def __init__(
         self,
@@ -201,11 +354,17 @@ class BarycentreTerm:
         offsets: np.ndarray | None = None,
         counted: bool = False,
     ) -> None:
-        self.assembly = assembly
+        super().__init__(assembly)
         self.target_points = target_points
         self.sqrt_ws = float(np.sqrt(weight))
         self.offsets = offsets
         self.counted = counted
+        # The robust scale of the distances e_j, the loss and the masks measured in it (set by
+        # :meth:`start`), and the level start's assignment when the scale measured it.
+        self.sigma = 1.0
+        self.loss: RobustLoss | None = None
+        self.masks: list[CorrespondenceMask] = []
+        self._start: tuple[np.ndarray, np.ndarray] | None = None
         self._nn_bound = np.inf
         # Search state of :meth:`measure`: the positions, nearest template point, gap between
         # the nearest and second-nearest distance at each target point's last search.
@@ -219,9 +378,10 @@ class BarycentreTerm:
         #: The array a :meth:`prefetch` searches at, its plan and the future of its search.
         self._pending: tuple[np.ndarray, Any, Future | None] | None = None
 
-    def prefetch(self, y: np.ndarray, pool: Executor) -> None:
+    def prefetch(self, y: np.ndarray, pool: Executor, at_start: bool = False) -> None:
         """Start the k-d tree search of :meth:`measure` at ``y`` on ``pool`` (one worker
-        thread), for a later ``measure(y)`` of the same array to collect.
+        thread), for a later ``measure(y)`` of the same array to collect (none at the level's
+        start when :meth:`start` measured it already).
 
         The k-d tree query releases the GIL and libigl's point-to-surface query, which the
         caller runs meanwhile, holds it: this returns once the worker is inside its query, so
@@ -229,6 +389,8 @@ class BarycentreTerm:
         and the points, which an interrupt of the caller cannot free under it); the search
         state is kept on the calling thread.
         """
+        if at_start and self._start is not None:
+            return
         self._settle()
         plan = self._plan(y)
         future = None
@@ -238,6 +400,35 @@ class BarycentreTerm:
             future.add_done_callback(lambda _: searching.set())
             searching.wait()
         self._pending = (y, plan, future)
+
+    def start(self, robust: RobustStart) -> None:
+        """The scale of the distances ``e_j`` over the target points, measured to the template
+        points whose point-to-surface correspondence is kept."""
+        base, keep = robust.points, robust.keep
+        # The first evaluation's assignment; the scale is measured to the supported points
+        # only, whose nearest is the same wherever the nearest of all is supported.
+        self._start = e, nearest = self.measure(base)
+        lost = ~keep[nearest] if keep.any() else np.zeros(e.shape, dtype=bool)
+        if lost.any():
+            e = e.copy()
+            e[lost], _ = cKDTree(base[keep]).query(self.target_points[lost])
+        self.loss = robust.loss
+        self.sigma = robust.loss.scale or robust_scale(e, robust.floor)
+        # The checkers measured in scales also judge the distances e_j, in their own scale.
+        self.masks = bound_masks(robust.checkers, replace(robust.context, sigma=self.sigma))
+
+    def correspond(self, y: np.ndarray, at_start: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        if at_start and self._start is not None:
+            return self._start
+        return self.measure(y)
+
+    def own_weights(self, g: Geometry, found: Any) -> np.ndarray | None:
+        assert self.loss is not None
+        e = found[0]
+        v = self.loss.weight(e, self.sigma)
+        for mask in self.masks:
+            v = v * mask.check(g.moved, e, g.faces, g.closest)
+        return v
 
     def measure(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest moved template point of every target point (exact), and its distance.
@@ -323,14 +514,19 @@ class BarycentreTerm:
         self._nn_bound = 2.0 * float(np.percentile(distance, 99)) if distance.size else np.inf
         return distance, nearest
 
-    def targets(self, g: Geometry, w: Weights) -> tuple[np.ndarray, np.ndarray]:
-        """The barycentres ``b_i`` (offsets applied) and row scales ``s_i`` of an assignment."""
-        assert g.nearest is not None
-        nearest = g.nearest
-        n = g.moved.shape[0]
+    def targets(
+        self,
+        number_of_points: int,
+        nearest: np.ndarray,
+        v: np.ndarray | None = None,
+        support: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The barycentres ``b_i`` (offsets applied) and row scales ``s_i`` of the assignment
+        ``nearest`` (of every target point) with the target points' robust weights ``v`` and the
+        template points' ``support``."""
+        n = number_of_points
         counts = np.bincount(nearest, minlength=n)
-        if w.target is not None:
-            v = w.target
+        if v is not None:
             vsum = np.bincount(nearest, v, minlength=n)
             sums = np.stack(
                 [np.bincount(nearest, v * self.target_points[:, c], minlength=n) for c in range(3)],
@@ -351,33 +547,16 @@ class BarycentreTerm:
                 assigned = counts / (self.target_points.shape[0] / n)
             else:
                 assigned = (counts > 0).astype(np.float64)
-        if w.support is not None:
-            assigned = assigned * w.support
+        if support is not None:
+            assigned = assigned * support
         scale = self.sqrt_ws * np.sqrt(assigned)
         if self.offsets is not None:
             bary = bary - self.offsets
         return bary, scale
 
-    def linearise(
-        self, g: Geometry, w: Weights, held: tuple[np.ndarray, np.ndarray] | None = None
-    ) -> TermBlock:
-        """The block at ``g``; ``held``: the barycentres and scales of an earlier assignment."""
-        bary, scale = held if held is not None else self.targets(g, w)
-        r = scale[:, None] * (g.moved - bary)
-        return TermBlock(
-            r.ravel(),
-            lambda: self._jacobian(scale),
-            isotropic=scale * scale,
-            rhs=scale[:, None] * r,
-            targets=(bary, scale),
-        )
-
-    def _jacobian(self, scale: np.ndarray) -> sp.csr_matrix:
-        Wx = sp.kron(self.assembly.W, sp.identity(3), format="csr")  # (3n, 3m)
-        return sp.diags(np.repeat(scale, 3), format="csr") @ Wx
-
-    def normal_share(self, block: TermBlock) -> tuple[sp.spmatrix, np.ndarray]:
-        return _data_share(self.assembly, block)
+    def pulls(self, g: Geometry, w: Weights, state: TermState) -> tuple[np.ndarray, np.ndarray]:
+        """The barycentres and row scales of the assignment ``state.found``."""
+        return self.targets(g.moved.shape[0], state.found[1], state.weights, w.support)
 
 
 def _nearest_two(
@@ -453,7 +632,7 @@ class RegulariserTerm:
     def residuals(self, u: np.ndarray) -> np.ndarray:
         return np.asarray(self.G @ u.reshape(-1, 3)).ravel()
 
-    def linearise(self, g: Geometry, w: Weights) -> TermBlock:
+    def linearise(self, g: Geometry, w: Weights, state: TermState | None = None) -> TermBlock:
         U = g.u.reshape(-1, 3)
         gradient = np.asarray(self.node_gram @ U)
         # |D u|^2 = u^T (D^T D) u: the product with the small node Gram matrix, which the

@@ -12,6 +12,7 @@ plus one entry in the contract tests (tests/registration/test_strategies.py).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -115,3 +116,11 @@ class DistanceChecker(CorrespondenceChecker):
         if context.sigma is None:
             return None
         return DistanceMask(self.factor, context.sigma)
+
+
+def bound_masks(
+    checkers: Sequence[CorrespondenceChecker], context: CheckerContext
+) -> list[CorrespondenceMask]:
+    """The masks of ``checkers`` at a level (those that reject something there)."""
+    masks = (checker.bind(context) for checker in checkers)
+    return [mask for mask in masks if mask is not None]

@@ -56,7 +56,7 @@ from .result import (
     SurfaceDistances,
 )
 from .rigid import default_start, usable_cores
-from .terms import Barycentre
+from .terms import DistanceTerm, PointToSurface
 from .verdict import judge, with_rigid_start
 
 __all__ = ["evaluate_elastic", "registration_elastic"]
@@ -382,12 +382,12 @@ class _Hierarchy:
     size: np.ndarray
     loss: RobustLoss
     checkers: tuple[CorrespondenceChecker, ...]
-    #: The barycentre term, ``None`` when no level uses it.
-    barycentre: Barycentre | None
+    terms: tuple[DistanceTerm, ...]
     #: ``-1`` when the target is oriented inside out relative to the template.
     orientation: float
-    #: Area-weighted samples of the template surface (the barycentre correction only).
-    samples: tuple[np.ndarray, np.ndarray] | None
+    #: Area-weighted samples of the template surface, made when a term first asks for the
+    #: Voronoi offsets (:meth:`voronoi_offsets`).
+    samples: tuple[np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def prepare(
@@ -400,11 +400,6 @@ class _Hierarchy:
         padding: float,
     ) -> _Hierarchy:
         origin, size = lattice_box([points, surface.vertices], padding)
-        barycentre = next((t for t in method.terms if isinstance(t, Barycentre)), None)
-        if barycentre is not None and not (
-            barycentre.weight > 0 and any(lev.symmetric_scale > 0 for lev in levels)
-        ):
-            barycentre = None
         surface.build_levels_of_detail(
             _detail_voxel(size, lev) for lev in levels if lev.simplify_target
         )
@@ -412,21 +407,16 @@ class _Hierarchy:
         orientation = 1.0
         if _tests_normals(checkers):
             orientation = _relative_orientation(points, fs, surface.finest_detail())
-        correct = barycentre is not None and barycentre.correction
-        samples = _surface_samples(points, fs) if correct else None
-        if barycentre is not None:
-            # The largest budget first, so that every level's subsample nests in it.
-            surface.subsample(int(barycentre.target_points_per_source_point * points.shape[0]))
         return cls(
-            points, fs, surface, origin, size, method.robust_loss, checkers, barycentre,
-            orientation, samples,
+            points, fs, surface, origin, size, method.robust_loss, checkers, method.terms,
+            orientation,
         )  # fmt: skip
 
     def worker(self) -> AbstractContextManager[Executor | None]:
-        """One worker thread for the barycentre term's k-d tree queries, which then run beside
-        libigl's queries (see :meth:`LevelProblem.evaluate`); none on one core or without
-        the term."""
-        if self.barycentre is None or usable_cores() < 2:
+        """One worker thread on which the terms find their own correspondences (the barycentre
+        term's k-d tree queries) beside libigl's queries (see :meth:`LevelProblem.evaluate`);
+        none on one core or with the point-to-surface term alone."""
+        if usable_cores() < 2 or all(isinstance(t, PointToSurface) for t in self.terms):
             return nullcontext(None)
         return ThreadPoolExecutor(1, thread_name_prefix="o3dreg-barycentre")
 
@@ -446,32 +436,23 @@ class _Hierarchy:
         # Coarse lattices have few nodes: a spatial subsample of the data determines them as well
         # as all of it, at a fraction of the cost of each distance query.
         use = _level_sample(lattice, points, level.points_per_node)
-        use_target, level_weight = None, 0.0
-        if self.barycentre is not None:
-            level_weight = self.barycentre.weight * level.symmetric_scale
-        if self.barycentre is not None and level_weight > 0:
-            budget = int(self.barycentre.target_points_per_source_point * use.size)
-            use_target = surface.subsample(budget)
         level_query = _level_query(surface, self.size, level)
         normals = None
         if _tests_normals(self.checkers):
             normals = self.orientation * vertex_normals(points + previous, self.faces)[use]
-        offsets = None
-        if use_target is not None and self.samples is not None:
-            surface_samples, sample_weights = self.samples
-            offsets = _barycentre_offsets(
-                (points + previous)[use], surface_samples, deformation, sample_weights
-            )
         problem = LevelProblem(
             points[use],
             previous[use],
             lattice,
             active[use],
             level_query,
-            use_target,
-            level_weight,
+            self.terms,
             level.regularization,
             level.energy,
+            target_sample=lambda per_point: self.target_sample(per_point, use.size),
+            indices=use,
+            symmetric_scale=level.symmetric_scale,
+            voronoi_offsets=lambda: self.voronoi_offsets((points + previous)[use], deformation),
             loss=self.loss,
             checkers=self.checkers,
             # Whether the target has open edges is a property of the full target: a simplified
@@ -482,11 +463,24 @@ class _Hierarchy:
             else None,
             normals=normals,
             prior=deformation if deformation.levels else None,
-            barycentre_offsets=offsets,
-            barycentre_counted=self.barycentre is not None and self.barycentre.weighting == "count",
             pool=pool,
         )
         return problem, use
+
+    def target_sample(self, per_point: float, count: int) -> np.ndarray:
+        """An even subsample of the target, ``per_point`` vertices for each of ``count``
+        template points."""
+        # The budget of the whole template first, so that every level's subsample nests in it.
+        self.surface.subsample(int(per_point * self.points.shape[0]))
+        return self.surface.subsample(int(per_point * count))
+
+    def voronoi_offsets(self, used: np.ndarray, deformation: LatticeDeformation) -> np.ndarray:
+        """The offsets of :func:`_barycentre_offsets` of the template points ``used`` (moved by
+        ``deformation``)."""
+        if self.samples is None:
+            self.samples = _surface_samples(self.points, self.faces)
+        surface_samples, sample_weights = self.samples
+        return _barycentre_offsets(used, surface_samples, deformation, sample_weights)
 
     def _active(self, level: ElasticLevel, moved: np.ndarray) -> np.ndarray:
         """The template points whose cells the level refines (all, or where the residual is

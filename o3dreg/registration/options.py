@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from .._validation import check_positive, check_probability
@@ -276,6 +276,11 @@ class DistanceEstimation:
         of its largest component (islands, debris, loose fragments a marching-cubes surface
         keeps). Default 0.01; ``None`` uses every component. The reported distances still
         measure the whole target.
+    more_terms : tuple of DistanceTerm
+        Distance terms added to those the fields above describe (a term of your own: any
+        :class:`~o3dreg.DistanceTerm` with ``bind``). Default none; :meth:`compose` puts there
+        the terms it is given besides :class:`~o3dreg.PointToSurface` and
+        :class:`~o3dreg.Barycentre`.
     """
 
     symmetric: bool = True
@@ -289,6 +294,8 @@ class DistanceEstimation:
     reject_boundary: bool = True
     max_normal_angle: float | None = 90.0
     min_target_component: float | None = 0.01
+    # Only in a batch's resume key when set: keys made before the field existed stay valid.
+    more_terms: tuple[DistanceTerm, ...] = field(default=(), metadata={"keyed_when_set": True})
 
     def __post_init__(self) -> None:
         if not isinstance(self.symmetric, bool):
@@ -323,6 +330,14 @@ class DistanceEstimation:
             a = check_positive(self.max_normal_angle, "max_normal_angle")
             if a > 180.0:
                 raise ValueError(f"`max_normal_angle` must be in (0, 180] degrees, got {a!r}")
+        more = _as_terms(self.more_terms, "more_terms")
+        described = [t for t in more if type(t) in (PointToSurface, Barycentre)]
+        if described:
+            raise ValueError(
+                "`more_terms` must not hold PointToSurface() or Barycentre(...) (the fields "
+                f"`symmetric`, `symmetric_weight`, `barycentre_*` describe them), got {described!r}"
+            )
+        object.__setattr__(self, "more_terms", more)
 
     @classmethod
     def paper(cls, **changes: Any) -> DistanceEstimation:
@@ -364,17 +379,17 @@ class DistanceEstimation:
 
     @property
     def terms(self) -> tuple[DistanceTerm, ...]:
-        """The distance terms: :class:`~o3dreg.PointToSurface`, and :class:`~o3dreg.Barycentre`
-        when ``symmetric``."""
+        """The distance terms: :class:`~o3dreg.PointToSurface`, :class:`~o3dreg.Barycentre`
+        when ``symmetric``, then ``more_terms``."""
         if not self.symmetric:
-            return (PointToSurface(),)
+            return (PointToSurface(), *self.more_terms)
         barycentre = Barycentre(
             self.symmetric_weight,
             self.barycentre_correction,
             self.target_points_per_source_point,
             self.barycentre_weighting,
         )
-        return (PointToSurface(), barycentre)
+        return (PointToSurface(), barycentre, *self.more_terms)
 
     @classmethod
     def compose(
@@ -390,8 +405,9 @@ class DistanceEstimation:
         Parameters
         ----------
         terms : sequence of DistanceTerm
-            :class:`~o3dreg.PointToSurface` (required) and optionally one
-            :class:`~o3dreg.Barycentre`. Default both (eq. 3).
+            One :class:`~o3dreg.PointToSurface`, at most one :class:`~o3dreg.Barycentre`, and
+            any other :class:`~o3dreg.DistanceTerm` with ``bind`` (kept in ``more_terms``, in
+            the order given). Default the first two (eq. 3).
         loss : RobustLoss, optional
             Default ``CauchyLoss()``.
         checkers : sequence of CorrespondenceChecker
@@ -407,15 +423,15 @@ class DistanceEstimation:
         ... ).terms[1].weight
         0.5
         """
-        terms = (PointToSurface(), Barycentre()) if terms is None else tuple(terms)
+        terms = (PointToSurface(), Barycentre()) if terms is None else _as_terms(terms, "terms")
         if checkers is None:
             checkers = (BoundaryChecker(), NormalAngleChecker())
         checkers = tuple(checkers)
         kinds = [type(t) for t in terms]
-        if kinds not in ([PointToSurface], [PointToSurface, Barycentre]):
+        if kinds.count(PointToSurface) != 1 or kinds.count(Barycentre) > 1:
             raise ValueError(
-                "`terms` must be (PointToSurface(),) or (PointToSurface(), Barycentre(...)), "
-                f"got {terms!r}"
+                "`terms` must hold one PointToSurface(), at most one Barycentre(...) and any "
+                f"other DistanceTerm, got {terms!r}"
             )
         if loss is None:
             loss = loss_named("cauchy")
@@ -431,10 +447,10 @@ class DistanceEstimation:
             )
         angle = by_kind.get(NormalAngleChecker)
         distance = by_kind.get(DistanceChecker)
-        barycentre = terms[1] if len(terms) == 2 else Barycentre()
-        assert isinstance(barycentre, Barycentre)
+        given = [t for t in terms if isinstance(t, Barycentre) and type(t) is Barycentre]
+        barycentre = given[0] if given else Barycentre()
         return cls(
-            symmetric=len(terms) == 2,
+            symmetric=bool(given),
             symmetric_weight=barycentre.weight,
             barycentre_correction=barycentre.correction,
             target_points_per_source_point=barycentre.target_points_per_source_point,
@@ -445,6 +461,7 @@ class DistanceEstimation:
             reject_boundary=BoundaryChecker in by_kind,
             max_normal_angle=None if angle is None else angle.max_angle,  # type: ignore[attr-defined]
             min_target_component=min_target_component,
+            more_terms=tuple(t for t in terms if type(t) not in (PointToSurface, Barycentre)),
         )
 
     def __repr__(self) -> str:
@@ -458,10 +475,26 @@ class DistanceEstimation:
         extra += f", max_normal_angle={'None' if angle is None else format(angle, 'g')}"
         part = self.min_target_component
         extra += f", min_target_component={'None' if part is None else format(part, 'g')}"
+        if self.more_terms:
+            extra += f", more_terms={self.more_terms!r}"
         return (
             f"DistanceEstimation(symmetric={self.symmetric}, "
             f"symmetric_weight={self.symmetric_weight:g}{extra})"
         )
+
+
+def _as_terms(terms: Any, name: str) -> tuple[DistanceTerm, ...]:
+    """``terms`` as a tuple of distance terms that can be bound to a level; a clear error naming
+    the parameter ``name`` for anything else."""
+    if isinstance(terms, (str, bytes)) or not hasattr(terms, "__iter__"):
+        raise TypeError(f"`{name}` must be a sequence of DistanceTerm, got {type(terms).__name__}")
+    found = tuple(terms)
+    for term in found:
+        if not isinstance(term, DistanceTerm):
+            raise TypeError(f"`{name}` must hold DistanceTerm instances, got {type(term).__name__}")
+        if type(term).bind is DistanceTerm.bind:
+            raise TypeError(f"`{name}`: {type(term).__name__} does not implement DistanceTerm.bind")
+    return found
 
 
 #: ``symmetric_scale`` of the default levels 2, 4, 8, 16 (see :func:`default_levels`).

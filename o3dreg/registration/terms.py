@@ -1,33 +1,94 @@
 """The distance terms of the elastic cost, eq. (3) of Berar et al. (2005): small value types
-the user composes in :class:`~o3dreg.DistanceEstimation`.
+the user composes in :class:`~o3dreg.DistanceEstimation`, as Open3D's ``TransformationEstimation``
+and ``RobustKernel``.
 
-Each names a term and holds its settings; its residuals, Jacobian rows and share of the normal
-equations are in ``o3dreg.registration._terms``, which the level problem
-(``o3dreg.registration._cost``) builds from it. The regulariser belongs to each level
+Each holds its settings; at every level, :meth:`DistanceTerm.bind` makes its residuals for that
+level (a ``DistanceTermAtLevel`` of ``o3dreg.registration._terms``: residuals, Jacobian rows,
+share of the normal equations) from what the level offers (:class:`TermContext`). The level
+problem (``o3dreg.registration._cost``) sums the bound terms and the level's regulariser
 (:attr:`~o3dreg.ElasticLevel.regularization`).
+
+A new term is one class here (a subclass of :class:`DistanceTerm` whose ``bind`` returns a
+``PullTerm`` of ``_terms`` when the term pulls points towards points, or its own level class
+there) plus one entry in the contract tests (tests/registration/test_terms.py);
+:meth:`DistanceEstimation.compose <o3dreg.DistanceEstimation.compose>` takes it as it is.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
-from .._validation import check_positive
+import numpy as np
 
-__all__ = ["BARYCENTRE_WEIGHTINGS", "Barycentre", "DistanceTerm", "PointToSurface"]
+from .._validation import check_positive
+from ._assembly import NormalAssembly
+from ._terms import BarycentreTerm, DistanceTermAtLevel, PointToSurfaceTerm
+from .distance import SurfaceDistanceQuery
+
+__all__ = [
+    "BARYCENTRE_WEIGHTINGS",
+    "Barycentre",
+    "DistanceTerm",
+    "PointToSurface",
+    "TermContext",
+]
 
 #: How the barycentre rows are weighted (:attr:`Barycentre.weighting`).
 BARYCENTRE_WEIGHTINGS = ("count", "uniform")
 
 
 @dataclass(frozen=True)
+class TermContext:
+    """What a level offers its distance terms.
+
+    Attributes
+    ----------
+    assembly : NormalAssembly
+        The level's trilinear weights ``W`` (the moved points are ``y = points + W u``, ``u`` the
+        displacements of the free lattice nodes) and its normal-equation pattern.
+    points : (n, 3) ndarray
+        The template points the level is posed on, moved by the coarser levels (``y`` at
+        ``u = 0``).
+    indices : (n,) int ndarray
+        Their numbers among the template's vertices (a level may use a subsample).
+    target : SurfaceDistanceQuery
+        The surface the level measures distances to (the target or its level of detail).
+    target_sample : callable
+        ``target_sample(per_point)``: an even subsample of the target's vertices, about
+        ``per_point`` of them per point of ``points``.
+    symmetric_scale : float
+        The level's :attr:`~o3dreg.ElasticLevel.symmetric_scale`.
+    voronoi_offsets : callable or None
+        ``voronoi_offsets()``: the offset from each point to the centroid of its own Voronoi
+        cell on the template surface moved by the coarser levels (``None``: not offered).
+    """
+
+    assembly: NormalAssembly
+    points: np.ndarray
+    indices: np.ndarray
+    target: SurfaceDistanceQuery
+    target_sample: Callable[[float], np.ndarray]
+    symmetric_scale: float = 1.0
+    voronoi_offsets: Callable[[], np.ndarray] | None = None
+
+
+@dataclass(frozen=True)
 class DistanceTerm:
-    """A distance term of the cost."""
+    """A distance term of the cost; :meth:`bind` makes its residuals for one level."""
+
+    def bind(self, context: TermContext) -> DistanceTermAtLevel | None:
+        """The term at a level (``None``: it has no rows there)."""
+        raise NotImplementedError
 
 
 @dataclass(frozen=True)
 class PointToSurface(DistanceTerm):
     """Template -> target: the distance ``d(y_i, S)`` of every moved template vertex to the target
     surface (eq. 2; point-to-plane at the closest point)."""
+
+    def bind(self, context: TermContext) -> DistanceTermAtLevel:
+        return PointToSurfaceTerm(context.assembly)
 
 
 @dataclass(frozen=True)
@@ -74,3 +135,23 @@ class Barycentre(DistanceTerm):
             raise ValueError(
                 f"`weighting` must be one of {BARYCENTRE_WEIGHTINGS}, got {self.weighting!r}"
             )
+
+    def bind(self, context: TermContext) -> DistanceTermAtLevel | None:
+        weight = self.weight * context.symmetric_scale
+        if weight <= 0:
+            return None
+        offsets = None
+        if self.correction:
+            if context.voronoi_offsets is None:
+                raise ValueError(
+                    "`correction=True` needs the Voronoi offsets the level did not offer "
+                    "(TermContext.voronoi_offsets)"
+                )
+            offsets = context.voronoi_offsets()
+        return BarycentreTerm(
+            context.assembly,
+            context.target_sample(self.target_points_per_source_point),
+            weight,
+            offsets,
+            counted=self.weighting == "count",
+        )

@@ -169,3 +169,27 @@ def test_patients_of_one_file_name_in_several_folders_get_distinct_names(small, 
     result = register_batch(template, paths, tmp_path / "out", levels=FAST)
     assert [r.name for r in result.records] == ["case01_bone", "case02_bone"]
     assert (tmp_path / "out" / "case02_bone.ply").is_file()
+
+
+def test_resume_keys_leave_out_the_extra_terms_until_there_are_some(small):
+    # A batch folder made before DistanceEstimation had `more_terms` keeps its keys (no patient
+    # registered again for nothing); an extra term, when there is one, changes the key.
+    from dataclasses import dataclass
+
+    from o3dreg import DistanceEstimation, DistanceTerm
+    from o3dreg.app.batch import _canonical
+
+    assert "more_terms" not in _canonical(DistanceEstimation())
+
+    @dataclass(frozen=True)
+    class Nothing(DistanceTerm):
+        def bind(self, context):
+            return None
+
+    template, target = small[0], small[1][0]
+    plain = resume_key(template, target, estimation_method=DistanceEstimation())
+    extra = resume_key(
+        template, target, estimation_method=DistanceEstimation(more_terms=(Nothing(),))
+    )
+    assert plain == resume_key(template, target)
+    assert extra != plain

@@ -4,12 +4,15 @@ import numpy as np
 import pytest
 
 from o3dreg.app.synthetic import synthetic_form
-from o3dreg.registration import BoundaryChecker, CauchyLoss, _solvers
+from o3dreg.registration import Barycentre, BoundaryChecker, CauchyLoss, PointToSurface, _solvers
 from o3dreg.registration._cost import LevelProblem
 from o3dreg.registration.distance import SurfaceDistanceQuery
 from o3dreg.registration.elastic import lattice_box
 from o3dreg.registration.lattice import TrilinearLattice
 from o3dreg.registration.options import ElasticCriteria
+
+#: Point-to-surface and the barycentre term with one unit per row, on every target vertex.
+UNIFORM_BARYCENTRE = (PointToSurface(), Barycentre(weighting="uniform"))
 
 
 def small_problem(
@@ -25,8 +28,7 @@ def small_problem(
         TrilinearLattice.zeros(origin, size, (resolution,) * 3),
         np.ones(points.shape[0], dtype=bool),
         SurfaceDistanceQuery(tv, tf),
-        tv,
-        1.0,
+        UNIFORM_BARYCENTRE,
         0.1,
         checkers=(BoundaryChecker(),),
         min_jacobian_determinant=0.05,
@@ -107,8 +109,7 @@ def lloyd_problem() -> LevelProblem:
         TrilinearLattice.zeros(origin, size, (2, 2, 2)),
         np.ones(points.shape[0], dtype=bool),
         SurfaceDistanceQuery(tv, tf),
-        tv,
-        1.0,
+        UNIFORM_BARYCENTRE,
         0.1,
         loss=CauchyLoss(),
         checkers=(BoundaryChecker(),),

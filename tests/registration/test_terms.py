@@ -1,10 +1,14 @@
-"""The residual terms of a level (point-to-surface, barycentre, regulariser) against one contract,
-and the robust kernels and correspondence checkers alone.
+"""The residual terms of a level (the distance terms, the regulariser) against one contract, and
+the robust kernels and correspondence checkers alone.
 
 Contract of every term: its analytic Jacobian rows equal central finite differences of its
 residuals, and its share of the normal equations equals ``J^T J`` and ``J^T r`` of that Jacobian,
-with plain and with robust weights.
+with plain and with robust weights. A new distance term is one class and one entry in
+``CONTRACT``; the two terms defined here (``ClosestPoint``, ``LandmarkPairs``) are such terms,
+and run through a whole registration as the library's own do.
 """
+
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -12,16 +16,71 @@ import scipy.sparse as sp
 from _helpers import level_problem
 
 import o3dreg
+from o3dreg import DistanceEstimation, ElasticLevel, registration_elastic
 from o3dreg.app.synthetic import synthetic_form
-from o3dreg.registration import BoundaryChecker, CauchyLoss, DistanceChecker, NormalAngleChecker
+from o3dreg.registration import (
+    Barycentre,
+    BoundaryChecker,
+    CauchyLoss,
+    DistanceChecker,
+    DistanceTerm,
+    NormalAngleChecker,
+    PointToSurface,
+)
 from o3dreg.registration._assembly import NormalAssembly, symmetric_outer
 from o3dreg.registration._robust import BoundaryMask, DistanceMask, NormalMask, support
+from o3dreg.registration._terms import PullTerm
 from o3dreg.registration.distance import SurfaceDistanceQuery
 from o3dreg.registration.elastic import lattice_box, vertex_normals
 from o3dreg.registration.lattice import TrilinearLattice
 from o3dreg.registration.losses import loss_named
+from o3dreg.registration.terms import TermContext
 
-TERMS = ["point-to-surface", "barycentre", "regulariser"]
+
+@dataclass(frozen=True)
+class ClosestPoint(DistanceTerm):
+    """Point-to-point ICP: every template point pulled to its closest point on the target, with
+    the point-to-surface term's robust weights and masks."""
+
+    def bind(self, context: TermContext) -> PullTerm:
+        def pulls(g, w, state):
+            scale = np.ones(g.moved.shape[0]) if w.point is None else np.sqrt(w.point)
+            return g.closest, scale
+
+        return PullTerm(context.assembly, pulls, name="closest point")
+
+
+@dataclass(frozen=True, eq=False)
+class LandmarkPairs(DistanceTerm):
+    """Template vertices ``vertices`` pulled to the target points ``points`` with ``weight``
+    (a level that does not use a landmark's vertex has no row for it)."""
+
+    vertices: np.ndarray
+    points: np.ndarray
+    weight: float = 1.0
+
+    def bind(self, context: TermContext) -> PullTerm | None:
+        rows = np.flatnonzero(np.isin(context.indices, self.vertices))
+        if rows.size == 0:
+            return None
+        goals = context.points.copy()
+        order = np.argsort(self.vertices)
+        at = order[np.searchsorted(self.vertices, context.indices[rows], sorter=order)]
+        goals[rows] = self.points[at]
+        scale = np.zeros(context.points.shape[0])
+        scale[rows] = np.sqrt(self.weight)
+        return PullTerm(context.assembly, lambda g, w, state: (goals, scale), name="landmarks")
+
+
+#: Every distance term, once or more with other settings; ``None`` stands for the regulariser.
+CONTRACT = [
+    PointToSurface(),
+    Barycentre(weighting="uniform"),
+    Barycentre(weight=0.5, weighting="count"),
+    ClosestPoint(),
+    LandmarkPairs(np.array([3, 40, 200]), np.array([[0.0, 0, 38], [38.0, 0, 0], [0, -38.0, 5]])),
+    None,
+]
 ROBUSTNESS = {
     "plain": dict(checkers=(BoundaryChecker(),)),
     "robust": dict(
@@ -32,7 +91,7 @@ ROBUSTNESS = {
 
 
 @pytest.fixture(scope="module")
-def problems():
+def level():
     source = synthetic_form("cube", 300)
     target = synthetic_form("sphere", 1500)
     vs, fs = np.asarray(source.vertices), np.asarray(source.triangles)
@@ -40,20 +99,25 @@ def problems():
     points = vs * 0.9
     origin, size = lattice_box([points, target[0]])
     lattice = TrilinearLattice.zeros(origin, size, (4, 4, 4))
-    normals = vertex_normals(points, fs)
-    return {
-        key: level_problem(points, target, lattice, **rb, normals=normals)
-        for key, rb in ROBUSTNESS.items()
-    }
+    return points, target, lattice, vertex_normals(points, fs)
+
+
+def problem_of(level, terms, weights):
+    points, target, lattice, normals = level
+    return level_problem(
+        points, target, lattice, terms=terms, **ROBUSTNESS[weights], normals=normals
+    )
 
 
 @pytest.mark.parametrize("weights", list(ROBUSTNESS))
-@pytest.mark.parametrize("name", TERMS)
+@pytest.mark.parametrize("term", CONTRACT, ids=lambda t: "regulariser" if t is None else repr(t))
 class TestTermContract:
-    def setup_term(self, problems, name, weights):
-        problem = problems[weights]
-        index = [term.name for term in problem.terms].index(name)
-        rng = np.random.default_rng(TERMS.index(name))
+    def setup_term(self, level, term, weights):
+        # The term alone (the regulariser beside the point-to-surface term): the level cost's
+        # last term is the regulariser, the first the one tested.
+        problem = problem_of(level, [PointToSurface() if term is None else term], weights)
+        index = -1 if term is None else 0
+        rng = np.random.default_rng(CONTRACT.index(term))
         u = rng.normal(scale=0.5, size=problem.number_of_unknowns)
         ev = problem.evaluate(u)
         if weights == "robust":
@@ -61,23 +125,24 @@ class TestTermContract:
             assert ev.weights is not None and ev.weights.min() < 0.99
         return problem, index, u, ev, rng
 
-    def test_jacobian_matches_central_differences(self, problems, name, weights):
-        problem, index, u, ev, rng = self.setup_term(problems, name, weights)
+    def test_jacobian_matches_central_differences(self, level, term, weights):
+        problem, index, u, ev, rng = self.setup_term(level, term, weights)
         J = ev.terms[index].jacobian.toarray()
+        assert abs(J).max() > 0  # the term has rows here
         h = 1e-6
         for j in rng.choice(problem.number_of_unknowns, 20, replace=False):
             e = np.zeros_like(u)
             e[j] = h
-            # Weights and masks held at those of ``u`` (one IRLS linearisation); the barycentre
-            # assignments are piecewise constant and a 1e-6 step does not change them.
+            # Weights, masks and a term's own correspondences held at those of ``u`` (one IRLS
+            # linearisation, as a trial step of Levenberg-Marquardt).
             plus = problem.evaluate(u + e, weights_of=ev).terms[index].residuals
             minus = problem.evaluate(u - e, weights_of=ev).terms[index].residuals
             # Distances are smooth off the surface and the medial axis: central differences
             # are accurate to O(h^2 * curvature) plus rounding ~1e-10 / h.
             np.testing.assert_allclose(J[:, j], (plus - minus) / (2 * h), atol=2e-5)
 
-    def test_normal_share_is_that_of_the_jacobian(self, problems, name, weights):
-        problem, index, _, ev, _ = self.setup_term(problems, name, weights)
+    def test_normal_share_is_that_of_the_jacobian(self, level, term, weights):
+        problem, index, _, ev, _ = self.setup_term(level, term, weights)
         block = ev.terms[index]
         A, g = problem.terms[index].normal_share(block)
         J, r = block.jacobian, block.residuals
@@ -90,10 +155,18 @@ class TestTermContract:
 
 
 @pytest.mark.parametrize("weights", list(ROBUSTNESS))
-def test_the_level_is_the_sum_of_its_terms(problems, weights):
-    problem = problems[weights]
+def test_the_level_is_the_sum_of_its_terms(level, weights):
+    terms = [t for t in CONTRACT if t is not None]
+    problem = problem_of(level, terms, weights)
     ev = problem.evaluate(np.random.default_rng(3).normal(size=problem.number_of_unknowns))
-    assert [t.name for t in problem.terms] == TERMS
+    assert [t.name for t in problem.terms] == [
+        "point-to-surface",
+        "barycentre",
+        "barycentre",
+        "closest point",
+        "landmarks",
+        "regulariser",
+    ]
     np.testing.assert_array_equal(ev.residuals, np.concatenate([b.residuals for b in ev.terms]))
     assert ev.cost == sum(b.cost for b in ev.terms)
     A, g = problem.normal_equations(ev)
@@ -103,6 +176,69 @@ def test_the_level_is_the_sum_of_its_terms(problems, weights):
         A.toarray(), sum(a.toarray() for a, _ in shares), rtol=0, atol=1e-13 * scale
     )
     np.testing.assert_allclose(g, sum(b for _, b in shares), rtol=0, atol=1e-13 * abs(g).max())
+
+
+def test_a_term_of_ones_own_registers_end_to_end():
+    # Three landmarks of a sphere pulled 25 degrees along the surface of a larger sphere: the
+    # point-to-surface term alone moves them outwards only (the spheres match everywhere), the
+    # landmark term slides them to their targets, and the rest of the surface follows smoothly.
+    template = synthetic_form("sphere", 800)
+    target = synthetic_form("sphere", 3000)
+    v = np.asarray(template.vertices)
+    target.scale(1.1, center=(0.0, 0.0, 0.0))
+    turn = np.radians(25.0)
+    rotation = np.array(
+        [[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0], [0, 0, 1]]
+    )
+    vertices = np.argsort(np.abs(v[:, 2]))[[0, 40, 80]]  # near the equator
+    goals = 1.1 * v[vertices] @ rotation.T
+    levels = [ElasticLevel(r, points_per_node=None, symmetric_scale=0.0) for r in (2, 4, 8)]
+    landmarks = LandmarkPairs(vertices, goals, weight=50.0)
+    estimation = DistanceEstimation.compose(terms=[PointToSurface(), landmarks], checkers=[])
+    assert estimation.terms == (PointToSurface(), landmarks)
+    plain = registration_elastic(template, target, init=np.eye(4), levels=levels)
+    pulled = registration_elastic(
+        template, target, init=np.eye(4), levels=levels, estimation_method=estimation
+    )
+    miss_plain = np.linalg.norm(plain.vertices[vertices] - goals, axis=1)
+    miss_pulled = np.linalg.norm(pulled.vertices[vertices] - goals, axis=1)
+    assert miss_plain.min() > 15.0  # 25 degrees on a radius of 44 mm: about 19 mm
+    assert miss_pulled.max() < 0.5
+    # Still on the target: the landmark term slides the surface, it does not tear it off.
+    assert pulled.distances.source_to_target_mean < 0.1
+
+
+def test_the_estimation_holds_the_terms_it_is_given():
+    closest = ClosestPoint()
+    composed = DistanceEstimation.compose(terms=[PointToSurface(), Barycentre(0.5), closest])
+    assert composed.terms == (PointToSurface(), Barycentre(0.5), closest)
+    assert composed.more_terms == (closest,)
+    assert composed == DistanceEstimation(symmetric_weight=0.5, more_terms=(closest,))
+    assert "more_terms=(ClosestPoint(),)" in repr(composed)
+    assert "more_terms" not in repr(DistanceEstimation())
+    with pytest.raises(TypeError, match="`terms`"):
+        DistanceEstimation.compose(terms=[PointToSurface(), "closest point"])
+    with pytest.raises(TypeError, match="`terms`"):
+        DistanceEstimation.compose(terms=[PointToSurface(), DistanceTerm()])  # no bind
+    with pytest.raises(ValueError, match="`terms`"):
+        DistanceEstimation.compose(terms=[closest])  # no point-to-surface term
+    with pytest.raises(ValueError, match="`more_terms`"):
+        DistanceEstimation(more_terms=(Barycentre(),))
+    with pytest.raises(TypeError, match="`more_terms`"):
+        DistanceEstimation(more_terms=closest)
+
+
+def test_a_term_says_what_the_level_does_not_offer(level):
+    # A level posed without the template's Voronoi offsets cannot correct the barycentres.
+    with pytest.raises(ValueError, match="`correction=True`"):
+        problem_of(level, [Barycentre(correction=True)], "plain")
+    # A term with no rows at a level (weight times the level's symmetric_scale is 0) is left out.
+    points, target, lattice, _ = level
+    off = level_problem(
+        points, target, lattice, terms=[PointToSurface(), Barycentre()], symmetric_scale=0.0
+    )
+    assert [t.name for t in off.terms] == ["point-to-surface", "regulariser"]
+    assert not off.reassigns
 
 
 @pytest.mark.parametrize("loss", ["linear", "huber", "cauchy", "tukey"])
@@ -329,7 +465,7 @@ def test_counted_barycentre_rows_are_the_target_to_template_distance(robust):
     # points about their barycentres (which does not depend on y): the identity
     # sum_j v_j |t_j - y|^2 = V |b - y|^2 + sum_j v_j |t_j - b|^2 for b the v-weighted mean.
     # Exact to rounding (sums of ~1e4 squares of mm-sized numbers).
-    from o3dreg.registration._terms import BarycentreTerm, Geometry, Weights
+    from o3dreg.registration._terms import BarycentreTerm
 
     rng = np.random.default_rng(7)
     y = rng.normal(size=(40, 3)) * 10.0
@@ -337,9 +473,8 @@ def test_counted_barycentre_rows_are_the_target_to_template_distance(robust):
     counted = BarycentreTerm(None, targets, 1.0, counted=True)  # type: ignore[arg-type]
     uniform = BarycentreTerm(None, targets, 1.0)  # type: ignore[arg-type]
     _, nearest = counted.measure(y)
-    g = Geometry(np.zeros(0), y, *(np.zeros(0),) * 4, None, nearest)
     v = rng.uniform(0.2, 1.0, targets.shape[0]) if robust else None
-    bary, scale = counted.targets(g, Weights(target=v))
+    bary, scale = counted.targets(y.shape[0], nearest, v)
     block = ((scale[:, None] * (y - bary)) ** 2).sum()
     vv = np.ones(targets.shape[0]) if v is None else v
     direct = (vv * ((targets - y[nearest]) ** 2).sum(axis=1)).sum()
@@ -347,7 +482,7 @@ def test_counted_barycentre_rows_are_the_target_to_template_distance(robust):
     ratio = y.shape[0] / targets.shape[0]
     np.testing.assert_allclose(block, ratio * (direct - scatter), rtol=1e-10)
     # The same barycentres; uniform rows weigh each template point by its mean target weight.
-    ubary, uscale = uniform.targets(g, Weights(target=v))
+    ubary, uscale = uniform.targets(y.shape[0], nearest, v)
     np.testing.assert_allclose(ubary, bary)
     counts = np.bincount(nearest, minlength=y.shape[0])
     assigned = counts > 0
