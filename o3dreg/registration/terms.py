@@ -51,7 +51,10 @@ class TermContext:
         The template points the level is posed on, moved by the coarser levels (``y`` at
         ``u = 0``).
     indices : (n,) int ndarray
-        Their numbers among the template's vertices (a level may use a subsample).
+        Their numbers among the template's vertices. A coarse level is posed on an even
+        subsample of the template (:attr:`~o3dreg.ElasticLevel.points_per_node`): a term tied
+        to given vertices (landmarks) has rows only at the levels whose subsample holds them
+        (``points_per_node=None`` poses a level on every vertex).
     target : SurfaceDistanceQuery
         The surface the level measures distances to (the target or its level of detail).
     target_sample : callable
