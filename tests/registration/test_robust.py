@@ -20,7 +20,7 @@ from o3dreg import (
 from o3dreg._geometry import barycentric
 from o3dreg.app.synthetic import SmoothWarp, synthetic_form
 from o3dreg.mesh.canonical import canonical_mesh
-from o3dreg.registration.distance import SurfaceDistanceQuery
+from o3dreg.registration.distance import BEYOND_BOUNDARY_TOLERANCE, SurfaceDistanceQuery
 from o3dreg.registration.elastic import flipped_triangles
 from o3dreg.registration.losses import loss_named
 
@@ -45,7 +45,7 @@ def cut_top(mesh, fraction):
 
 def test_boundary_detection_on_a_square():
     # A unit square of two triangles: a point above its middle is inside, one beside it is beyond
-    # the open boundary, one just over the rim (less than half an edge) is not.
+    # the open boundary, one just over the rim (less than a tenth of the mean edge) is not.
     v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
     f = np.array([[0, 1, 2], [0, 2, 3]])
     q = SurfaceDistanceQuery(v, f)
@@ -71,7 +71,7 @@ def beyond_by_numpy(q, points, face, closest):
     diff = points - closest
     n = q.face_normal(face)
     tangent = diff - (diff * n).sum(axis=1, keepdims=True) * n
-    return hit & (np.linalg.norm(tangent, axis=1) > 0.5 * q.mean_edge)
+    return hit & (np.linalg.norm(tangent, axis=1) > BEYOND_BOUNDARY_TOLERANCE * q.mean_edge)
 
 
 def test_boundary_test_only_looks_at_triangles_touching_the_boundary(bunny_target):
