@@ -470,7 +470,7 @@ def predict_landmarks(
     defined inside the bone is predicted inside the patient's bone at the same depth (scaled
     with the mesh's size). Nothing is moved onto the surface unless the landmarks were made
     so (``on_surface``). On 8 CT mandibles (leave-one-out, models of 6) reading on the patient
-    surface gains 0.3-0.5 mm (docs/shape-model.md).
+    surface gains 0.25-0.4 mm (docs/shape-model.md).
 
     Parameters
     ----------
