@@ -17,14 +17,25 @@ a template is that surface decimated to ``--template-vertices``.
 * **Prediction** (the paper's goal): for every template and every held-out patient, a shape model
   of the other 6 patients' semilandmark meshes (the transfer's registrations),
   :func:`~o3dreg.predict_landmarks` of the template's annotations (with their depth) on the
-  held-out patient; the same fit read with the landmarks snapped onto the surface, and with the
+  held-out patient, read on the fitted instance moved onto the patient surface (the default) and
+  on the instance itself; the same fit read with the landmarks snapped onto the surface, and with the
   landmarks averaged from the annotations of the template and the model's 6 patients
   (``TemplateLandmarks.from_annotated_shapes``); with a rigid model (size kept, the paper) and a
   similarity model (``build_shape_model(scaling=True)``).
+* **Decomposition** of o3dreg's transfer error (``--decompose``): along the CT slice axis z and
+  in the slice plane; along the patient surface's normal at the annotation and tangential to
+  it; the difference of the two annotations' depths below the surface; the error the voxel
+  grid alone would leave (both annotations uniform in their voxel, each axis its spacing); the
+  floor of a registration that is exact up to the annotations (their depth difference along
+  the normal plus that voxel error in the tangent plane); and a fit of ``e_ab = o_a - o_b +
+  r_ab``, one offset ``o`` per annotation (the same whichever patient it is carried to or from),
+  which splits the error into what the annotations explain and what is left to each
+  registration (with all 8 templates: with fewer, the offsets explain everything).
 
     python benchmarks/bench_landmarks.py                       # 8 x 7 pairs, both methods
     python benchmarks/bench_landmarks.py --templates 2 --skip-peer --skip-prediction
     python benchmarks/bench_landmarks.py --skip-peer --barycentre-weighting uniform
+    python benchmarks/bench_landmarks.py --skip-peer --skip-prediction --decompose
 
 Prints the figures and the ratios against the peer measured in the same run; skips with a message
 where the data are absent. Nothing derived from the masks is written.
@@ -58,7 +69,8 @@ def load(template_vertices: int) -> dict:
     out = {}
     for mask in sorted((data_dir() / "masks").glob("*.nrrd")):
         pid = mask.name.split("_")[0]
-        mesh = o3dreg.isosurface(o3dreg.read_volume(str(mask)), 0.5)
+        volume = o3dreg.read_volume(str(mask))
+        mesh = o3dreg.isosurface(volume, 0.5)
         mesh = o3dreg.smooth_taubin(o3dreg.keep_largest_components(mesh, 1), 30)
         template = o3dreg.decimate(mesh, template_vertices)
         labels, points = o3dreg.read_landmarks(
@@ -66,6 +78,7 @@ def load(template_vertices: int) -> dict:
         )
         index = {lab: k for k, lab in enumerate(labels)}
         out[pid] = {
+            "spacing": np.asarray(volume.spacing, dtype=float)[::-1],  # x, y, z
             "surface": (np.asarray(mesh.vertices), np.asarray(mesh.triangles)),
             "template": (np.asarray(template.vertices), np.asarray(template.triangles)),
             "landmarks": points[[index[lab] for lab in LABELS]],
@@ -94,6 +107,72 @@ def decompose(vectors: np.ndarray) -> tuple[float, float]:
     )
 
 
+def decomposition(data: dict, vectors: np.ndarray, chosen: list[str]) -> None:
+    """Print where the transfer error lies (see the module docstring), per landmark and overall."""
+    from o3dreg import TemplateLandmarks
+
+    ids = sorted(data)
+    rng = np.random.default_rng(0)
+    # The annotation's foot point, outward normal and signed depth on its own patient's surface.
+    own = {}
+    for pid in ids:
+        attached = TemplateLandmarks.from_points(
+            data[pid]["surface"], data[pid]["landmarks"], max_distance=50.0
+        )
+        _, frames = attached.frames(data[pid]["surface"][0])
+        own[pid] = (frames[:, 2], attached.depths)
+    rows: dict[str, list[np.ndarray]] = {
+        "total": [],
+        "along z (slice axis)": [],
+        "in the slice plane": [],
+        "along the normal": [],
+        "tangential": [],
+        "|depth difference|": [],
+        "voxel grid alone": [],
+        "floor: depth + voxel": [],
+    }
+    pairs = []
+    for a, tid in enumerate(chosen):
+        for b, pid in enumerate(p for p in ids if p != tid):
+            e = vectors[a, b]
+            normal, depth = own[pid]
+            along = (e * normal).sum(axis=1)
+            rows["total"].append(np.linalg.norm(e, axis=1))
+            rows["along z (slice axis)"].append(np.abs(e[:, 2]))
+            rows["in the slice plane"].append(np.linalg.norm(e[:, :2], axis=1))
+            rows["along the normal"].append(np.abs(along))
+            rows["tangential"].append(np.linalg.norm(e - along[:, None] * normal, axis=1))
+            gap = own[tid][1] - depth
+            rows["|depth difference|"].append(np.abs(gap))
+            # Each annotation uniform in its voxel (a voxel centre stands for the whole voxel).
+            grid = (
+                rng.uniform(-0.5, 0.5, (4000, 1, 3)) * data[tid]["spacing"]
+                - rng.uniform(-0.5, 0.5, (4000, 1, 3)) * data[pid]["spacing"]
+            )
+            voxel = float(np.linalg.norm(grid, axis=-1).mean())
+            rows["voxel grid alone"].append(np.full(len(LABELS), voxel))
+            flat = grid - (grid * normal).sum(axis=-1, keepdims=True) * normal
+            floor = np.linalg.norm(gap[:, None] * normal + flat, axis=-1).mean(axis=0)
+            rows["floor: depth + voxel"].append(floor)
+            pairs.append((ids.index(tid), ids.index(pid), e))
+    # e_ab = o_a - o_b + r_ab: one offset per annotation, least squares with sum(o) = 0.
+    design = np.zeros((len(pairs) + 1, len(ids)))
+    for k, (ia, ib, _) in enumerate(pairs):
+        design[k, ia], design[k, ib] = 1.0, -1.0
+    design[-1] = 1.0
+    stacked = np.vstack([np.stack([e.ravel() for *_, e in pairs]), np.zeros((1, 3 * len(LABELS)))])
+    offsets = np.linalg.lstsq(design, stacked, rcond=None)[0].reshape(len(ids), len(LABELS), 3)
+    explained = np.stack([offsets[ia] - offsets[ib] for ia, ib, _ in pairs])
+    rest = np.stack([e for *_, e in pairs]) - explained
+    rows["offsets o_a - o_b"] = list(np.linalg.norm(explained, axis=-1))
+    rows["rest r_ab"] = list(np.linalg.norm(rest, axis=-1))
+    print("\ndecomposition of o3dreg's transfer error (mean of |.|, mm)")
+    print(f"{'part':<26}{'all':>7}" + "".join(f"{lab:>8}" for lab in LABELS))
+    for name, found in rows.items():
+        x = np.array(found)
+        print(f"{name:<26}{x.mean():>7.2f}" + "".join(f"{c:>8.2f}" for c in x.mean(axis=0)))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -102,6 +181,9 @@ def main() -> int:
     parser.add_argument("--templates", help="comma-separated template indices (default all)")
     parser.add_argument("--skip-peer", action="store_true")
     parser.add_argument("--skip-prediction", action="store_true")
+    parser.add_argument(
+        "--decompose", action="store_true", help="where o3dreg's transfer error lies (see above)"
+    )
     parser.add_argument(
         "--barycentre-weighting",
         choices=["count", "uniform"],
@@ -182,6 +264,8 @@ def main() -> int:
     for a, tid in enumerate(chosen):
         row = err[a].mean(axis=0)
         print(f"  {tid}: {err[a].mean():.2f}  " + "  ".join(f"{e:.2f}" for e in row))
+    if args.decompose:
+        decomposition(data, vectors["o3dreg"], chosen)
 
     if args.skip_prediction:
         return 0
@@ -190,12 +274,12 @@ def main() -> int:
         f"({len(chosen) * (len(ids) - 1)} predictions), mm"
     )
     print(
-        f"{'model':<12}{'landmarks':<14}{'mean':>7}"
+        f"{'model':<12}{'landmarks':<15}{'read on':<9}{'mean':>7}"
         + "".join(f"{lab:>8}" for lab in LABELS)
         + f"{'max':>7}{'system.':>9}{'random':>8}"
     )
     for scaling in (False, True):
-        rows: dict[str, list[np.ndarray]] = {"template": [], "snapped": [], "7 annotations": []}
+        rows: dict[tuple[str, str], list[np.ndarray]] = {}
         for tid in chosen:
             template = data[tid]["template"]
             attached = TemplateLandmarks.from_points(template, data[tid]["landmarks"])
@@ -207,8 +291,6 @@ def main() -> int:
                 )
                 pred = predict_landmarks(model, attached, data[held]["surface"])
                 truth = data[held]["landmarks"]
-                rows["template"].append(pred.positions - truth)
-                rows["snapped"].append(attached.on_surface().positions(pred.fit.vertices) - truth)
                 # The landmarks from the annotations of all the model's patients and the template.
                 # An annotation is read back however far its registered surface stayed from it
                 # (a part the registration did not reach): 50 mm, half a mandible.
@@ -218,13 +300,22 @@ def main() -> int:
                     [data[tid]["landmarks"]] + [data[p]["landmarks"] for p in train],
                     max_distance=50.0,
                 )
-                rows["7 annotations"].append(annotated.positions(pred.fit.vertices) - truth)
-        for name, found in rows.items():
+                # Read on the instance moved onto the patient (predict_landmarks' default) and
+                # on the instance itself (on_target=False): the same fit.
+                for where, mesh in (("patient", pred.vertices), ("instance", pred.fit.vertices)):
+                    for name, landmarks in (
+                        ("template", attached),
+                        ("snapped", attached.on_surface()),
+                        ("7 annotations", annotated),
+                    ):
+                        found = landmarks.positions(mesh) - truth
+                        rows.setdefault((name, where), []).append(found)
+        for (name, where), found in rows.items():
             v = np.array(found).reshape(len(chosen), len(ids) - 1, len(LABELS), 3)
             e = np.linalg.norm(v, axis=-1)
             systematic, random = decompose(v)
             print(
-                f"{'similarity' if scaling else 'rigid':<12}{name:<14}{e.mean():>7.2f}"
+                f"{'similarity' if scaling else 'rigid':<12}{name:<15}{where:<9}{e.mean():>7.2f}"
                 + "".join(f"{x:>8.2f}" for x in e.mean(axis=(0, 1)))
                 + f"{e.max():>7.2f}{systematic:>9.2f}{random:>8.2f}"
             )
@@ -232,7 +323,9 @@ def main() -> int:
         "model: rigid = build_shape_model(scaling=False) (size kept, the paper), similarity = "
         "scaling=True (size removed, fitted with a scale); landmarks: the template's annotations "
         "with their depth, the same snapped onto the surface, the mean of the template's and the "
-        "6 model patients' annotations (TemplateLandmarks.from_annotated_shapes)"
+        "6 model patients' annotations (TemplateLandmarks.from_annotated_shapes); read on: the "
+        "fitted instance moved onto the patient surface (predict_landmarks' default) or the "
+        "instance itself (on_target=False)"
     )
     return 0
 

@@ -71,7 +71,7 @@ class CorrespondenceChecker:
 class BoundaryChecker(CorrespondenceChecker):
     """Reject a template vertex whose closest target point lies on an open boundary edge or
     vertex of the target and which lies beyond it (its offset has a tangential part longer than
-    half the target's mean edge): the target has no data there (a cut, a hole, a partial
+    a tenth of the target's mean edge): the target has no data there (a cut, a hole, a partial
     scan). No effect on closed targets."""
 
     def bind(self, context: CheckerContext) -> CorrespondenceMask | None:

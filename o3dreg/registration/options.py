@@ -256,8 +256,8 @@ class DistanceEstimation:
     reject_boundary : bool
         Drop the template->target correspondence of a template vertex whose closest target point
         lies on an open boundary edge or vertex of the target and which lies beyond it (its
-        offset has a tangential part longer than half the target's mean edge): the target has no
-        data there (a cut, a hole, a partial scan), so the vertex follows its neighbours'
+        offset has a tangential part longer than a tenth of the target's mean edge): the target
+        has no data there (a cut, a hole, a partial scan), so the vertex follows its neighbours'
         regularised motion instead of being dragged onto the rim. Such a vertex also gets no
         barycentre row. No effect on closed targets. Default ``True``.
     max_normal_angle : float or None

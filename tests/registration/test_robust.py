@@ -1,6 +1,8 @@
 """Robust registration on imperfect targets (issue 6): partial targets, outliers, folding,
 vertex-order independence, and the new options' validation."""
 
+from pathlib import Path
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -8,6 +10,7 @@ from _helpers import FAST
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+import o3dreg
 from o3dreg import (
     DistanceEstimation,
     ElasticLevel,
@@ -20,7 +23,7 @@ from o3dreg import (
 from o3dreg._geometry import barycentric
 from o3dreg.app.synthetic import SmoothWarp, synthetic_form
 from o3dreg.mesh.canonical import canonical_mesh
-from o3dreg.registration.distance import SurfaceDistanceQuery
+from o3dreg.registration.distance import BEYOND_BOUNDARY_TOLERANCE, SurfaceDistanceQuery
 from o3dreg.registration.elastic import flipped_triangles
 from o3dreg.registration.losses import loss_named
 
@@ -45,13 +48,19 @@ def cut_top(mesh, fraction):
 
 def test_boundary_detection_on_a_square():
     # A unit square of two triangles: a point above its middle is inside, one beside it is beyond
-    # the open boundary, one just over the rim (less than half an edge) is not.
+    # the open boundary, one just over the rim (less than a tenth of the mean edge) is not.
     v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
     f = np.array([[0, 1, 2], [0, 2, 3]])
     q = SurfaceDistanceQuery(v, f)
-    pts = np.array([[0.5, 0.5, 0.3], [2.0, 0.5, 0.0], [1.1, 0.5, 0.2], [-1.0, -1.0, 0.0]])
+    # A point 0.2 past the rim is beyond it (a fifth of an edge: the tolerance only absorbs
+    # rounding, or it would pull such points onto the rim).
+    pts = np.array(
+        [[0.5, 0.5, 0.3], [2.0, 0.5, 0.0], [1.1, 0.5, 0.2], [-1.0, -1.0, 0.0], [1.2, 0.5, 0.0]]
+    )
     _, face, closest = q.closest(pts)
-    np.testing.assert_array_equal(q.beyond_boundary(pts, face, closest), [False, True, False, True])
+    np.testing.assert_array_equal(
+        q.beyond_boundary(pts, face, closest), [False, True, False, True, True]
+    )
     assert q.has_boundary
     closed = synthetic_form("sphere", 300)
     assert not SurfaceDistanceQuery(*arrays(closed)).has_boundary
@@ -71,7 +80,7 @@ def beyond_by_numpy(q, points, face, closest):
     diff = points - closest
     n = q.face_normal(face)
     tangent = diff - (diff * n).sum(axis=1, keepdims=True) * n
-    return hit & (np.linalg.norm(tangent, axis=1) > 0.5 * q.mean_edge)
+    return hit & (np.linalg.norm(tangent, axis=1) > BEYOND_BOUNDARY_TOLERANCE * q.mean_edge)
 
 
 def test_boundary_test_only_looks_at_triangles_touching_the_boundary(bunny_target):
@@ -89,6 +98,39 @@ def test_boundary_test_only_looks_at_triangles_touching_the_boundary(bunny_targe
     np.testing.assert_array_equal(beyond, beyond_by_numpy(q, pts, face, closest))
     assert 0 < beyond.sum() < len(pts)  # both answers occur
     assert q._touches_boundary.mean() < 0.1  # few triangles are tested at all
+
+
+@pytest.mark.slow
+def test_a_ct_mandible_cut_across_its_rami_is_registered_below_the_cut(shared_data):
+    # Real data: PDDCA mandible 0522c0003, a 3,000-vertex template decimated from its surface,
+    # the surface under a 5% warp with its top 20% (along z, superior) removed: the condyles,
+    # coronoid processes and the top of the rami. The rigid step and the defaults, as
+    # benchmarks/bench_robust.py --mandibles. The vertices below the cut measured 1.01x the
+    # whole target's error (0.118 against 0.117 mm); pulling the vertices within half an edge
+    # past the rim onto it dragged the rami down the surface, 1.56x. 1.5x is the aim for partial
+    # targets (docs/robustness.md).
+    import sys
+
+    masks = shared_data / "mandibles" / "masks"
+    if not masks.is_dir():
+        pytest.skip("mandible masks absent from the shared data")
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "examples"))
+    from mandible_model import reconstruct
+
+    mesh = reconstruct(str(next(masks.glob("0522c0003*.nrrd"))))
+    template = o3dreg.decimate(mesh, 3000)
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    warp = SmoothWarp.random(v, magnitude=0.05, seed=1)
+    wv = warp(v)
+    cut = wv[:, 2].max() - 0.2 * np.ptp(wv[:, 2])
+    partial = (wv, f[wv[f].mean(axis=1)[:, 2] <= cut])
+    truth = warp(np.asarray(template.vertices))
+    below = truth[:, 2] <= cut
+    err = [
+        np.linalg.norm(registration_elastic(template, t).vertices - truth, axis=1)[below].mean()
+        for t in ((wv, f), partial)
+    ]
+    assert err[1] < 1.5 * err[0], err
 
 
 def test_robust_weights_formulas():
@@ -182,7 +224,7 @@ def test_outliers_with_a_robust_loss(bunny_warped):
     assert err(counted) < err(plain)
     assert err(counted) < 0.005 * np.linalg.norm(np.ptp(target[0], axis=0))
     assert counted.status == "ok", counted.warnings
-    # 20% debris: the template grows into the debris it reaches (34 mm, 14% of the diagonal),
+    # 20% debris: the template grows into the debris it reaches (30 mm, 12% of the diagonal),
     # and the verdict says so.
     wrong = registration_elastic(
         template, debris(target, 0.2), init=np.eye(4), levels=FAST, estimation_method=unfiltered

@@ -18,6 +18,7 @@ from o3dreg import (
     registration_elastic,
     write_landmarks,
 )
+from o3dreg.registration.distance import SurfaceDistanceQuery
 
 
 @pytest.fixture(scope="module")
@@ -155,6 +156,18 @@ def test_predict_landmarks_on_new_patient(pop):
     # different tessellation (see test_fit_recovers_pose_and_shape: ~0.2-0.5 mm mean).
     assert err.mean() < 1.0, err
     assert set(pred.as_dict()) == set(lm.labels)
+    # By default the landmarks are read on the instance moved onto the patient surface: landmarks
+    # on the template surface are predicted on the patient's, to rounding.
+    tv9, tf9 = targets[9]
+    query = SurfaceDistanceQuery(np.asarray(tv9), np.asarray(tf9))
+    assert query.distance(pred.positions).max() < 1e-9
+    np.testing.assert_array_equal(query.closest(pred.fit.vertices)[2], pred.vertices)
+    # on_target=False: read on the model instance itself, which lies off the patient's surface.
+    plain = predict_landmarks(model, lm, targets[9], on_target=False, check_reflection=False)
+    np.testing.assert_allclose(plain.positions, plain.fit.vertices[idx])
+    assert query.distance(plain.positions).max() > 1e-3
+    with pytest.raises(TypeError, match="on_target"):
+        predict_landmarks(model, lm, targets[9], on_target="yes")
     other = TemplateLandmarks.from_vertices((tv[:-1], tf[:-10] % (len(tv) - 1)), np.array([0]))
     with pytest.raises(ValueError, match="another template"):
         predict_landmarks(model, other, targets[9])
