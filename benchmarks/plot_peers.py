@@ -57,7 +57,10 @@ def plot_error_vs_time(rows: list[dict], path: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     fig.subplots_adjust(right=0.72)
-    atomic_write(path, lambda tmp: fig.savefig(tmp, format="png"), overwrite=True)
+    # A tight box keeps the legend beside the axes whole, whatever its labels' lengths.
+    atomic_write(
+        path, lambda tmp: fig.savefig(tmp, format="png", bbox_inches="tight"), overwrite=True
+    )
 
 
 def render_registrations(folder: Path) -> None:
