@@ -221,3 +221,26 @@ def write_dicom_series(
         # Files named in reverse order of position: the reader must sort by position.
         ds.save_as(folder / f"{prefix}{len(stored) - n:03d}.dcm", enforce_file_format=True)
     return series_uid
+
+
+def ct_mandible_masks(shared_data: Path) -> list[Path]:
+    """The PDDCA mandible masks of the shared data, sorted (the test is skipped without them)."""
+    import pytest
+
+    masks = shared_data / "mandibles" / "masks"
+    if not masks.is_dir():
+        pytest.skip("mandible masks absent from the shared data")
+    return sorted(masks.glob("*.nrrd"))
+
+
+def ct_mandible(mask: Path, vertices: int | None = None) -> o3d.geometry.TriangleMesh:
+    """The bone surface of a mandible mask, as ``examples/mandible_model.py`` makes it
+    (decimated to ``vertices`` when given)."""
+    import sys
+
+    examples = str(Path(__file__).resolve().parents[1] / "examples")
+    if examples not in sys.path:
+        sys.path.insert(0, examples)
+    from mandible_model import reconstruct
+
+    return reconstruct(str(mask)) if vertices is None else reconstruct(str(mask), vertices)

@@ -1,12 +1,11 @@
 """The elastic registration step: known deformations recovered, the paper's Table 1 effect, bad input."""
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 import pytest
-from _helpers import FAST, assert_untouched, mesh_of, snapshot
+from _helpers import FAST, assert_untouched, ct_mandible, ct_mandible_masks, mesh_of, snapshot
 from scipy.spatial.transform import Rotation
 
 from o3dreg import (
@@ -402,17 +401,9 @@ def test_a_turned_ct_mandible_gets_nearly_the_turned_registration(shared_data):
     # seven with lattices along the scanner's axes). Measured 0.32 mm mean against 1.72 mm with
     # lattices along the scanner's axes; a 0.01 mm change of the start alone moves it
     # 0.21-0.39 mm (the registration's own precision), so 0.6 mm bounds the pose's share.
-    import sys
-
-    masks = shared_data / "mandibles" / "masks"
-    if not masks.is_dir():
-        pytest.skip("mandible masks absent from the shared data")
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "examples"))
-    from mandible_model import reconstruct
-
-    files = sorted(masks.glob("*.nrrd"))
-    template = reconstruct(str(files[0]), 2500)
-    patient = reconstruct(str(next(f for f in files if f.name.startswith("0522c0009"))))
+    files = ct_mandible_masks(shared_data)
+    template = ct_mandible(files[0], 2500)
+    patient = ct_mandible(next(f for f in files if f.name.startswith("0522c0009")))
     pv, pf = np.asarray(patient.vertices), np.asarray(patient.triangles)
     turn = np.eye(4)
     turn[:3, :3] = Rotation.from_rotvec(np.radians(50.0) * np.array([0.36, -0.6, 0.72])).as_matrix()
