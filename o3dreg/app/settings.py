@@ -103,7 +103,7 @@ class RegistrationSettings:
 
     def as_dict(self) -> dict[str, Any]:
         """A JSON-ready description (for reports)."""
-        return {
+        description = {
             "levels": None
             if self.levels is None
             else [dataclasses.asdict(level) for level in self.levels],
@@ -115,6 +115,7 @@ class RegistrationSettings:
             "parts": self.parts,
             "start": self.start,
         }
+        return _plain(description)
 
     def landmark_start(self, template_landmarks: Any, patient_landmarks: Any) -> np.ndarray:
         """The ``init`` from corresponding landmarks (rigid, or a similarity when ``start`` is
@@ -184,3 +185,19 @@ def resolve_settings(settings: Any, options: dict[str, Any]) -> RegistrationSett
             )
         return settings
     return RegistrationSettings.from_options(**options)
+
+
+def _plain(value: Any) -> Any:
+    """``value`` with arrays as lists and what JSON has no form for (a term of one's own in
+    ``more_terms``, say) as its repr."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    return repr(value)

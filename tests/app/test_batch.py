@@ -193,3 +193,25 @@ def test_resume_keys_leave_out_the_extra_terms_until_there_are_some(small):
     )
     assert plain == resume_key(template, target)
     assert extra != plain
+
+
+def test_settings_with_a_term_holding_arrays_describe_themselves_as_json():
+    # A model folder's report holds the settings: a term of one's own in `more_terms` whose
+    # fields are arrays (landmark pairs) must not make the report unwritable.
+    from dataclasses import dataclass
+
+    from o3dreg import DistanceEstimation, DistanceTerm, RegistrationSettings
+
+    @dataclass(frozen=True, eq=False)
+    class Pairs(DistanceTerm):
+        vertices: np.ndarray
+        points: np.ndarray
+
+        def bind(self, context):
+            return None
+
+    term = Pairs(np.array([1, 2]), np.zeros((2, 3)))
+    settings = RegistrationSettings(estimation_method=DistanceEstimation(more_terms=(term,)))
+    text = json.dumps(settings.as_dict())
+    described = json.loads(text)["estimation_method"]["more_terms"][0]
+    assert described == {"vertices": [1, 2], "points": [[0.0, 0.0, 0.0]] * 2}
