@@ -16,7 +16,6 @@ import json
 import resource
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -38,36 +37,22 @@ def rss_mb() -> float:
 
 
 class _Clock:
-    """Seconds the calling thread spends inside the libraries o3dreg calls, by kind, while a
-    registration runs.
+    """Seconds spent inside the libraries o3dreg calls, by kind, while a registration runs.
 
     The wrappers replace the names o3dreg's modules look up at call time (libigl's ``AABB``,
     SciPy's ``cKDTree``, ``cg``, ``spsolve`` and the dense factorisations). Times are
-    exclusive (a timed call inside another counts for its own kind only). The barycentre
-    term's k-d tree queries run on a worker thread beside libigl's queries (on two or more
-    cores): what counts for the registration is the time the calling thread waits for them
-    (in ``BarycentreTerm.prefetch`` and ``_settle``, less the o3dreg code run there); the
-    worker's own query time is reported apart. Everything else is o3dreg's Python and NumPy
-    glue.
+    exclusive (a timed call inside another counts for its own kind only). Everything else is
+    o3dreg's Python and NumPy glue.
     """
 
     KINDS = ("libigl closest points", "k-d tree queries", "tree builds", "SciPy solves")
 
     def __init__(self) -> None:
         self.seconds = dict.fromkeys(self.KINDS, 0.0)
-        self.seconds["glue"] = 0.0
-        self.worker = 0.0
-        self._main = threading.main_thread()
         self._stack: list[str] = []
 
     def timed(self, kind: str, fn):
         def call(*args, **kwargs):
-            if threading.current_thread() is not self._main:
-                start = time.perf_counter()
-                try:
-                    return fn(*args, **kwargs)
-                finally:
-                    self.worker += time.perf_counter() - start
             self._stack.append(kind)
             start = time.perf_counter()
             try:
@@ -110,13 +95,6 @@ class _Clock:
         distance.igl = types.SimpleNamespace(AABB=AABB)
         for module in (_terms, distance, rigid):
             module.cKDTree = KDTree
-        term = _terms.BarycentreTerm
-        # Waiting for the worker counts as k-d tree time; the o3dreg code run in these
-        # methods (planning and recording the search) as glue.
-        term.prefetch = self.timed("k-d tree queries", term.prefetch)
-        term._settle = self.timed("k-d tree queries", term._settle)
-        term._plan = self.timed("glue", term._plan)
-        term._record = self.timed("glue", term._record)
         for module, names in (
             (scipy.sparse.linalg, ("cg", "spsolve")),
             (scipy.linalg, ("cho_factor", "cho_solve", "solve")),
@@ -179,8 +157,7 @@ def run_one(method: str, magnitude: str, template_vertices: int, shares: bool = 
         "s2t_mean": d.source_to_target_mean,
         "t2s_mean": d.target_to_source_mean,
         "profile": profile,
-        "library_seconds": {k: clock.seconds[k] for k in _Clock.KINDS} if shares else {},
-        "worker_seconds": clock.worker if shares else 0.0,
+        "library_seconds": clock.seconds if shares else {},
     }
 
 
@@ -254,14 +231,13 @@ def print_shares(args: argparse.Namespace, methods: list[str]) -> None:
     """Where each o3dreg method's time goes: one more run of each with the library calls timed
     (the wrappers cost microseconds a call; this run's total is not the one in the table)."""
     print(
-        "\nwhere the time goes (one timed run each, on the calling thread; the rest is o3dreg's"
-        "\nPython and NumPy glue; k-d tree queries: the time it waits for the barycentre term's"
-        "\nworker thread, whose own query time is in the last column):"
+        "\nwhere the time goes (one timed run each, exclusive times; the rest is o3dreg's Python"
+        "\nand NumPy glue):"
     )
     print(
         f"  {'method':<15}{'total s':>8}"
         + "".join(f"{k:>23}" for k in _Clock.KINDS)
-        + f"{'glue':>16}{'worker s':>10}"
+        + f"{'glue':>16}"
     )
     for method in methods:
         out = subprocess.run(
@@ -275,10 +251,7 @@ def print_shares(args: argparse.Namespace, methods: list[str]) -> None:
         cells = "".join(
             f"{parts[k]:>10.3f} s {100 * parts[k] / total:>4.0f}% " for k in _Clock.KINDS
         )
-        print(
-            f"  {method:<15}{total:>8.3f}{cells}{glue:>9.3f} s {100 * glue / total:>3.0f}%"
-            f"{r['worker_seconds']:>10.3f}"
-        )
+        print(f"  {method:<15}{total:>8.3f}{cells}{glue:>9.3f} s {100 * glue / total:>3.0f}%")
 
 
 if __name__ == "__main__":

@@ -26,7 +26,6 @@ cannot pull the unsupported part of the template into the covered part).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -145,10 +144,6 @@ class LevelProblem:
         Template normals turned to the target's orientation, for the normal-angle checker.
     prior : LatticeDeformation or None
         The coarser levels' map, whose Jacobian the folding guard adds to this level's.
-    pool : Executor or None
-        One worker thread on which the distance terms find their own correspondences (the
-        barycentre term's k-d tree queries) while the point-to-surface query of the same
-        points runs (``None``: one after the other).
     """
 
     def __init__(
@@ -172,10 +167,8 @@ class LevelProblem:
         min_jacobian_determinant: float | None = None,
         normals: np.ndarray | None = None,
         prior: Any = None,
-        pool: Executor | None = None,
     ) -> None:
         self.lattice = lattice
-        self.pool = pool
         self.loss = loss or L2Loss()
         self.min_jacobian_determinant = min_jacobian_determinant
         self.base = points + previous
@@ -240,7 +233,6 @@ class LevelProblem:
         level start (``u = 0``), over the correspondences the other checkers accept (the
         distance checker itself is measured in this scale); then each distance term's own."""
         floor = SCALE_FLOOR * float(lattice.cell_size.min())
-        self._prefetch(self.base)  # collected by the terms' start
         self._start = dist, face, closest = self.target.closest(self.base)
         keep = support(self.checkers, self.base, dist, face, closest)
         self.sigma = self.loss.scale or robust_scale(dist[keep], floor)
@@ -331,9 +323,6 @@ class LevelProblem:
         y = self.moved(u)
         at_start = not u.any()
         found = self._start if at_start else None
-        # The terms' own correspondences at y, needed now or by :meth:`reweighted` if a trial
-        # step is accepted, found while libigl answers.
-        self._prefetch(y, at_start)
         dist, closest, grad, face = self.target.gradient(y, return_faces=True, found=found)
         if weights_of is None:
             own = tuple(term.correspond(y, at_start) for term in self.distance_terms)
@@ -349,12 +338,6 @@ class LevelProblem:
         if not reassign:
             held = tuple(block.held for block in weights_of.terms[: len(self.distance_terms)])
         return self._assemble(geometry, weights, held)
-
-    def _prefetch(self, y: np.ndarray, at_start: bool = False) -> None:
-        """Start the terms' own correspondences at ``y`` on the worker thread, if any."""
-        if self.pool is not None:
-            for term in self.distance_terms:
-                term.prefetch(y, self.pool, at_start)
 
     def reweighted(self, ev: Evaluation) -> Evaluation:
         """``ev`` with the weights, masks and own correspondences of its own point (no new

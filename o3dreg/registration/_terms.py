@@ -24,9 +24,7 @@ free nodes (see ``_cost``).
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import TYPE_CHECKING, Any, Protocol
@@ -199,11 +197,6 @@ class DistanceTermAtLevel:
         the level's start), or ``None`` when it has none."""
         return None
 
-    def prefetch(self, y: np.ndarray, pool: Executor, at_start: bool = False) -> None:
-        """Start finding :meth:`correspond`'s correspondences at ``y`` on ``pool`` (one worker
-        thread), while the level queries libigl for the same points; ``correspond`` of the
-        same array collects them. Nothing by default."""
-
     def own_weights(self, g: Geometry, found: Any) -> np.ndarray | None:
         """Robust weights of the correspondences ``found`` at ``g`` (``None``: unweighted)."""
         return None
@@ -375,31 +368,6 @@ class BarycentreTerm(PullTerm):
         self._path_mark = np.zeros(0)
         self._gap = np.zeros(0)
         self._nearest = np.zeros(0, dtype=np.int64)
-        #: The array a :meth:`prefetch` searches at, its plan and the future of its search.
-        self._pending: tuple[np.ndarray, Any, Future | None] | None = None
-
-    def prefetch(self, y: np.ndarray, pool: Executor, at_start: bool = False) -> None:
-        """Start the k-d tree search of :meth:`measure` at ``y`` on ``pool`` (one worker
-        thread), for a later ``measure(y)`` of the same array to collect (none at the level's
-        start when :meth:`start` measured it already).
-
-        The k-d tree query releases the GIL and libigl's point-to-surface query, which the
-        caller runs meanwhile, holds it: this returns once the worker is inside its query, so
-        that both run at once. The worker only queries (with its own references to the tree
-        and the points, which an interrupt of the caller cannot free under it); the search
-        state is kept on the calling thread.
-        """
-        if at_start and self._start is not None:
-            return
-        self._settle()
-        plan = self._plan(y)
-        future = None
-        if plan is not None:
-            searching = threading.Event()
-            future = pool.submit(_nearest_two, *plan[1:], self._nn_bound, searching.set)
-            future.add_done_callback(lambda _: searching.set())
-            searching.wait()
-        self._pending = (y, plan, future)
 
     def start(self, robust: RobustStart) -> None:
         """The scale of the distances ``e_j`` over the target points, measured to the template
@@ -445,21 +413,9 @@ class BarycentreTerm(PullTerm):
         bounded search prunes more); the few points without a neighbour inside it are searched
         again unbounded.
         """
-        if self._pending is not None and self._pending[0] is y:
-            return self._settle()
-        self._settle()
         plan = self._plan(y)
         found = None if plan is None else _nearest_two(*plan[1:], self._nn_bound)
         return self._record(y, plan, found)
-
-    def _settle(self) -> tuple[np.ndarray, np.ndarray]:
-        """Record a prefetched search (a trial step's that was not collected as well: the
-        search state has moved to its point)."""
-        if self._pending is None:
-            return np.zeros(0), np.zeros(0, dtype=np.int64)
-        y, plan, future = self._pending
-        self._pending = None
-        return self._record(y, plan, None if future is None else future.result())
 
     def _plan(self, y: np.ndarray) -> tuple[np.ndarray, Any, np.ndarray, int] | None:
         """Move the search state to ``y``; the target points to search again (a mask), the
@@ -564,17 +520,14 @@ def _nearest_two(
     points: np.ndarray,
     k: int,
     bound: float,
-    searching: Callable[[], object] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ``k`` nearest sites (two, or one for a tree of one site) of ``points`` in ``tree``,
     searched within ``bound`` first and the points without a neighbour inside it again
-    unbounded; the radius each point was searched within. ``searching`` is called just before the query.
+    unbounded; the radius each point was searched within.
 
     One thread (SciPy's default) per query: a threaded query is joined from Python, and an
     interrupt (Ctrl-C, SIGTERM) during the join unwinds while its threads still read the tree.
     """
-    if searching is not None:
-        searching()
     e, nearest = tree.query(points, k=k, distance_upper_bound=bound)
     e, nearest = e.reshape(-1, k), nearest.reshape(-1, k)
     radius = np.full(e.shape[0], bound)

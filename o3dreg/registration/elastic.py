@@ -18,8 +18,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import Executor, ThreadPoolExecutor
-from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -55,8 +53,8 @@ from .result import (
     RigidStart,
     SurfaceDistances,
 )
-from .rigid import default_start, usable_cores
-from .terms import DistanceTerm, PointToSurface
+from .rigid import default_start
+from .terms import DistanceTerm
 from .verdict import judge, with_rigid_start
 
 __all__ = ["evaluate_elastic", "registration_elastic"]
@@ -352,21 +350,20 @@ def _coarse_to_fine(
     history: list[LevelReport] = []
     failures: list[str] = []
     problem: LevelProblem | None = None
-    with hierarchy.worker() as pool:
-        for k, level in enumerate(levels_):
-            start = time.perf_counter()
-            problem, use = hierarchy.problem(level, previous, deformation, pool)
-            info = solve(problem, level.criteria or criteria, level.solver)
-            level_lattice = problem.scatter(info.evaluation.u)
-            deformation = deformation.with_level(level_lattice)
-            previous = previous + level_lattice.displacement(points)
-            report = _level_report(level, problem, info, use.size, time.perf_counter() - start)
-            _log_level(k, len(levels_), report)
-            history.append(report)
-            if not info.success:
-                failures.append(f"level {k + 1} ({level.resolution} cells): {info.message}")
-            if callback is not None:
-                callback(report)
+    for k, level in enumerate(levels_):
+        start = time.perf_counter()
+        problem, use = hierarchy.problem(level, previous, deformation)
+        info = solve(problem, level.criteria or criteria, level.solver)
+        level_lattice = problem.scatter(info.evaluation.u)
+        deformation = deformation.with_level(level_lattice)
+        previous = previous + level_lattice.displacement(points)
+        report = _level_report(level, problem, info, use.size, time.perf_counter() - start)
+        _log_level(k, len(levels_), report)
+        history.append(report)
+        if not info.success:
+            failures.append(f"level {k + 1} ({level.resolution} cells): {info.message}")
+        if callback is not None:
+            callback(report)
     return hierarchy.fit(deformation, points + previous, history, failures, problem)
 
 
@@ -412,24 +409,14 @@ class _Hierarchy:
             orientation,
         )  # fmt: skip
 
-    def worker(self) -> AbstractContextManager[Executor | None]:
-        """One worker thread on which the terms find their own correspondences (the barycentre
-        term's k-d tree queries) beside libigl's queries (see :meth:`LevelProblem.evaluate`);
-        none on one core or with the point-to-surface term alone."""
-        if usable_cores() < 2 or all(isinstance(t, PointToSurface) for t in self.terms):
-            return nullcontext(None)
-        return ThreadPoolExecutor(1, thread_name_prefix="o3dreg-barycentre")
-
     def problem(
         self,
         level: ElasticLevel,
         previous: np.ndarray,
         deformation: LatticeDeformation,
-        pool: Executor | None = None,
     ) -> tuple[LevelProblem, np.ndarray]:
         """The problem of ``level`` from the template moved by the coarser levels
-        (``previous``, ``deformation``), and the template points it is posed on (``pool``:
-        see :meth:`worker`)."""
+        (``previous``, ``deformation``), and the template points it is posed on."""
         points, surface = self.points, self.surface
         lattice = TrilinearLattice.zeros(self.origin, self.size, (level.resolution,) * 3)
         active = self._active(level, points + previous)
@@ -463,7 +450,6 @@ class _Hierarchy:
             else None,
             normals=normals,
             prior=deformation if deformation.levels else None,
-            pool=pool,
         )
         return problem, use
 

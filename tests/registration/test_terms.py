@@ -15,7 +15,6 @@ import pytest
 import scipy.sparse as sp
 from _helpers import level_problem
 
-import o3dreg
 from o3dreg import DistanceEstimation, ElasticLevel, registration_elastic
 from o3dreg.app.synthetic import synthetic_form
 from o3dreg.registration import (
@@ -413,49 +412,6 @@ def test_the_barycentre_assignment_is_exact_along_any_path():
         expected_distance, expected = brute_force_nearest(targets, y)
         np.testing.assert_array_equal(nearest, expected)
         np.testing.assert_allclose(distance, expected_distance, rtol=1e-12)
-
-
-def test_prefetched_assignments_are_exact_whether_collected_or_not():
-    # A prefetch measures on a worker thread while the caller queries libigl; a trial step
-    # that is rejected leaves its prefetch uncollected, and the next measure (of another
-    # array) must wait for it and still give the brute-force assignment.
-    from concurrent.futures import ThreadPoolExecutor
-
-    from o3dreg.registration._terms import BarycentreTerm
-
-    rng = np.random.default_rng(5)
-    sites = rng.normal(size=(80, 3)) * 10.0
-    targets = rng.normal(size=(3000, 3)) * 12.0
-    term = BarycentreTerm(None, targets, 1.0)  # type: ignore[arg-type]  # no linearisation here
-    y = sites.copy()
-    with ThreadPoolExecutor(1) as pool:
-        for step in range(10):
-            y = y + rng.normal(size=y.shape) * (1.0 if step % 4 == 0 else 0.1)
-            term.prefetch(y, pool)
-            if step % 3 == 1:
-                y = y + 0.5  # the prefetched point is rejected: another one is measured
-            distance, nearest = term.measure(y)
-            expected_distance, expected = brute_force_nearest(targets, y)
-            np.testing.assert_array_equal(nearest, expected)
-            np.testing.assert_allclose(distance, expected_distance, rtol=1e-12)
-
-
-def test_the_worker_thread_changes_no_registration():
-    # The barycentre term's queries on a worker thread (two or more cores) must give the very
-    # registration of the same queries one after the other.
-    from o3dreg.registration import elastic
-
-    source = synthetic_form("cube", 400)
-    target = synthetic_form("sphere", 3000)
-    options = dict(init=np.eye(4), levels=[o3dreg.ElasticLevel(2), o3dreg.ElasticLevel(4)])
-    threaded = o3dreg.registration_elastic(source, target, **options)
-    original = elastic.usable_cores
-    elastic.usable_cores = lambda: 1
-    try:
-        serial = o3dreg.registration_elastic(source, target, **options)
-    finally:
-        elastic.usable_cores = original
-    np.testing.assert_array_equal(threaded.vertices, serial.vertices)
 
 
 @pytest.mark.parametrize("robust", [False, True])
