@@ -40,29 +40,22 @@ class _Clock:
     """Seconds spent inside the libraries o3dreg calls, by kind, while a registration runs.
 
     The wrappers replace the names o3dreg's modules look up at call time (libigl's ``AABB``,
-    SciPy's ``cKDTree``, ``cg``, ``spsolve`` and the dense factorisations). Times are
-    exclusive (a timed call inside another counts for its own kind only). Everything else is
-    o3dreg's Python and NumPy glue.
+    SciPy's ``cKDTree``, ``cg``, ``spsolve`` and the dense factorisations; none of them calls
+    another); everything else is o3dreg's own Python and NumPy glue.
     """
 
     KINDS = ("libigl closest points", "k-d tree queries", "tree builds", "SciPy solves")
 
     def __init__(self) -> None:
         self.seconds = dict.fromkeys(self.KINDS, 0.0)
-        self._stack: list[str] = []
 
     def timed(self, kind: str, fn):
         def call(*args, **kwargs):
-            self._stack.append(kind)
             start = time.perf_counter()
             try:
                 return fn(*args, **kwargs)
             finally:
-                elapsed = time.perf_counter() - start
-                self._stack.pop()
-                self.seconds[kind] += elapsed
-                if self._stack:
-                    self.seconds[self._stack[-1]] -= elapsed
+                self.seconds[kind] += time.perf_counter() - start
 
         return call
 
@@ -230,10 +223,7 @@ def main() -> None:
 def print_shares(args: argparse.Namespace, methods: list[str]) -> None:
     """Where each o3dreg method's time goes: one more run of each with the library calls timed
     (the wrappers cost microseconds a call; this run's total is not the one in the table)."""
-    print(
-        "\nwhere the time goes (one timed run each, exclusive times; the rest is o3dreg's Python"
-        "\nand NumPy glue):"
-    )
+    print("\nwhere the time goes (one timed run each; the rest is o3dreg's Python and NumPy glue):")
     print(
         f"  {'method':<15}{'total s':>8}"
         + "".join(f"{k:>23}" for k in _Clock.KINDS)

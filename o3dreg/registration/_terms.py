@@ -413,14 +413,17 @@ class BarycentreTerm(PullTerm):
         bounded search prunes more); the few points without a neighbour inside it are searched
         again unbounded.
         """
-        plan = self._plan(y)
-        found = None if plan is None else _nearest_two(*plan[1:], self._nn_bound)
-        return self._record(y, plan, found)
+        search = self._plan(y)
+        found = None
+        if search is not None:
+            tree = cKDTree(y, leafsize=32)
+            k = min(2, y.shape[0])
+            found = _nearest_two(tree, self.target_points[search], k, self._nn_bound)
+        return self._record(y, search, found)
 
-    def _plan(self, y: np.ndarray) -> tuple[np.ndarray, Any, np.ndarray, int] | None:
-        """Move the search state to ``y``; the target points to search again (a mask), the
-        k-d tree of ``y``, those points and how many neighbours to find, or ``None`` when none
-        needs it."""
+    def _plan(self, y: np.ndarray) -> np.ndarray | None:
+        """Move the search state to ``y``; the target points to search again (a mask), or
+        ``None`` when none needs it."""
         t = self.target_points
         if self._last is None or self._last.shape != y.shape:
             search = np.ones(t.shape[0], dtype=bool)
@@ -439,19 +442,17 @@ class BarycentreTerm(PullTerm):
             own = self._path[self._nearest] - self._path_mark
             search = own + (self._moved - self._mark) >= self._gap
         self._last = y.copy()
-        if not search.any():
-            return None
-        return search, cKDTree(y, leafsize=32), t[search], min(2, y.shape[0])
+        return search if search.any() else None
 
     def _record(
         self,
         y: np.ndarray,
-        plan: tuple[np.ndarray, Any, np.ndarray, int] | None,
+        search: np.ndarray | None,
         found: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Keep what a search ``found`` for the points of ``plan``; the assignment at ``y``."""
-        if plan is not None and found is not None:
-            search = plan[0]
+        """Keep what a search ``found`` for the target points ``search``; the assignment at
+        ``y``."""
+        if search is not None and found is not None:
             e, nearest, bound = found
             first = nearest[:, 0]
             second = np.full(e.shape[0], np.inf)

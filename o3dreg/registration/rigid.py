@@ -860,15 +860,10 @@ def _pose(entry: tuple[float, str, Any]) -> np.ndarray:
     return np.asarray(entry[2].transformation)
 
 
-def usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity where the system tells it)."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return max(1, cores or 1)
-
-
 def _threads() -> int:
     """Threads of the candidate search: :data:`SEARCH_THREADS`, at most the usable cores."""
-    return min(SEARCH_THREADS, usable_cores())
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(SEARCH_THREADS, cores or 1))
 
 
 def _cloud(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.PointCloud:
