@@ -21,9 +21,8 @@ CLOSEST_FEW_MIN_FACES = 200_000
 #: A point whose closest surface point lies on the open boundary is beyond it when its offset
 #: along the surface exceeds this fraction of the mean edge. A tolerance pulls every template
 #: vertex within it onto the rim, and through the lattice drags its neighbours along the
-#: surface towards the data: with half an edge, template vertices below a 20% cut of three CT
-#: mandibles ended 0.8 mm too low and their error was 1.4-1.6 times the whole target's; with a
-#: tenth of an edge, which only absorbs rounding, 1.0-1.4 times (docs/robustness.md).
+#: surface towards the data; a tenth of an edge only absorbs rounding (the cut targets of
+#: docs/robustness.md measure both).
 BEYOND_BOUNDARY_TOLERANCE = 0.1
 
 

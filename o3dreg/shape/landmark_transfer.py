@@ -469,8 +469,7 @@ def predict_landmarks(
     each at its barycentric point plus its offset in the local frame there, so a landmark
     defined inside the bone is predicted inside the patient's bone at the same depth (scaled
     with the mesh's size). Nothing is moved onto the surface unless the landmarks were made
-    so (``on_surface``). On 8 CT mandibles (leave-one-out, models of 6) reading on the patient
-    surface gains 0.25-0.4 mm (docs/shape-model.md).
+    so (``on_surface``). docs/shape-model.md compares both readings on CT mandibles.
 
     Parameters
     ----------
