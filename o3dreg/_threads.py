@@ -1,10 +1,10 @@
 """A large batch of library queries answered in two halves, one on a worker thread.
 
-SciPy's k-d tree releases the GIL while it searches, so the two halves run at once on two cores.
-SciPy's own ``workers=`` runs its threads as daemons, which may still read the tree while the
-interpreter shuts down after an interrupt; here the calling thread waits for its worker, even
-when interrupted, and the worker belongs to a non-daemon pool that the interpreter joins at
-exit. A process forked from this one makes its own worker.
+SciPy's k-d tree releases the GIL while it searches, so the two halves run at once on two cores
+(libigl's AABB build holds the GIL, so building a tree ahead on a worker gains nothing). The
+worker belongs to a non-daemon pool, which the interpreter joins at exit, so no worker is still
+reading arrays while it shuts down (SciPy's own ``workers=`` threads are daemons); a process
+forked from this one makes its own worker.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import numpy as np
 
@@ -21,16 +22,15 @@ __all__ = ["in_halves"]
 #: the worker costs more than that half takes.
 MIN_SPLIT = 4096
 
-_pool: ThreadPoolExecutor | None = None
+_pools: dict[str, ThreadPoolExecutor] = {}
 
 
-def _forget_pool() -> None:
-    global _pool
-    _pool = None  # the parent's worker thread does not exist in a forked child
+def _forget_pools() -> None:
+    _pools.clear()  # the parent's worker threads do not exist in a forked child
 
 
 if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pool)
+    os.register_at_fork(after_in_child=_forget_pools)
 
 
 def _usable_cores() -> int:
@@ -39,8 +39,14 @@ def _usable_cores() -> int:
     return os.cpu_count() or 1
 
 
+def _worker() -> ThreadPoolExecutor:
+    if "half" not in _pools:
+        _pools["half"] = ThreadPoolExecutor(1, thread_name_prefix="o3dreg-half")
+    return _pools["half"]
+
+
 def in_halves(
-    query: Callable[[np.ndarray], tuple[np.ndarray, ...]], points: np.ndarray
+    query: Callable[[np.ndarray], tuple[Any, ...]], points: np.ndarray
 ) -> tuple[np.ndarray, ...]:
     """``query(points)``, with the second half of a large batch on a worker thread.
 
@@ -48,14 +54,11 @@ def in_halves(
     the points; the halves' results are concatenated in order, so the answer is the same as
     one call's.
     """
-    global _pool
     n = points.shape[0]
     if n < MIN_SPLIT or _usable_cores() < 2:
         return query(points)
-    if _pool is None:
-        _pool = ThreadPoolExecutor(1, thread_name_prefix="o3dreg-half")
     half = n // 2
-    second = _pool.submit(query, points[half:])
+    second = _worker().submit(query, points[half:])
     try:
         first = query(points[:half])
     finally:

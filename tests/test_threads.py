@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from o3dreg import _halves
-from o3dreg._halves import MIN_SPLIT, in_halves
+from o3dreg import _threads
+from o3dreg._threads import MIN_SPLIT, in_halves
 
 
 @pytest.fixture
 def two_cores(monkeypatch):
-    monkeypatch.setattr(_halves, "_usable_cores", lambda: 2)
+    monkeypatch.setattr(_threads, "_usable_cores", lambda: 2)
 
 
 def test_same_answer_as_one_query(two_cores):
@@ -36,7 +36,7 @@ def test_small_batch_stays_on_the_calling_thread(two_cores):
 
 
 def test_one_core_stays_on_the_calling_thread(monkeypatch):
-    monkeypatch.setattr(_halves, "_usable_cores", lambda: 1)
+    monkeypatch.setattr(_threads, "_usable_cores", lambda: 1)
     seen = []
     in_halves(lambda p: (seen.append(threading.current_thread()), p)[1:], np.zeros((MIN_SPLIT, 3)))
     assert seen == [threading.current_thread()]
