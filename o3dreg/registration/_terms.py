@@ -34,9 +34,9 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .._geometry import row_norms
-from .._threads import in_halves
 from ._assembly import NormalAssembly, symmetric_outer
 from ._robust import CorrespondenceMask, robust_scale
+from ._threads import in_halves
 from .checkers import CheckerContext, CorrespondenceChecker, bound_masks
 from .lattice import TrilinearLattice
 
@@ -527,7 +527,7 @@ def _nearest_two(
     searched within ``bound`` first and the points without a neighbour inside it again
     unbounded; the radius each point was searched within.
 
-    A large batch is searched in two halves at once (:func:`~o3dreg._threads.in_halves`).
+    A large batch is searched in two halves at once (:func:`~o3dreg.registration._threads.in_halves`).
     """
     e, nearest = in_halves(lambda p: tree.query(p, k=k, distance_upper_bound=bound), points)
     e, nearest = e.reshape(-1, k), nearest.reshape(-1, k)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from o3dreg import _threads
-from o3dreg._threads import MIN_SPLIT, in_halves
+from o3dreg.registration import _threads
+from o3dreg.registration._threads import MIN_SPLIT, in_halves
 
 
 @pytest.fixture
