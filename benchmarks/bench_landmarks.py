@@ -31,11 +31,20 @@ a template is that surface decimated to ``--template-vertices``.
   r_ab``, one offset ``o`` per annotation (the same whichever patient it is carried to or from),
   which splits the error into what the annotations explain and what is left to each
   registration (with all 8 templates: with fewer, the offsets explain everything).
+* **Inverse-consistent transfer** (``--inverse-consistent``): the pair's registration the other
+  way round as well (the patient's surface decimated like a template, registered onto the
+  template's surface; with all 8 templates it is another pair's forward registration), the
+  template's annotation carried backwards through it (``result.inverse_transform``: the point
+  that map sends onto the annotation), and the mean of the forward and backward estimates. A
+  bias that both directions make the same way (a protrusion the map does not quite reach) has
+  opposite signs in the two estimates and cancels in the mean. Its time per pair counts both
+  registrations.
 
     python benchmarks/bench_landmarks.py                       # 8 x 7 pairs, both methods
     python benchmarks/bench_landmarks.py --templates 2 --skip-peer --skip-prediction
     python benchmarks/bench_landmarks.py --skip-peer --barycentre-weighting uniform
     python benchmarks/bench_landmarks.py --skip-peer --skip-prediction --decompose
+    python benchmarks/bench_landmarks.py --skip-peer --skip-prediction --inverse-consistent
 
 Prints the figures and the ratios against the peer measured in the same run; skips with a message
 where the data are absent. Nothing derived from the masks is written.
@@ -189,6 +198,12 @@ def main() -> int:
         choices=["count", "uniform"],
         help="o3dreg's DistanceEstimation.barycentre_weighting (default: the library default)",
     )
+    parser.add_argument(
+        "--inverse-consistent",
+        action="store_true",
+        help="also carry each annotation backwards through the patient-onto-template "
+        "registration, and average the two estimates (see above)",
+    )
     args = parser.parse_args()
     folder = data_dir()
     if not (folder / "masks").is_dir() or not (folder / "landmarks").is_dir():
@@ -206,11 +221,14 @@ def main() -> int:
     )
     ids = sorted(data)
     chosen = ids if args.templates is None else [ids[int(k)] for k in args.templates.split(",")]
-    methods = ["o3dreg"] + ([] if args.skip_peer else ["nricp_amberg"])
+    both = ["o3dreg backward", "o3dreg mean"] if args.inverse_consistent else []
+    methods = ["o3dreg"] + both + ([] if args.skip_peer else ["nricp_amberg"])
     vectors = {m: np.zeros((len(chosen), len(ids) - 1, len(LABELS), 3)) for m in methods}
     seconds = dict.fromkeys(methods, 0.0)
     statuses: list[str] = []
     shapes: dict[tuple[str, str], np.ndarray] = {}
+    results: dict[tuple[str, str], o3dreg.ElasticRegistrationResult] = {}
+    took: dict[tuple[str, str], float] = {}
     for a, tid in enumerate(chosen):
         template = data[tid]["template"]
         attached = TemplateLandmarks.from_points(template, data[tid]["landmarks"])
@@ -218,16 +236,38 @@ def main() -> int:
             surface, truth = data[pid]["surface"], data[pid]["landmarks"]
             start = time.perf_counter()
             result = o3dreg.registration_elastic(template, surface, estimation_method=estimation)
-            seconds["o3dreg"] += time.perf_counter() - start
+            took[tid, pid] = time.perf_counter() - start
+            seconds["o3dreg"] += took[tid, pid]
             statuses.append(result.status)
             vectors["o3dreg"][a, b] = result.transform(data[tid]["landmarks"]) - truth
             shapes[tid, pid] = result.vertices
+            if args.inverse_consistent:
+                results[tid, pid] = result
             if "nricp_amberg" in methods:
                 start = time.perf_counter()
                 moved = amberg(template, result.transformation, surface)
                 seconds["nricp_amberg"] += time.perf_counter() - start
                 vectors["nricp_amberg"][a, b] = attached.positions(moved) - truth
         print(f"template {tid}: done", file=sys.stderr, flush=True)
+    for a, tid in enumerate(chosen if args.inverse_consistent else []):
+        for b, pid in enumerate(p for p in ids if p != tid):
+            if (pid, tid) not in results:  # the reverse pair, unless it was a forward one
+                start = time.perf_counter()
+                results[pid, tid] = o3dreg.registration_elastic(
+                    data[pid]["template"], data[tid]["surface"], estimation_method=estimation
+                )
+                took[pid, tid] = time.perf_counter() - start
+                statuses.append(results[pid, tid].status)
+            start = time.perf_counter()
+            forward = results[tid, pid].transform(data[tid]["landmarks"])
+            backward = results[pid, tid].inverse_transform(data[tid]["landmarks"])
+            # Every backward estimate pays for its registration, done here or as a forward pair.
+            seconds["o3dreg backward"] += took[pid, tid] + time.perf_counter() - start
+            truth = data[pid]["landmarks"]
+            vectors["o3dreg backward"][a, b] = backward - truth
+            vectors["o3dreg mean"][a, b] = 0.5 * (forward + backward) - truth
+    if args.inverse_consistent:
+        seconds["o3dreg mean"] = seconds["o3dreg"] + seconds["o3dreg backward"]
 
     pairs = len(chosen) * (len(ids) - 1)
     print(
@@ -235,11 +275,10 @@ def main() -> int:
         f"template {args.template_vertices} vertices; error = distance to the patient's own "
         "annotation, mm"
     )
-    print(
-        f"o3dreg verdicts: {', '.join(f'{s} {statuses.count(s)}' for s in sorted(set(statuses)))}"
-    )
+    counts = ", ".join(f"{s} {statuses.count(s)}" for s in sorted(set(statuses)))
+    print(f"o3dreg verdicts (every registration run): {counts}")
     head = (
-        f"{'method':<14}{'mean':>7}"
+        f"{'method':<17}{'mean':>7}"
         + "".join(f"{lab:>8}" for lab in LABELS)
         + f"{'max':>7}{'system.':>9}{'random':>8}{'s/pair':>8}"
     )
@@ -250,7 +289,7 @@ def main() -> int:
         systematic, random = decompose(vectors[m])
         means[m] = float(err.mean())
         print(
-            f"{m:<14}{err.mean():>7.2f}"
+            f"{m:<17}{err.mean():>7.2f}"
             + "".join(f"{e:>8.2f}" for e in err.mean(axis=(0, 1)))
             + f"{err.max():>7.2f}{systematic:>9.2f}{random:>8.2f}{seconds[m] / pairs:>8.2f}"
         )
@@ -259,13 +298,24 @@ def main() -> int:
             f"o3dreg / nricp_amberg mean transfer error: {means['o3dreg'] / means['nricp_amberg']:.2f}"
             f" (time {seconds['o3dreg'] / seconds['nricp_amberg']:.2f})"
         )
-    print("per template (o3dreg mean, chin, mand_r, mand_l):")
-    err = np.linalg.norm(vectors["o3dreg"], axis=-1)
-    for a, tid in enumerate(chosen):
-        row = err[a].mean(axis=0)
-        print(f"  {tid}: {err[a].mean():.2f}  " + "  ".join(f"{e:.2f}" for e in row))
+    if args.inverse_consistent:
+        # No annotation of the patient's in it: how far the two maps disagree on one point.
+        gap = np.linalg.norm(vectors["o3dreg"] - vectors["o3dreg backward"], axis=-1)
+        print(
+            "|forward - backward| (mean, chin, mand_r, mand_l): "
+            + "  ".join(f"{x:.2f}" for x in (gap.mean(), *gap.mean(axis=(0, 1))))
+        )
+    for m in ["o3dreg"] + both:
+        print(f"per template ({m}: mean, chin, mand_r, mand_l):")
+        err = np.linalg.norm(vectors[m], axis=-1)
+        for a, tid in enumerate(chosen):
+            row = err[a].mean(axis=0)
+            print(f"  {tid}: {err[a].mean():.2f}  " + "  ".join(f"{e:.2f}" for e in row))
     if args.decompose:
         decomposition(data, vectors["o3dreg"], chosen)
+        if args.inverse_consistent:
+            print("(o3dreg mean, forward and backward)", end="")
+            decomposition(data, vectors["o3dreg mean"], chosen)
 
     if args.skip_prediction:
         return 0

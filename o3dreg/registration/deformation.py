@@ -129,6 +129,48 @@ class LatticeDeformation:
         """``det(dT/dx)`` at ``points``: positive where the map preserves orientation."""
         return det3(self.jacobian(points))
 
+    def inverse_transform(self, points: Any, *, max_iterations: int = 50) -> np.ndarray:
+        """The points this map sends onto ``points``: ``x`` with ``T(x) = points``.
+
+        Newton's method on ``T(x) - points`` with the map's Jacobian, from ``points - u(points)``
+        (``u`` the displacement), each step halved until it lowers the point's residual. Where the
+        map is one-to-one (:meth:`LatticeDeformation.min_jacobian_determinant` ``> 0``, as in a
+        registration whose status is ``'ok'``) the answer is unique and a few steps reach it; where
+        it folds, the point found is one of several.
+
+        Parameters
+        ----------
+        points : (n, 3) array_like
+            Points in the space the map goes to. Not modified.
+        max_iterations : int, optional
+            Newton steps at most. Default 50.
+
+        Returns
+        -------
+        (n, 3) ndarray
+            ``x`` with ``|T(x) - points|`` below ``1e-9`` times the larger of 1 and the points'
+            largest absolute coordinate.
+
+        Raises
+        ------
+        ValueError
+            If some point has not reached that tolerance within ``max_iterations`` steps (the map
+            folds there, or its Jacobian is singular), naming how many and the largest residual.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from o3dreg import LatticeDeformation, TrilinearLattice
+        >>> lattice = TrilinearLattice.zeros((0, 0, 0), (2, 2, 2), (2, 2, 2))
+        >>> shift = np.zeros(lattice.displacements.shape)
+        >>> shift[1, 1, 1] = (0.3, 0.0, 0.0)
+        >>> deformation = LatticeDeformation((lattice.with_displacements(shift),))
+        >>> x = np.array([[0.9, 1.1, 1.0]])
+        >>> bool(np.allclose(deformation.inverse_transform(deformation.transform(x)), x))
+        True
+        """
+        return _inverse_points(self, points, max_iterations=max_iterations)
+
     def min_jacobian_determinant(self, samples_per_cell: int = 3) -> float:
         """Smallest Jacobian determinant over a regular sample of every finest cell.
 
@@ -379,6 +421,12 @@ class PartitionedDeformation:
         """``det(dT/dx)`` at ``points``."""
         return det3(self.jacobian(points))
 
+    def inverse_transform(self, points: Any, *, max_iterations: int = 50) -> np.ndarray:
+        """``x`` with ``T(x) = points``, ``(n, 3)``: as
+        :meth:`LatticeDeformation.inverse_transform` (Newton's method; near a boundary between
+        parts the point found is the one whose part maps it there)."""
+        return _inverse_points(self, points, max_iterations=max_iterations)
+
     def save(self, path: str | os.PathLike[str], *, overwrite: bool = False) -> str:
         """Write the map (every part, the sites and labels) to a ``.npz`` file (atomically)."""
         arrays: dict[str, Any] = {
@@ -430,3 +478,51 @@ def load_deformation(path: str | os.PathLike[str]) -> LatticeDeformation | Parti
     if _holds(path, _PARTITIONED_FORMAT):
         return PartitionedDeformation.load(path)
     return LatticeDeformation.load(path)
+
+
+def _inverse_points(
+    deformation: LatticeDeformation | PartitionedDeformation,
+    points: Any,
+    *,
+    max_iterations: int = 50,
+) -> np.ndarray:
+    """``x`` with ``T(x) = points``: see :meth:`LatticeDeformation.inverse_transform`."""
+    target = as_points(points, "points", allow_empty=True)
+    if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)):
+        raise TypeError(f"`max_iterations` must be an int, got {type(max_iterations).__name__}")
+    if max_iterations < 0:
+        raise ValueError(f"`max_iterations` must be >= 0, got {max_iterations}")
+    if target.shape[0] == 0:
+        return target.copy()
+    tolerance = 1e-9 * max(1.0, float(np.abs(target).max()))
+    x = target - deformation.displacement(target)
+    residual = deformation.transform(x) - target
+    norm = np.linalg.norm(residual, axis=1)
+    for _ in range(max_iterations):
+        active = np.flatnonzero(norm > tolerance)
+        if active.size == 0:
+            break
+        jacobian = deformation.jacobian(x[active])
+        singular = np.abs(det3(jacobian)) <= 1e-12
+        jacobian[singular] = np.eye(3)  # a fixed-point step there: x - (T(x) - points)
+        step = np.linalg.solve(jacobian, residual[active][..., None])[..., 0]
+        scale = np.ones(active.size)
+        for _ in range(20):
+            trial = x[active] - scale[:, None] * step
+            moved = deformation.transform(trial) - target[active]
+            trial_norm = np.linalg.norm(moved, axis=1)
+            worse = trial_norm >= norm[active]
+            if not worse.any():
+                break
+            scale[worse] *= 0.5
+        better = trial_norm < norm[active]  # a point no halving improved stays where it was
+        kept = active[better]
+        x[kept], residual[kept], norm[kept] = trial[better], moved[better], trial_norm[better]
+    left = norm > tolerance
+    if left.any():
+        raise ValueError(
+            f"{int(left.sum())} of {target.shape[0]} points have no inverse image within "
+            f"{max_iterations} Newton steps (largest residual {norm.max():.3g}): the map folds "
+            "there or is singular; check min_jacobian_determinant"
+        )
+    return x

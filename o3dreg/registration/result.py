@@ -391,6 +391,39 @@ class ElasticRegistrationResult:
         moved = apply_transformation(self.transformation, pts)
         return self.deformation.transform(moved)
 
+    def inverse_transform(self, points: Any, *, max_iterations: int = 50) -> np.ndarray:
+        """Map target-space points back to the source: ``x`` with ``T(x) = points``.
+
+        The deformation is inverted by Newton's method
+        (:meth:`~o3dreg.LatticeDeformation.inverse_transform`), then ``transformation``. With
+        two registrations of one pair, source onto target and target onto source, a landmark
+        of the source carried by the first map and by the inverse of the second gives two
+        estimates; a bias that each direction makes the same way (a protrusion the map does
+        not quite reach) has opposite signs in the two and cancels in their mean (figures in
+        docs/shape-model.md).
+
+        Parameters
+        ----------
+        points : (n, 3) array_like
+            Points in target coordinates. Not modified.
+        max_iterations : int, optional
+            Newton steps at most. Default 50.
+
+        Returns
+        -------
+        (n, 3) ndarray
+            Source-space points; ``transform`` maps them onto ``points`` (to ``1e-9`` times the
+            points' largest absolute coordinate, or 1 if larger).
+
+        Raises
+        ------
+        ValueError
+            If some point was not inverted within ``max_iterations`` steps (the map folds there:
+            see :attr:`min_jacobian_determinant`).
+        """
+        moved = self.deformation.inverse_transform(points, max_iterations=max_iterations)
+        return apply_transformation(np.linalg.inv(self.transformation), moved)
+
     def semilandmark_mesh(self, target: Any = None) -> o3d.geometry.TriangleMesh:
         """The template's triangles on the registered vertex positions.
 

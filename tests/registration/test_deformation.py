@@ -194,3 +194,47 @@ def test_a_frame_must_be_rigid():
     mirrored = np.diag([-1.0, 1.0, 1.0, 1.0])
     with pytest.raises(ValueError, match="`frame` must be a rigid transformation"):
         d.in_frame(mirrored)
+
+
+def test_inverse_transform_undoes_the_map():
+    d = hierarchy(scale=0.3)
+    assert d.min_jacobian_determinant() > 0
+    pts = sample(lo=-11.0, hi=11.0)  # inside the box and around it
+    images = d.transform(pts)
+    before = images.copy()
+    back = d.inverse_transform(images)
+    np.testing.assert_allclose(back, pts, atol=1e-8)
+    np.testing.assert_array_equal(images, before)
+    np.testing.assert_allclose(d.transform(back), images, atol=1e-8)
+    framed = LatticeDeformation(d.levels, _rigid_frame())
+    np.testing.assert_allclose(framed.inverse_transform(framed.transform(pts)), pts, atol=1e-8)
+
+
+def test_inverse_transform_of_the_identity_and_of_no_points():
+    pts = sample()
+    np.testing.assert_array_equal(LatticeDeformation().inverse_transform(pts), pts)
+    assert hierarchy().inverse_transform(np.zeros((0, 3))).shape == (0, 3)
+
+
+def test_inverse_transform_says_when_it_did_not_converge():
+    d = hierarchy(scale=0.3)
+    with pytest.raises(ValueError, match="no inverse image within 0 Newton steps"):
+        d.inverse_transform(d.transform(sample()), max_iterations=0)
+    with pytest.raises(TypeError, match="max_iterations"):
+        d.inverse_transform(sample(), max_iterations=2.5)
+    with pytest.raises(ValueError, match="max_iterations"):
+        d.inverse_transform(sample(), max_iterations=-1)
+    with pytest.raises(ValueError, match="points"):
+        d.inverse_transform(np.zeros((3, 2)))
+
+
+def _rigid_frame():
+    angle = 0.4
+    frame = np.eye(4)
+    frame[:3, :3] = [
+        [np.cos(angle), -np.sin(angle), 0.0],
+        [np.sin(angle), np.cos(angle), 0.0],
+        [0.0, 0.0, 1.0],
+    ]
+    frame[:3, 3] = (1.0, -2.0, 0.5)
+    return frame

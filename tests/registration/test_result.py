@@ -54,3 +54,13 @@ def test_flat_names_are_read_only_and_replace_takes_them(two_parts):
     assert two_parts.status != "suspect" or two_parts.flipped_triangles != 3
     with pytest.raises(TypeError, match="unexpected"):
         dataclasses.replace(two_parts, colour="red")
+
+
+def test_inverse_transform_maps_target_points_back_to_the_source(two_parts):
+    # Points around both parts (the partitioned map) and a similarity start.
+    rng = np.random.default_rng(3)
+    source = rng.uniform(-6.0, 6.0, (200, 3)) + rng.integers(0, 2, (200, 1)) * [20.0, 0.0, 0.0]
+    scaled = dataclasses.replace(two_parts, transformation=np.diag([1.1, 1.1, 1.1, 1.0]))
+    for result in (two_parts, scaled):
+        back = result.inverse_transform(result.transform(source))
+        np.testing.assert_allclose(back, source, atol=1e-7)
