@@ -234,7 +234,8 @@ class TrilinearLattice:
         d = self.displacements.reshape(-1, 3)
         if gradient:
             nodes, _, grads = self.basis(pts)
-            field = np.einsum("nkc,nka->nca", d[nodes], grads)
+            # (n, 3, 8) @ (n, 8, 3): a batched product, several times faster than einsum here.
+            field = np.matmul(d[nodes].transpose(0, 2, 1), grads)
         else:
             nodes, w = self.weights(pts)
             field = np.einsum("nk,nkc->nc", w, d[nodes])
