@@ -262,19 +262,24 @@ class SurfaceDistanceQuery:
 
     def _beyond(self, points: np.ndarray, face: np.ndarray, closest: np.ndarray) -> np.ndarray:
         open_edge, on_boundary = self.open_edges
-        corners = self.faces[face]
-        bary = barycentric(self.vertices[corners], closest)
+        diff = points - closest
+        n = self.face_normal(face)
+        tangent = diff - (diff * n).sum(axis=1, keepdims=True) * n
+        beyond = row_norms(tangent) > BEYOND_BOUNDARY_TOLERANCE * self.mean_edge
+        # Only a point off its triangle's plane sideways can be beyond: where its closest point
+        # lies is asked of those alone (most points sit straight above their triangle).
+        off = np.flatnonzero(beyond)
+        corners = self.faces[face[off]]
+        bary = barycentric(self.vertices[corners], closest[off])
         tiny = bary <= 1e-9
-        hit = (tiny & open_edge[face]).any(axis=1)
+        hit = (tiny & open_edge[face[off]]).any(axis=1)
         # At a corner (two coordinates ~0) the closest point is that vertex.
         vertex_hit = tiny.sum(axis=1) >= 2
         if vertex_hit.any():
             corner = np.argmax(bary[vertex_hit], axis=1)
             hit[vertex_hit] |= on_boundary[corners[vertex_hit, corner]]
-        diff = points - closest
-        n = self.face_normal(face)
-        tangent = diff - (diff * n).sum(axis=1, keepdims=True) * n
-        return hit & (row_norms(tangent) > BEYOND_BOUNDARY_TOLERANCE * self.mean_edge)
+        beyond[off] = hit
+        return beyond
 
 
 class FramedQuery(SurfaceDistanceQuery):
