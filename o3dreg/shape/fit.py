@@ -150,11 +150,13 @@ def fit_shape_model(
     if not isinstance(check_reflection, (bool, np.bool_)):
         raise TypeError(f"`check_reflection` must be a bool, got {type(check_reflection).__name__}")
     tolerance = check_positive(tolerance, "tolerance", allow_zero=True)
+    # One distance query (its AABB tree) per surface, shared by every start fitted to it.
+    surface = SurfaceDistanceQuery(vt, ft)
     if init is not None:
         pose = as_transformation(init, "init")
-        fit = _fit_model(model, vt, ft, pose, k, reg, max_iteration, tolerance)
+        fit = _fit_model(model, surface, pose, k, reg, max_iteration, tolerance)
     else:
-        fit = _best_fit(model, vt, ft, k, reg, max_iteration, tolerance)
+        fit = _best_fit(model, surface, k, reg, max_iteration, tolerance)
     mirrored = None
     if check_reflection:
         # The patient reflected through its centroid (any one plane: the fit's rotation
@@ -164,15 +166,19 @@ def fit_shape_model(
         # It only has to tell whether the mirror image fits clearly better (a factor of 1.25
         # or more in distance): a looser tolerance and fewer iterations do.
         mirrored = _best_fit(
-            model, flip, ft[:, ::-1], k, reg, min(max_iteration, 30), max(tolerance, 1e-3)
+            model,
+            SurfaceDistanceQuery(flip, ft[:, ::-1]),
+            k,
+            reg,
+            min(max_iteration, 30),
+            max(tolerance, 1e-3),
         )
     return assess_model_fit(model, fit, (vt, ft), mirrored=mirrored)
 
 
 def _best_fit(
     model: ShapeModel,
-    vt: np.ndarray,
-    ft: np.ndarray,
+    surface: SurfaceDistanceQuery,
     k: int,
     reg: float | None,
     max_iteration: int,
@@ -181,6 +187,7 @@ def _best_fit(
     # Two starts: the rigid registration of the mean (moment-based guess + ICP) and a plain
     # translation of centroids (right when patients share the model's orientation, where the
     # moment guess may pick a symmetric flip); keep the fit with the smaller symmetric distance.
+    vt, ft = surface.vertices, surface.faces
     shift = np.eye(4)
     shift[:3, 3] = vt.mean(axis=0) - model.mean.mean(axis=0)
     starts = [
@@ -193,7 +200,7 @@ def _best_fit(
     ]
     best, best_cost = None, np.inf
     for pose in starts:
-        fit = _fit_model(model, vt, ft, pose, k, reg, max_iteration, tolerance)
+        fit = _fit_model(model, surface, pose, k, reg, max_iteration, tolerance)
         cost = _symmetric_distance(fit, vt)
         if cost < best_cost:
             best, best_cost = fit, cost
@@ -210,15 +217,14 @@ def _symmetric_distance(fit: ModelFit, vt: np.ndarray) -> float:
 
 def _fit_model(
     model: ShapeModel,
-    vt: np.ndarray,
-    ft: np.ndarray,
+    query: SurfaceDistanceQuery,
     pose: np.ndarray,
     k: int,
     reg: float | None,
     max_iteration: int,
     tolerance: float,
 ) -> ModelFit:
-    query = SurfaceDistanceQuery(vt, ft)
+    vt = query.vertices
     modes = model.modes[:k]
     variances = model.variances[:k]
     a = np.zeros(k)
