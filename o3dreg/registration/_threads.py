@@ -22,15 +22,16 @@ __all__ = ["in_halves"]
 #: the worker costs more than that half takes.
 MIN_SPLIT = 4096
 
-_pools: dict[str, ThreadPoolExecutor] = {}
+_pool: ThreadPoolExecutor | None = None
 
 
-def _forget_pools() -> None:
-    _pools.clear()  # the parent's worker threads do not exist in a forked child
+def _forget_pool() -> None:
+    global _pool
+    _pool = None  # the parent's worker thread does not exist in a forked child
 
 
 if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pools)
+    os.register_at_fork(after_in_child=_forget_pool)
 
 
 def _usable_cores() -> int:
@@ -40,9 +41,10 @@ def _usable_cores() -> int:
 
 
 def _worker() -> ThreadPoolExecutor:
-    if "half" not in _pools:
-        _pools["half"] = ThreadPoolExecutor(1, thread_name_prefix="o3dreg-half")
-    return _pools["half"]
+    global _pool
+    if _pool is None:
+        _pool = ThreadPoolExecutor(1, thread_name_prefix="o3dreg-half")
+    return _pool
 
 
 def in_halves(
