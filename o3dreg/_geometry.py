@@ -98,14 +98,17 @@ def face_doubled_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def _cross_block(cols: list[np.ndarray], faces: np.ndarray) -> np.ndarray:
     corner = [np.ascontiguousarray(faces[:, k]) for k in range(3)]
-    a = [col[corner[0]] for col in cols]
-    b = [col[corner[1]] - a_i for col, a_i in zip(cols, a)]
-    c = [col[corner[2]] - a_i for col, a_i in zip(cols, a)]
-    out = np.empty((faces.shape[0], 3))
-    out[:, 0] = b[1] * c[2] - b[2] * c[1]
-    out[:, 1] = b[2] * c[0] - b[0] * c[2]
-    out[:, 2] = b[0] * c[1] - b[1] * c[0]
-    return out
+    a, b, c = ([col[corner[k]] for col in cols] for k in range(3))
+    return np.stack(corner_cross(a, b, c), axis=1)
+
+
+def corner_cross(a: list[np.ndarray], b: list[np.ndarray], c: list[np.ndarray]) -> list[np.ndarray]:
+    """``(b - a) x (c - a)`` of triangles given by their corners' coordinates, one array per
+    axis (``a[i]``: coordinate ``i`` of every first corner): the three components, for callers
+    that gathered the corners already (:func:`face_cross` gathers them itself)."""
+    u = [bi - ai for ai, bi in zip(a, b)]
+    w = [ci - ai for ai, ci in zip(a, c)]
+    return [u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]]
 
 
 def row_norms(x: np.ndarray) -> np.ndarray:

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .._geometry import apply_transformation, bounds
+from .._geometry import apply_transformation, bounds, corner_cross
 from .._validation import as_mesh_arrays
 from ..mesh.cleaning import mesh_components
 from .distance import SurfaceDistanceQuery
@@ -200,9 +200,7 @@ def moments(vertices: np.ndarray, faces: np.ndarray) -> Moments:
     for start in range(0, faces.shape[0], MOMENTS_BLOCK):
         block = faces[start : start + MOMENTS_BLOCK]
         a, b, c = ([col[block[:, k]] for col in cols] for k in range(3))
-        u = [bi - ai for ai, bi in zip(a, b)]
-        w = [ci - ai for ai, ci in zip(a, c)]
-        cross = [u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]]
+        cross = corner_cross(a, b, c)
         areas = 0.5 * np.sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2])
         area += float(areas.sum())
         for i in range(3):
