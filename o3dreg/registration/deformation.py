@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .._geometry import det3, into_frame, rotation_angle
-from .._validation import as_points
+from .._validation import as_points, check_positive
 from ..io.archive import read_archive, write_archive
 from .lattice import TrilinearLattice
 
@@ -488,10 +488,7 @@ def _inverse_points(
 ) -> np.ndarray:
     """``x`` with ``T(x) = points``: see :meth:`LatticeDeformation.inverse_transform`."""
     target = as_points(points, "points", allow_empty=True)
-    if isinstance(max_iterations, bool) or not isinstance(max_iterations, (int, np.integer)):
-        raise TypeError(f"`max_iterations` must be an int, got {type(max_iterations).__name__}")
-    if max_iterations < 0:
-        raise ValueError(f"`max_iterations` must be >= 0, got {max_iterations}")
+    max_iterations = check_positive(max_iterations, "max_iterations", integer=True, allow_zero=True)
     if target.shape[0] == 0:
         return target.copy()
     tolerance = 1e-9 * max(1.0, float(np.abs(target).max()))
@@ -506,15 +503,19 @@ def _inverse_points(
         singular = np.abs(det3(jacobian)) <= 1e-12
         jacobian[singular] = np.eye(3)  # a fixed-point step there: x - (T(x) - points)
         step = np.linalg.solve(jacobian, residual[active][..., None])[..., 0]
+        trial = x[active] - step
+        moved = deformation.transform(trial) - target[active]
+        trial_norm = np.linalg.norm(moved, axis=1)
         scale = np.ones(active.size)
-        for _ in range(20):
-            trial = x[active] - scale[:, None] * step
-            moved = deformation.transform(trial) - target[active]
-            trial_norm = np.linalg.norm(moved, axis=1)
-            worse = trial_norm >= norm[active]
-            if not worse.any():
+        for _ in range(19):
+            # Only the points whose step did not lower their residual take a halved one.
+            worse = np.flatnonzero(trial_norm >= norm[active])
+            if not worse.size:
                 break
             scale[worse] *= 0.5
+            trial[worse] = x[active[worse]] - scale[worse, None] * step[worse]
+            moved[worse] = deformation.transform(trial[worse]) - target[active[worse]]
+            trial_norm[worse] = np.linalg.norm(moved[worse], axis=1)
         better = trial_norm < norm[active]  # a point no halving improved stays where it was
         kept = active[better]
         x[kept], residual[kept], norm[kept] = trial[better], moved[better], trial_norm[better]
