@@ -415,12 +415,11 @@ class BarycentreTerm(PullTerm):
         again unbounded.
         """
         search = self._plan(y)
-        found = None
         if search is not None:
             tree = cKDTree(y, leafsize=32)
             k = min(2, y.shape[0])
-            found = _nearest_two(tree, self.target_points[search], k, self._nn_bound)
-        return self._record(y, search, found)
+            self._keep(search, _nearest_two(tree, self.target_points[search], k, self._nn_bound))
+        return self._assignment(y)
 
     def _plan(self, y: np.ndarray) -> np.ndarray | None:
         """Move the search state to ``y``; the target points to search again (a mask), or
@@ -445,30 +444,28 @@ class BarycentreTerm(PullTerm):
         self._last = y.copy()
         return search if search.any() else None
 
-    def _record(
-        self,
-        y: np.ndarray,
-        search: np.ndarray | None,
-        found: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Keep what a search ``found`` for the target points ``search``; the assignment at
-        ``y``."""
-        if search is not None and found is not None:
-            e, nearest, bound = found
-            first = nearest[:, 0]
-            second = np.full(e.shape[0], np.inf)
-            if e.shape[1] == 2:
-                # Exact ties (symmetric shapes) go to the smaller index, whatever the tree's
-                # order; a second neighbour beyond the search radius is at least that far.
-                tied = np.flatnonzero(e[:, 1] == e[:, 0])
-                if tied.size:
-                    first = first.copy()
-                    first[tied] = nearest[tied].min(axis=1)
-                second = np.minimum(e[:, 1], bound)
-            self._nearest[search] = first
-            self._gap[search] = second - e[:, 0]
-            self._mark[search] = self._moved
-            self._path_mark[search] = self._path[first]
+    def _keep(self, search: np.ndarray, found: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        """Keep what a search (:func:`_nearest_two`) ``found`` for the target points
+        ``search``."""
+        e, nearest, bound = found
+        first = nearest[:, 0]
+        second = np.full(e.shape[0], np.inf)
+        if e.shape[1] == 2:
+            # Exact ties (symmetric shapes) go to the smaller index, whatever the tree's
+            # order; a second neighbour beyond the search radius is at least that far.
+            tied = np.flatnonzero(e[:, 1] == e[:, 0])
+            if tied.size:
+                first = first.copy()
+                first[tied] = nearest[tied].min(axis=1)
+            second = np.minimum(e[:, 1], bound)
+        self._nearest[search] = first
+        self._gap[search] = second - e[:, 0]
+        self._mark[search] = self._moved
+        self._path_mark[search] = self._path[first]
+
+    def _assignment(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest template point of every target point at ``y`` (as kept) and its
+        distance; the next search's radius."""
         nearest = self._nearest.copy()
         distance = row_norms(self.target_points - y[nearest])
         # The next search's radius only decides which points are searched twice (the answer is
@@ -536,7 +533,8 @@ def _nearest_two(
     searched within ``bound`` first and the points without a neighbour inside it again
     unbounded; the radius each point was searched within.
 
-    A large batch is searched in two halves at once (:func:`~o3dreg.registration._threads.in_halves`).
+    A large batch is searched in two halves at once
+    (:func:`~o3dreg.registration._threads.in_halves`).
     """
     e, nearest = in_halves(lambda p: tree.query(p, k=k, distance_upper_bound=bound), points)
     e, nearest = e.reshape(-1, k), nearest.reshape(-1, k)
