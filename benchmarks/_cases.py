@@ -24,11 +24,20 @@ class Case:
     diagonal: float
 
 
+def template_of(
+    mesh: o3d.geometry.TriangleMesh, template_vertices: int
+) -> o3d.geometry.TriangleMesh:
+    """``mesh`` decimated to about ``template_vertices`` vertices, as the bench cases' templates
+    are (Open3D's quadric decimation to twice as many triangles)."""
+    template = mesh.simplify_quadric_decimation(2 * template_vertices)
+    template.remove_unreferenced_vertices()
+    return template
+
+
 def bunny_case(magnitude: str = "medium", template_vertices: int = 3000, seed: int = 1) -> Case:
     """The bundled bunny (35,947 vertices) under a known smooth warp; a decimated template."""
     dense = load_bunny()
-    template = dense.simplify_quadric_decimation(2 * template_vertices)
-    template.remove_unreferenced_vertices()
+    template = template_of(dense, template_vertices)
     vertices = np.asarray(dense.vertices)
     warp = SmoothWarp.random(vertices, magnitude=MAGNITUDES[magnitude], seed=seed)
     target = o3d.geometry.TriangleMesh(dense)

@@ -114,7 +114,7 @@ class _Clock:
 
 
 def run_one(method: str, magnitude: str, template_vertices: int, shares: bool = False) -> dict:
-    from _cases import bunny_case
+    from _cases import bunny_case, template_of
 
     import o3dreg
 
@@ -135,8 +135,7 @@ def run_one(method: str, magnitude: str, template_vertices: int, shares: bool = 
         if method == "o3dreg-inverse-consistent":
             from o3dreg.app.datasets import load_bunny
 
-            back = case.target.simplify_quadric_decimation(2 * template_vertices)
-            back.remove_unreferenced_vertices()
+            back = template_of(case.target, template_vertices)
             backward = o3dreg.registration_elastic(back, load_bunny(), init=np.eye(4))
             moved = 0.5 * (moved + backward.inverse_transform(np.asarray(case.template.vertices)))
         profile = {
