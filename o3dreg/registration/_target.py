@@ -65,7 +65,9 @@ class TargetSurface:
         if min_component is not None:
             kept_v, kept_f = drop_small_components(v, f, min_component, edges)
             if kept_f is not f:
-                return cls(SurfaceDistanceQuery(kept_v, kept_f))
+                # The Morton order depends on the bounds, which the debris widened: the kept
+                # surface in its own order, as it would be prepared without them.
+                return cls(SurfaceDistanceQuery(*canonical_mesh(kept_v, kept_f)))
         return cls(SurfaceDistanceQuery(v, f, open_edges=edges.open_edges()))
 
     @property

@@ -4,7 +4,7 @@ import numpy as np
 
 from o3dreg.app.synthetic import synthetic_form
 from o3dreg.mesh import distinct as _distinct
-from o3dreg.mesh.sampling import lexicographic_order, morton_order, spatial_subsample
+from o3dreg.mesh.sampling import morton_order, spatial_subsample
 
 
 def test_count_and_order_independence():
@@ -110,16 +110,3 @@ def test_morton_order_follows_the_curve_and_breaks_ties_by_coordinates():
     cells10 = np.minimum(((pts - lo) / extent * 1024).astype(np.int64), 1023)
     code10 = morton_code(cells10)[morton_order(pts)]
     assert np.all(np.diff(code10) >= 0)
-
-
-def test_lexicographic_order_is_lexsort():
-    rng = np.random.default_rng(5)
-    pts = np.round(rng.normal(size=(5000, 3)), 1)  # many ties in x, some in (x, y)
-    pts = np.concatenate([pts, pts[:200], [[0.0, 0.0, 0.0], [-0.0, 0.0, 0.0]]])  # equal points
-    np.testing.assert_array_equal(
-        lexicographic_order(pts), np.lexsort((pts[:, 2], pts[:, 1], pts[:, 0]))
-    )
-    distinct = rng.normal(size=(1000, 3))  # no ties: one sort
-    np.testing.assert_array_equal(
-        lexicographic_order(distinct), np.lexsort((distinct[:, 2], distinct[:, 1], distinct[:, 0]))
-    )

@@ -57,12 +57,30 @@ def test_levels_of_detail_only_where_coarser_than_the_target():
     assert target.query.distance(simplified.vertices).max() < coarse
 
 
+def reference_morton_code(points):
+    """Each point's cell of a 1024^3 grid over its bounds' largest extent, the cell's bits
+    interleaved x, y, z from the least significant, one bit at a time."""
+    lo = points.min(axis=0)
+    extent = (points.max(axis=0) - lo).max()
+    cells = np.minimum(((points - lo) / extent * 1024).astype(np.int64), 1023)
+    code = np.zeros(points.shape[0], dtype=np.int64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return code
+
+
 def reference_canonical_mesh(vertices, faces):
     """canonical_mesh as its docstring states it, with NumPy's lexsort and unique."""
-    order = np.lexsort((vertices[:, 2], vertices[:, 1], vertices[:, 0]))
-    v, first = np.unique(vertices[order], axis=0, return_index=True)
+    order = np.lexsort(
+        (vertices[:, 2], vertices[:, 1], vertices[:, 0], reference_morton_code(vertices))
+    )
+    # Equal points are neighbours in that order: the first of each run is kept.
+    sorted_v = vertices[order]
+    new = np.r_[True, np.any(sorted_v[1:] != sorted_v[:-1], axis=1)]
+    v = sorted_v[new]
     remap = np.empty(len(vertices), dtype=np.int64)
-    remap[order] = np.searchsorted(first, np.arange(len(order)), side="right") - 1
+    remap[order] = np.cumsum(new) - 1
     f = remap[faces]
     f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])]
     shift = np.argmin(f, axis=1)
@@ -74,10 +92,10 @@ def reference_canonical_mesh(vertices, faces):
     return v[used], keep[f]
 
 
-def test_canonical_mesh_is_the_lexicographic_order_without_repeats():
+def test_canonical_mesh_is_the_morton_order_without_repeats():
     # Duplicate vertices (a soup), repeated and rotated triangles (orientation kept), triangles
-    # that merging makes degenerate, ties in x, unreferenced vertices: the same mesh as the
-    # definition computed with lexsort and unique.
+    # that merging makes degenerate, ties in the Morton code, unreferenced vertices: the same
+    # mesh as the definition computed with lexsort and unique.
     rng = np.random.default_rng(4)
     v, f = sphere(10.0, 12)
     v = np.round(v, 1)  # ties in x (and merged poles)
