@@ -62,7 +62,7 @@ class NormalMask:
         self, points: np.ndarray, distances: np.ndarray, faces: np.ndarray, closest: np.ndarray
     ) -> np.ndarray:
         lookup = self.face_normals
-        target = lookup(faces) if callable(lookup) else lookup[faces]
+        target = lookup(faces) if callable(lookup) else lookup.take(faces, axis=0)
         cos = (self.normals * target).sum(axis=1)
         return cos >= float(np.cos(np.radians(self.max_angle)))
 

@@ -418,11 +418,13 @@ class BarycentreTerm(PullTerm):
         if search is not None:
             tree = cKDTree(y, leafsize=32)
             k = min(2, y.shape[0])
-            self._keep(search, _nearest_two(tree, self.target_points[search], k, self._nn_bound))
+            # take: rows gathered several times faster than by fancy indexing.
+            points = self.target_points.take(search, axis=0)
+            self._keep(search, _nearest_two(tree, points, k, self._nn_bound))
         return self._assignment(y)
 
     def _plan(self, y: np.ndarray) -> np.ndarray | None:
-        """Move the search state to ``y``; the target points to search again (a mask), or
+        """Move the search state to ``y``; the target points to search again (indices), or
         ``None`` when none needs it."""
         t = self.target_points
         if self._last is None or self._last.shape != y.shape:
@@ -439,10 +441,11 @@ class BarycentreTerm(PullTerm):
             self._path += step
             # The nearest point has come at most its own path nearer or farther, any other at
             # most the largest path nearer.
-            own = self._path[self._nearest] - self._path_mark
+            own = self._path.take(self._nearest) - self._path_mark
             search = own + (self._moved - self._mark) >= self._gap
         self._last = y.copy()
-        return search if search.any() else None
+        search = np.flatnonzero(search)
+        return search if search.size else None
 
     def _keep(self, search: np.ndarray, found: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
         """Keep what a search (:func:`_nearest_two`) ``found`` for the target points
@@ -467,7 +470,7 @@ class BarycentreTerm(PullTerm):
         """The nearest template point of every target point at ``y`` (as kept) and its
         distance; the next search's radius."""
         nearest = self._nearest.copy()
-        distance = row_norms(self.target_points - y[nearest])
+        distance = row_norms(self.target_points - y.take(nearest, axis=0))
         # The next search's radius only decides which points are searched twice (the answer is
         # exact either way): a percentile of an even share of the distances serves.
         sample = distance[:: max(1, distance.size // NN_BOUND_SAMPLE)]

@@ -76,7 +76,7 @@ class SurfaceDistanceQuery:
         :attr:`face_normals`, computed all at once for a surface queried often (its tree is
         built, which costs far more), else only those asked for."""
         if "face_normals" in self.__dict__ or self.has_tree:
-            return self.face_normals[face]
+            return self.face_normals.take(face, axis=0)  # rows gathered faster than by [face]
         return self._normals(self.faces[face])
 
     def _normals(self, faces: np.ndarray) -> np.ndarray:

@@ -29,6 +29,13 @@ def corner_offsets() -> np.ndarray:
 
 _CORNERS = corner_offsets()
 
+
+def _corner_products(fx: np.ndarray, fy: np.ndarray, fz: np.ndarray) -> np.ndarray:
+    """``fx[:, a] * fy[:, b] * fz[:, c]`` for the 8 corners ``(a, b, c)`` of :data:`_CORNERS`
+    (``4 a + 2 b + c``): ``(n, 8)``, from ``(n, 2)`` factors per axis."""
+    n = fx.shape[0]
+    return (fx[:, :, None, None] * fy[:, None, :, None] * fz[:, None, None, :]).reshape(n, 8)
+
 #: Most nodes of one lattice: 257^3, 0.4 GB of displacements (a 256-cell refinement).
 MAX_NODES = 257**3
 
@@ -168,20 +175,21 @@ class TrilinearLattice:
         lies outside the box (the field is clamped there).
         """
         cells, t, inside = self.locate(points)
-        f = np.stack([1.0 - t, t], axis=1)  # (n, 2, 3): f[:, bit, axis]
-        df = np.stack([-np.ones_like(t), np.ones_like(t)], axis=1) / self.cell_size
-        df = df * inside[:, None, :]
-        c0, c1, c2 = _CORNERS[:, 0], _CORNERS[:, 1], _CORNERS[:, 2]
-        w = f[:, c0, 0] * f[:, c1, 1] * f[:, c2, 2]
+        fx, fy, fz = (np.stack([1.0 - t[:, a], t[:, a]], axis=1) for a in range(3))  # (n, 2)
+        dx, dy, dz = (
+            np.where(inside[:, a, None], np.array([-1.0, 1.0]) / self.cell_size[a], 0.0)
+            for a in range(3)
+        )
+        w = _corner_products(fx, fy, fz)
         grads = np.stack(
             [
-                df[:, c0, 0] * f[:, c1, 1] * f[:, c2, 2],
-                f[:, c0, 0] * df[:, c1, 1] * f[:, c2, 2],
-                f[:, c0, 0] * f[:, c1, 1] * df[:, c2, 2],
+                _corner_products(dx, fy, fz),
+                _corner_products(fx, dy, fz),
+                _corner_products(fx, fy, dz),
             ],
             axis=2,
         )
-        nodes = self.node_index(cells[:, None, :] + _CORNERS[None, :, :])
+        nodes = self._corner_nodes(cells)
         return nodes, w, grads
 
     def weights(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -194,10 +202,13 @@ class TrilinearLattice:
             Non-negative, summing to one for every point (partition of unity).
         """
         cells, t, _ = self.locate(points)
-        f = np.stack([1.0 - t, t], axis=1)  # (n, 2, 3): f[:, bit, axis]
-        w = f[:, _CORNERS[:, 0], 0] * f[:, _CORNERS[:, 1], 1] * f[:, _CORNERS[:, 2], 2]
-        nodes = self.node_index(cells[:, None, :] + _CORNERS[None, :, :])
-        return nodes, w
+        fx, fy, fz = (np.stack([1.0 - t[:, a], t[:, a]], axis=1) for a in range(3))  # (n, 2)
+        return self._corner_nodes(cells), _corner_products(fx, fy, fz)
+
+    def _corner_nodes(self, cells: np.ndarray) -> np.ndarray:
+        """Flat numbers of the 8 corner nodes of each cell ``(n, 3)``, in :data:`_CORNERS`
+        order: ``(n, 8)`` (the node numbering is linear in the node coordinates)."""
+        return self.node_index(cells)[:, None] + self.node_index(_CORNERS)[None, :]
 
     def weight_matrix(self, points: np.ndarray) -> sp.csr_matrix:
         """Sparse ``(n, number_of_nodes)`` matrix ``W`` with ``displacement(points) = W @ D``."""
@@ -235,10 +246,11 @@ class TrilinearLattice:
         if gradient:
             nodes, _, grads = self.basis(pts)
             # (n, 3, 8) @ (n, 8, 3): a batched product, several times faster than einsum here.
-            field = np.matmul(d[nodes].transpose(0, 2, 1), grads)
+            # take: a gather of rows several times faster than fancy indexing.
+            field = np.matmul(d.take(nodes, axis=0).transpose(0, 2, 1), grads)
         else:
             nodes, w = self.weights(pts)
-            field = np.einsum("nk,nkc->nc", w, d[nodes])
+            field = np.einsum("nk,nkc->nc", w, d.take(nodes, axis=0))
         if out is None:
             return np.asarray(field)
         out += field
