@@ -144,6 +144,9 @@ class LevelProblem:
         Template normals turned to the target's orientation, for the normal-angle checker.
     prior : LatticeDeformation or None
         The coarser levels' map, whose Jacobian the folding guard adds to this level's.
+    start : tuple of ndarray, optional
+        :meth:`SurfaceDistanceQuery.closest` of ``points + previous`` on ``target``, where the
+        caller has it (the previous level ended there); queried otherwise.
     """
 
     def __init__(
@@ -167,6 +170,7 @@ class LevelProblem:
         min_jacobian_determinant: float | None = None,
         normals: np.ndarray | None = None,
         prior: Any = None,
+        start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> None:
         self.lattice = lattice
         self.loss = loss or L2Loss()
@@ -215,7 +219,7 @@ class LevelProblem:
         self._robust = not isinstance(self.loss, L2Loss) or bool(scaled)
         self.sigma = 1.0
         # The closest points at the level start, shared by the scales and the first evaluation.
-        self._start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._start = start
         if self._robust:
             self._estimate_scales(lattice, scaled, context)
         self.checkers += bound_masks(scaled, replace(context, sigma=self.sigma))
@@ -233,7 +237,9 @@ class LevelProblem:
         level start (``u = 0``), over the correspondences the other checkers accept (the
         distance checker itself is measured in this scale); then each distance term's own."""
         floor = SCALE_FLOOR * float(lattice.cell_size.min())
-        self._start = dist, face, closest = self.target.closest(self.base)
+        if self._start is None:
+            self._start = self.target.closest(self.base)
+        dist, face, closest = self._start
         keep = support(self.checkers, self.base, dist, face, closest)
         self.sigma = self.loss.scale or robust_scale(dist[keep], floor)
         start = RobustStart(self.base, keep, self.loss, floor, scaled, context)

@@ -19,7 +19,7 @@ import numpy as np
 from ..mesh.canonical import canonical_mesh, cluster_vertices, oriented_faces, sorted_triangles
 from ..mesh.cleaning import drop_small_components
 from ..mesh.edges import SortedEdges
-from ..mesh.sampling import morton_order, spatial_subsample
+from ..mesh.sampling import spatial_subsample
 from .distance import FramedQuery, SurfaceDistanceQuery
 from .result import SurfaceDistances
 from .verdict import Moments, moments
@@ -113,14 +113,15 @@ class TargetSurface:
 
         The largest budget asked first is drawn from the full target once; smaller ones are drawn
         from the smallest larger one, so a million-vertex target is sorted into cells once per
-        registration, not once per level. Ask for the largest budget first.
+        registration, not once per level. Ask for the largest budget first. A subsample keeps the
+        target's canonical order, along a Morton curve: a batch of nearest-neighbour queries from
+        its points visits the tree cache-friendly.
         """
         if budget in self._subsamples:
             return self._subsamples[budget]
         larger = [b for b in self._subsamples if b > budget]
         source = self._subsamples[min(larger)] if larger else self.vertices
-        chosen = source[spatial_subsample(source, budget)]
-        self._subsamples[budget] = chosen[morton_order(chosen)]
+        self._subsamples[budget] = source.take(spatial_subsample(source, budget), axis=0)
         return self._subsamples[budget]
 
     @cached_property

@@ -26,7 +26,14 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from .._geometry import apply_transformation, bounds, face_cross, face_doubled_areas, into_frame
+from .._geometry import (
+    apply_transformation,
+    bounds,
+    face_cross,
+    face_doubled_areas,
+    into_frame,
+    row_norms,
+)
 from .._validation import as_mesh_arrays, as_transformation, check_positive, check_referenced
 from ..mesh.distinct import distinct
 from ..mesh.sampling import morton_order, spatial_subsample
@@ -354,6 +361,7 @@ def _coarse_to_fine(
         start = time.perf_counter()
         problem, use = hierarchy.problem(level, previous, deformation)
         info = solve(problem, level.criteria or criteria, level.solver)
+        hierarchy.ended = _LevelEnd.of(problem, use, info.evaluation)
         level_lattice = problem.scatter(info.evaluation.u)
         deformation = deformation.with_level(level_lattice)
         previous = previous + level_lattice.displacement(points)
@@ -385,6 +393,8 @@ class _Hierarchy:
     #: Area-weighted samples of the template surface, made when a term first asks for the
     #: Voronoi offsets (:meth:`voronoi_offsets`).
     samples: tuple[np.ndarray, np.ndarray] | None = None
+    #: Where the last level left its template points (:class:`_LevelEnd`).
+    ended: _LevelEnd | None = None
 
     @classmethod
     def prepare(
@@ -450,6 +460,7 @@ class _Hierarchy:
             else None,
             normals=normals,
             prior=deformation if deformation.levels else None,
+            start=self._carried(level_query, use, points[use] + previous[use]),
         )
         return problem, use
 
@@ -467,6 +478,13 @@ class _Hierarchy:
             self.samples = _surface_samples(self.points, self.faces)
         surface_samples, sample_weights = self.samples
         return _barycentre_offsets(used, surface_samples, deformation, sample_weights)
+
+    def _carried(
+        self, query: SurfaceDistanceQuery, indices: np.ndarray, moved: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """``query.closest(moved)`` (the template vertices ``indices``) from where the last
+        level ended, or ``None`` when it measured another surface or other points."""
+        return None if self.ended is None else self.ended.closest_on(query, indices, moved)
 
     def _active(self, level: ElasticLevel, moved: np.ndarray) -> np.ndarray:
         """The template points whose cells the level refines (all, or where the residual is
@@ -489,9 +507,12 @@ class _Hierarchy:
     ) -> _Fit:
         """The fit of the levels (``last``: the finest level's problem, for its scales)."""
         query, points = self.surface.query, self.points
-        # Once for the forward distances and the support; without the full target's tree when
-        # the levels only queried its levels of detail.
-        found = query.closest_few(moved)
+        # Once for the forward distances and the support (where the last level did not measure
+        # them on the whole target already); without the full target's tree when the levels
+        # only queried its levels of detail.
+        found = self._carried(query, np.arange(points.shape[0]), moved)
+        if found is None:
+            found = query.closest_few(moved)
         normals = None
         if _tests_normals(self.checkers):
             normals = self.orientation * vertex_normals(moved, self.faces)
@@ -511,6 +532,56 @@ class _Hierarchy:
             else 1.0,
             cell_det=_min_cell_determinant(deformation, points),
         )
+
+
+@dataclass(frozen=True)
+class _LevelEnd:
+    """The template points a level was posed on (``indices``), where its last evaluation left
+    them (``moved``), and their closest points on the surface it measured (``query``).
+
+    The next level starts there, and the fit is measured there: the positions it computes
+    (the template moved by the levels' maps) are these to rounding, so their closest points
+    are these (the projection onto a surface moves a closest point no farther than the point
+    moved), and one query of the whole target is saved each time.
+    """
+
+    query: SurfaceDistanceQuery
+    indices: np.ndarray
+    moved: np.ndarray
+    faces: np.ndarray
+    closest: np.ndarray
+
+    #: Positions farther apart than this fraction of the coordinates' magnitude are not the
+    #: same to rounding (a trilinear map evaluated two ways differs by ~1e-15 of it).
+    ROUNDING = 1e-9
+
+    @classmethod
+    def of(cls, problem: LevelProblem, indices: np.ndarray, ev: Any) -> _LevelEnd | None:
+        g = ev.geometry
+        if g is None:
+            return None
+        return cls(problem.target, indices, g.moved, g.faces, g.closest)
+
+    def closest_on(
+        self, query: SurfaceDistanceQuery, indices: np.ndarray, moved: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """``query.closest(moved)`` for the template points ``indices`` at ``moved``, or
+        ``None`` unless this level measured ``query`` at all of them, at ``moved`` to
+        rounding."""
+        if query is not self.query or indices.size == 0:
+            return None
+        size = int(max(self.indices.max(initial=-1), indices.max())) + 1
+        slot = np.full(size, -1, dtype=np.int64)
+        slot[self.indices] = np.arange(self.indices.size)
+        rows = slot[indices]
+        if np.any(rows < 0):
+            return None
+        before = self.moved.take(rows, axis=0)
+        scale = max(1.0, float(np.abs(moved).max(initial=0.0)))
+        if float(np.abs(moved - before).max()) > self.ROUNDING * scale:
+            return None
+        closest = self.closest.take(rows, axis=0)
+        return row_norms(moved - closest), self.faces.take(rows), closest
 
 
 def _tests_normals(checkers: tuple[CorrespondenceChecker, ...]) -> bool:
@@ -644,7 +715,7 @@ def _register_parts(
         used = distinct(tf, vt.shape[0])
         tmap = np.full(vt.shape[0], -1, dtype=np.int64)
         tmap[used] = np.arange(used.size)
-        # The part's target in canonical order (a subset of a canonical mesh already is), without
+        # The part's target prepared as a whole target is (in its own canonical order), without
         # the pieces the split left below ``min_target_component`` of the part's largest.
         part_surface = TargetSurface.from_mesh(vt[used], tmap[tf], method.min_target_component)
         fit = _coarse_to_fine(
