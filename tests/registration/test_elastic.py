@@ -414,3 +414,33 @@ def test_a_turned_ct_mandible_gets_nearly_the_turned_registration(shared_data):
     back = there.vertices @ inverse[:3, :3].T + inverse[:3, 3]
     assert here.status == there.status == "ok"
     assert np.linalg.norm(back - here.vertices, axis=1).mean() < 0.6
+
+
+def test_a_level_end_serves_the_same_points_on_the_same_surface_only():
+    # The closest points a level ended with serve the next level and the fit where they measure
+    # the same surface at the same template points (to rounding); otherwise None (a query).
+    from o3dreg.registration.distance import SurfaceDistanceQuery
+    from o3dreg.registration.elastic import _LevelEnd
+
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius=10.0, resolution=20)
+    query = SurfaceDistanceQuery(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    rng = np.random.default_rng(7)
+    moved = rng.normal(size=(50, 3)) * 12.0
+    indices = rng.permutation(60)[:50]  # a level's points: some template vertices, any order
+    dist, face, closest = query.closest(moved)
+    end = _LevelEnd(query, indices, moved, face, closest)
+    # The same vertices in another order, moved by rounding: the query's answer.
+    order = rng.permutation(50)
+    again = moved[order] * (1.0 + 1e-15)
+    carried = end.closest_on(query, indices[order], again)
+    expected = query.closest(again)
+    # The same closest points (a point on an edge is on either triangle: faces may differ).
+    np.testing.assert_array_equal(carried[1], face[order])
+    np.testing.assert_allclose(carried[0], expected[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(carried[2], expected[2], rtol=0, atol=1e-12)
+    # Another surface, a vertex the level did not use, or points that moved: no answer.
+    other = SurfaceDistanceQuery(query.vertices, query.faces)
+    assert end.closest_on(other, indices, moved) is None
+    missing = np.setdiff1d(np.arange(60), indices)[:1]
+    assert end.closest_on(query, np.r_[indices[:5], missing], moved[:6]) is None
+    assert end.closest_on(query, indices, moved + 1e-6) is None
