@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._geometry import bounds
-from .distinct import distinct, sort_keys
+from .distinct import sort_keys
 
 __all__ = ["morton_order", "spatial_subsample"]
 
@@ -37,18 +37,17 @@ def spatial_subsample(points: np.ndarray, count: int) -> np.ndarray:
         # monotone): no reduction over the keys.
         dims = np.floor((hi - lo) / cell).astype(np.int64) + 1
         flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-        occupied = distinct(flat, int(np.prod(dims, dtype=np.float64))).size
-        ratio = occupied / count
+        # The cells by one sort of their keys: counted here, and their points grouped below.
+        order, sorted_flat = sort_keys(flat)
+        first = np.ones(n, dtype=bool)
+        first[1:] = sorted_flat[1:] != sorted_flat[:-1]
+        ratio = np.count_nonzero(first) / count
         if 0.7 <= ratio <= 1.4 or attempt == 7:
             break
         cell *= np.sqrt(ratio)
     d = points - (lo + (keys + 0.5) * cell)
     offset = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
-    # Per cell, the point nearest its centre: the cells by one sort of their keys, the nearest by
-    # a minimum over each run of equal keys.
-    order, sorted_flat = sort_keys(flat)
-    first = np.ones(n, dtype=bool)
-    first[1:] = sorted_flat[1:] != sorted_flat[:-1]
+    # Per cell, the point nearest its centre: a minimum over each run of equal keys.
     starts = np.flatnonzero(first)
     sorted_offset = offset[order]
     nearest = np.minimum.reduceat(sorted_offset, starts)
