@@ -36,6 +36,7 @@ def _corner_products(fx: np.ndarray, fy: np.ndarray, fz: np.ndarray) -> np.ndarr
     n = fx.shape[0]
     return (fx[:, :, None, None] * fy[:, None, :, None] * fz[:, None, None, :]).reshape(n, 8)
 
+
 #: Most nodes of one lattice: 257^3, 0.4 GB of displacements (a 256-cell refinement).
 MAX_NODES = 257**3
 

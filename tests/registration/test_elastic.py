@@ -427,7 +427,7 @@ def test_a_level_end_serves_the_same_points_on_the_same_surface_only():
     rng = np.random.default_rng(7)
     moved = rng.normal(size=(50, 3)) * 12.0
     indices = rng.permutation(60)[:50]  # a level's points: some template vertices, any order
-    dist, face, closest = query.closest(moved)
+    _, face, closest = query.closest(moved)
     end = _LevelEnd(query, indices, moved, face, closest)
     # The same vertices in another order, moved by rounding: the query's answer.
     order = rng.permutation(50)
