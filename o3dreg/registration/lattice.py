@@ -30,11 +30,22 @@ def corner_offsets() -> np.ndarray:
 _CORNERS = corner_offsets()
 
 
-def _corner_products(fx: np.ndarray, fy: np.ndarray, fz: np.ndarray) -> np.ndarray:
-    """``fx[:, a] * fy[:, b] * fz[:, c]`` for the 8 corners ``(a, b, c)`` of :data:`_CORNERS`
-    (``4 a + 2 b + c``): ``(n, 8)``, from ``(n, 2)`` factors per axis."""
-    n = fx.shape[0]
-    return (fx[:, :, None, None] * fy[:, None, :, None] * fz[:, None, None, :]).reshape(n, 8)
+def _corner_products(fx: Factors, fy: Factors, fz: Factors) -> np.ndarray:
+    """``fx[a] * fy[b] * fz[c]`` for the 8 corners ``(a, b, c)`` of :data:`_CORNERS`
+    (``4 a + 2 b + c``): ``(n, 8)``, from each axis's two factors (``(n,)`` columns: products of
+    whole columns, several times faster than broadcasting over small axes)."""
+    xy = [fx[a] * fy[b] for a in (0, 1) for b in (0, 1)]
+    return np.stack([xy[k >> 1] * fz[k & 1] for k in range(8)], axis=1)
+
+
+#: Per axis, the factors of bit 0 and bit 1 of every point's corners (``(n,)`` each).
+Factors = tuple[np.ndarray, np.ndarray]
+
+
+def _factors(t: np.ndarray) -> tuple[Factors, Factors, Factors]:
+    """The trilinear factors ``(1 - t, t)`` of each axis from local coordinates ``t (n, 3)``."""
+    x, y, z = np.ascontiguousarray(t.T)
+    return (1.0 - x, x), (1.0 - y, y), (1.0 - z, z)
 
 
 #: Most nodes of one lattice: 257^3, 0.4 GB of displacements (a 256-cell refinement).
@@ -176,9 +187,10 @@ class TrilinearLattice:
         lies outside the box (the field is clamped there).
         """
         cells, t, inside = self.locate(points)
-        fx, fy, fz = (np.stack([1.0 - t[:, a], t[:, a]], axis=1) for a in range(3))  # (n, 2)
+        fx, fy, fz = _factors(t)
+        step = 1.0 / self.cell_size
         dx, dy, dz = (
-            np.where(inside[:, a, None], np.array([-1.0, 1.0]) / self.cell_size[a], 0.0)
+            (np.where(inside[:, a], -step[a], 0.0), np.where(inside[:, a], step[a], 0.0))
             for a in range(3)
         )
         w = _corner_products(fx, fy, fz)
@@ -203,8 +215,7 @@ class TrilinearLattice:
             Non-negative, summing to one for every point (partition of unity).
         """
         cells, t, _ = self.locate(points)
-        fx, fy, fz = (np.stack([1.0 - t[:, a], t[:, a]], axis=1) for a in range(3))  # (n, 2)
-        return self._corner_nodes(cells), _corner_products(fx, fy, fz)
+        return self._corner_nodes(cells), _corner_products(*_factors(t))
 
     def _corner_nodes(self, cells: np.ndarray) -> np.ndarray:
         """Flat numbers of the 8 corner nodes of each cell ``(n, 3)``, in :data:`_CORNERS`
