@@ -12,7 +12,7 @@ of the *maximum* target->source distance (single minus symmetric): with that rea
 Table 1 reproduces its Table 2 entry for cone low -> sphere high exactly (36.42 - 7.81 = 28.61).
 The decrease of the mean target->source distance is printed as the alternative reading.
 
-    python examples/paper_tables.py            # 1000 / 30000 vertices (about 5 minutes, 2 cores)
+    python examples/paper_tables.py            # 1000 / 30000 vertices (about 2.5 minutes, 2 cores)
     python examples/paper_tables.py --quick    # 1000 / 5000 vertices
     python examples/paper_tables.py --json out.json --images docs/images
     python examples/paper_tables.py --quick --images docs/images --images-only   # figures only
