@@ -123,7 +123,7 @@ class NormalAssembly:
             raise ValueError(
                 f"expected values for {self._half.shape[1]} points, got {values.shape}"
             )
-        return np.asarray(self._half @ values)[self._mirror]
+        return np.asarray(self._half @ values).take(self._mirror, axis=0)
 
     def vector(self, f: np.ndarray) -> np.ndarray:
         """``sum_i W_i^T (x) f_i`` for per-point vectors ``f`` ``(n, 3)``, flattened node-major."""
