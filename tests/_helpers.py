@@ -244,3 +244,13 @@ def ct_mandible(mask: Path, vertices: int | None = None) -> o3d.geometry.Triangl
     from mandible_model import reconstruct
 
     return reconstruct(str(mask)) if vertices is None else reconstruct(str(mask), vertices)
+
+
+def morton_code(cells: np.ndarray) -> np.ndarray:
+    """The Morton code of integer cells ``(n, 3)`` of a 1024^3 grid: their bits interleaved
+    x, y, z from the least significant, one bit at a time (the definition, not o3dreg's)."""
+    code = np.zeros(cells.shape[0], dtype=np.int64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return code

@@ -428,7 +428,7 @@ class BarycentreTerm(PullTerm):
         ``None`` when none needs it."""
         t = self.target_points
         if self._last is None or self._last.shape != y.shape:
-            search = np.ones(t.shape[0], dtype=bool)
+            search = np.arange(t.shape[0])
             self._moved = 0.0
             self._path = np.zeros(y.shape[0])
             self._mark = np.zeros(t.shape[0])
@@ -442,9 +442,8 @@ class BarycentreTerm(PullTerm):
             # The nearest point has come at most its own path nearer or farther, any other at
             # most the largest path nearer.
             own = self._path.take(self._nearest) - self._path_mark
-            search = own + (self._moved - self._mark) >= self._gap
+            search = np.flatnonzero(own + (self._moved - self._mark) >= self._gap)
         self._last = y.copy()
-        search = np.flatnonzero(search)
         return search if search.size else None
 
     def _keep(self, search: np.ndarray, found: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .._geometry import det3, into_frame, rotation_angle
+from .._geometry import det3, into_frame, rotation_angle, row_norms
 from .._validation import as_points, check_positive
 from ..io.archive import read_archive, write_archive
 from .lattice import TrilinearLattice
@@ -494,7 +494,7 @@ def _inverse_points(
     tolerance = 1e-9 * max(1.0, float(np.abs(target).max()))
     x = target - deformation.displacement(target)
     residual = deformation.transform(x) - target
-    norm = np.linalg.norm(residual, axis=1)
+    norm = row_norms(residual)
     for _ in range(max_iterations):
         active = np.flatnonzero(norm > tolerance)
         if active.size == 0:
@@ -505,7 +505,7 @@ def _inverse_points(
         step = np.linalg.solve(jacobian, residual[active][..., None])[..., 0]
         trial = x[active] - step
         moved = deformation.transform(trial) - target[active]
-        trial_norm = np.linalg.norm(moved, axis=1)
+        trial_norm = row_norms(moved)
         scale = np.ones(active.size)
         for _ in range(19):
             # Only the points whose step did not lower their residual take a halved one.
@@ -515,7 +515,7 @@ def _inverse_points(
             scale[worse] *= 0.5
             trial[worse] = x[active[worse]] - scale[worse, None] * step[worse]
             moved[worse] = deformation.transform(trial[worse]) - target[active[worse]]
-            trial_norm[worse] = np.linalg.norm(moved[worse], axis=1)
+            trial_norm[worse] = row_norms(moved[worse])
         better = trial_norm < norm[active]  # a point no halving improved stays where it was
         kept = active[better]
         x[kept], residual[kept], norm[kept] = trial[better], moved[better], trial_norm[better]

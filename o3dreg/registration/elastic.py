@@ -357,11 +357,12 @@ def _coarse_to_fine(
     history: list[LevelReport] = []
     failures: list[str] = []
     problem: LevelProblem | None = None
+    ended: _LevelEnd | None = None
     for k, level in enumerate(levels_):
         start = time.perf_counter()
-        problem, use = hierarchy.problem(level, previous, deformation)
+        problem, use = hierarchy.problem(level, previous, deformation, ended)
         info = solve(problem, level.criteria or criteria, level.solver)
-        hierarchy.ended = _LevelEnd.of(problem, use, info.evaluation)
+        ended = _LevelEnd.of(problem, use, info.evaluation)
         level_lattice = problem.scatter(info.evaluation.u)
         deformation = deformation.with_level(level_lattice)
         previous = previous + level_lattice.displacement(points)
@@ -372,7 +373,7 @@ def _coarse_to_fine(
             failures.append(f"level {k + 1} ({level.resolution} cells): {info.message}")
         if callback is not None:
             callback(report)
-    return hierarchy.fit(deformation, points + previous, history, failures, problem)
+    return hierarchy.fit(deformation, points + previous, history, failures, problem, ended)
 
 
 @dataclass
@@ -393,8 +394,6 @@ class _Hierarchy:
     #: Area-weighted samples of the template surface, made when a term first asks for the
     #: Voronoi offsets (:meth:`voronoi_offsets`).
     samples: tuple[np.ndarray, np.ndarray] | None = None
-    #: Where the last level left its template points (:class:`_LevelEnd`).
-    ended: _LevelEnd | None = None
 
     @classmethod
     def prepare(
@@ -424,19 +423,25 @@ class _Hierarchy:
         level: ElasticLevel,
         previous: np.ndarray,
         deformation: LatticeDeformation,
+        ended: _LevelEnd | None = None,
     ) -> tuple[LevelProblem, np.ndarray]:
         """The problem of ``level`` from the template moved by the coarser levels
-        (``previous``, ``deformation``), and the template points it is posed on."""
+        (``previous``, ``deformation``; ``ended``: where the last of them left its points), and
+        the template points it is posed on."""
         points, surface = self.points, self.surface
         lattice = TrilinearLattice.zeros(self.origin, self.size, (level.resolution,) * 3)
-        active = self._active(level, points + previous)
+        moved = points + previous
+        active = self._active(level, moved)
         # Coarse lattices have few nodes: a spatial subsample of the data determines them as well
         # as all of it, at a fraction of the cost of each distance query.
-        use = _level_sample(lattice, points, level.points_per_node, points + previous)
+        use = _level_sample(lattice, points, level.points_per_node, moved)
         level_query = _level_query(surface, self.size, level)
         normals = None
         if _tests_normals(self.checkers):
-            normals = self.orientation * vertex_normals(points + previous, self.faces)[use]
+            normals = self.orientation * vertex_normals(moved, self.faces)[use]
+        start = None  # the closest points where the last level left these points, if it did
+        if ended is not None:
+            start = ended.closest_on(level_query, use, moved[use])
         problem = LevelProblem(
             points[use],
             previous[use],
@@ -460,7 +465,7 @@ class _Hierarchy:
             else None,
             normals=normals,
             prior=deformation if deformation.levels else None,
-            start=self._carried(level_query, use, points[use] + previous[use]),
+            start=start,
         )
         return problem, use
 
@@ -478,13 +483,6 @@ class _Hierarchy:
             self.samples = _surface_samples(self.points, self.faces)
         surface_samples, sample_weights = self.samples
         return _barycentre_offsets(used, surface_samples, deformation, sample_weights)
-
-    def _carried(
-        self, query: SurfaceDistanceQuery, indices: np.ndarray, moved: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """``query.closest(moved)`` (the template vertices ``indices``) from where the last
-        level ended, or ``None`` when it measured another surface or other points."""
-        return None if self.ended is None else self.ended.closest_on(query, indices, moved)
 
     def _active(self, level: ElasticLevel, moved: np.ndarray) -> np.ndarray:
         """The template points whose cells the level refines (all, or where the residual is
@@ -504,13 +502,17 @@ class _Hierarchy:
         history: list[LevelReport],
         failures: list[str],
         last: LevelProblem | None,
+        ended: _LevelEnd | None = None,
     ) -> _Fit:
-        """The fit of the levels (``last``: the finest level's problem, for its scales)."""
+        """The fit of the levels (``last``: the finest level's problem, for its scales;
+        ``ended``: where it left its points)."""
         query, points = self.surface.query, self.points
         # Once for the forward distances and the support (where the last level did not measure
         # them on the whole target already); without the full target's tree when the levels
         # only queried its levels of detail.
-        found = self._carried(query, np.arange(points.shape[0]), moved)
+        found = None
+        if ended is not None:
+            found = ended.closest_on(query, np.arange(points.shape[0]), moved)
         if found is None:
             found = query.closest_few(moved)
         normals = None

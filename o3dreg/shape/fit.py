@@ -15,7 +15,7 @@ from .._geometry import apply_transformation, barycentric
 from .._validation import as_mesh_arrays, as_transformation, check_positive
 from ..io.mesh import to_open3d
 from ..registration.distance import SurfaceDistanceQuery
-from ..registration.rigid import registration_rigid
+from ..registration.rigid import default_start
 from .fit_verdict import assess_model_fit
 from .model import ShapeModel
 from .procrustes import fit_transformation
@@ -187,17 +187,12 @@ def _best_fit(
     # Two starts: the rigid registration of the mean (moment-based guess + ICP) and a plain
     # translation of centroids (right when patients share the model's orientation, where the
     # moment guess may pick a symmetric flip); keep the fit with the smaller symmetric distance.
-    vt, ft = surface.vertices, surface.faces
+    vt = surface.vertices
     shift = np.eye(4)
     shift[:3, 3] = vt.mean(axis=0) - model.mean.mean(axis=0)
-    starts = [
-        np.array(
-            registration_rigid(
-                (model.mean, model.faces), (vt, ft), with_scaling=model.scaling
-            ).transformation
-        ),
-        shift,
-    ]
+    # registration_rigid on the validated patient, scored with its tree (built once here).
+    rigid = default_start(model.mean, model.faces, surface, with_scaling=model.scaling)
+    starts = [np.array(rigid.transformation), shift]
     best, best_cost = None, np.inf
     for pose in starts:
         fit = _fit_model(model, surface, pose, k, reg, max_iteration, tolerance)

@@ -1,6 +1,7 @@
 """Spatial subsampling: even, sized as asked, independent of the vertex order."""
 
 import numpy as np
+from _helpers import morton_code
 
 from o3dreg.app.synthetic import synthetic_form
 from o3dreg.mesh import distinct as _distinct
@@ -80,14 +81,6 @@ def test_each_cell_keeps_its_point_nearest_the_centre():
         same = np.all(keys == keys[i], axis=1)
         assert offset[i] == offset[same].min()
     assert chosen.shape == (idx.size, 3)
-
-
-def morton_code(cells):
-    code = np.zeros(cells.shape[0], dtype=np.int64)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
-    return code
 
 
 def test_morton_order_follows_the_curve_and_breaks_ties_by_coordinates():

@@ -3,6 +3,7 @@ of detail and its nested subsamples."""
 
 import numpy as np
 import open3d as o3d
+from _helpers import morton_code
 
 from o3dreg.mesh.canonical import canonical_mesh, oriented_faces
 from o3dreg.mesh.cleaning import mesh_components
@@ -57,24 +58,14 @@ def test_levels_of_detail_only_where_coarser_than_the_target():
     assert target.query.distance(simplified.vertices).max() < coarse
 
 
-def reference_morton_code(points):
-    """Each point's cell of a 1024^3 grid over its bounds' largest extent, the cell's bits
-    interleaved x, y, z from the least significant, one bit at a time."""
-    lo = points.min(axis=0)
-    extent = (points.max(axis=0) - lo).max()
-    cells = np.minimum(((points - lo) / extent * 1024).astype(np.int64), 1023)
-    code = np.zeros(points.shape[0], dtype=np.int64)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
-    return code
-
-
 def reference_canonical_mesh(vertices, faces):
-    """canonical_mesh as its docstring states it, with NumPy's lexsort and unique."""
-    order = np.lexsort(
-        (vertices[:, 2], vertices[:, 1], vertices[:, 0], reference_morton_code(vertices))
-    )
+    """canonical_mesh as its docstring states it, with NumPy's lexsort and unique: the
+    vertices by Morton code of their cell of a 1024^3 grid over the bounds' largest extent,
+    then by x, y, z."""
+    lo = vertices.min(axis=0)
+    extent = (vertices.max(axis=0) - lo).max()
+    cells = np.minimum(((vertices - lo) / extent * 1024).astype(np.int64), 1023)
+    order = np.lexsort((vertices[:, 2], vertices[:, 1], vertices[:, 0], morton_code(cells)))
     # Equal points are neighbours in that order: the first of each run is kept.
     sorted_v = vertices[order]
     new = np.r_[True, np.any(sorted_v[1:] != sorted_v[:-1], axis=1)]
