@@ -542,9 +542,11 @@ class _LevelEnd:
     them (``moved``), and their closest points on the surface it measured (``query``).
 
     The next level starts there, and the fit is measured there: the positions it computes
-    (the template moved by the levels' maps) are these to rounding, so their closest points
-    are these (the projection onto a surface moves a closest point no farther than the point
-    moved), and one query of the whole target is saved each time.
+    (the template moved by the levels' maps) are these to rounding, and one query of the whole
+    target is saved each time. The distance to a surface changes no more than the point moves,
+    so a kept closest point is as close as a new query's to within twice that rounding; the
+    closest point itself may differ only where two parts of the surface are equally near (it
+    jumps there), and either is then a closest point.
     """
 
     query: SurfaceDistanceQuery
