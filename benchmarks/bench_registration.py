@@ -7,6 +7,7 @@ run.
 
     python benchmarks/bench_registration.py                 # all methods
     python benchmarks/bench_registration.py --skip-peers    # o3dreg only (seconds)
+    python benchmarks/bench_registration.py --rounds 5      # 5 rounds: the ratios' spread
     python benchmarks/bench_registration.py --skip-peers --inverse-consistent --magnitude small
 
 ``--inverse-consistent`` adds ``o3dreg-inverse-consistent``: the warped bunny, decimated like the
@@ -195,6 +196,13 @@ def main() -> None:
     parser.add_argument(
         "--repeat", type=int, default=3, help="o3dreg runs per method (best time kept)"
     )
+    parser.add_argument(
+        "--rounds",
+        type=int,
+        default=1,
+        help="measure every method this many times in turn and print each round's time ratios "
+        "against o3dreg and their median (the table is the first round's)",
+    )
     parser.add_argument("--shares", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.method:
@@ -203,28 +211,12 @@ def main() -> None:
     methods = [m for m in METHODS if not (args.skip_peers and not m.startswith("o3dreg"))]
     if not args.inverse_consistent:
         methods.remove("o3dreg-inverse-consistent")
-    rows = []
-    for method in methods:
-        runs = []
-        for _ in range(args.repeat if method.startswith("o3dreg") else 1):
-            out = subprocess.run(
-                [
-                    sys.executable,
-                    __file__,
-                    "--method",
-                    method,
-                    "--magnitude",
-                    args.magnitude,
-                    "--template-vertices",
-                    str(args.template_vertices),
-                ],
-                capture_output=True,
-                text=True,
-                check=True,
-            )
-            runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
-        rows.append(min(runs, key=lambda r: r["seconds"]))
-        print(f"done {method}: {rows[-1]['seconds']:.2f} s", file=sys.stderr)
+    if args.rounds < 1:
+        parser.error(f"--rounds must be at least 1, got {args.rounds}")
+    # Each round measures every method once more, side by side: the machine's speed drifts
+    # over minutes, so a ratio is read within one round.
+    rounds = [measure_round(args, methods) for _ in range(args.rounds)]
+    rows = rounds[0]
     ref = rows[0]
     print(
         f"case {ref['case']}: template {ref['template_vertices']} vertices -> target "
@@ -248,7 +240,40 @@ def main() -> None:
         print(f"  {r['method']}: {METHODS[r['method']]}")
     if ref["profile"]:
         print(f"  o3dreg per level: {ref['profile']}")
+    if args.rounds > 1:
+        print(f"\ntime / o3dreg's in each of {args.rounds} rounds, and the median:")
+        for k, method in enumerate(methods[1:], start=1):
+            ratios = [r[k]["seconds"] / r[0]["seconds"] for r in rounds]
+            cells = " ".join(f"{x:5.1f}" for x in ratios)
+            print(f"  {method:<{width}}{cells}   median {float(np.median(ratios)):.1f}")
     print_shares(args, [m for m in methods if m.startswith("o3dreg")])
+
+
+def measure_round(args: argparse.Namespace, methods: list[str]) -> list[dict]:
+    """One run of each method in its own process (o3dreg's best of ``--repeat``)."""
+    rows = []
+    for method in methods:
+        runs = []
+        for _ in range(args.repeat if method.startswith("o3dreg") else 1):
+            out = subprocess.run(
+                [
+                    sys.executable,
+                    __file__,
+                    "--method",
+                    method,
+                    "--magnitude",
+                    args.magnitude,
+                    "--template-vertices",
+                    str(args.template_vertices),
+                ],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        rows.append(min(runs, key=lambda r: r["seconds"]))
+        print(f"done {method}: {rows[-1]['seconds']:.2f} s", file=sys.stderr)
+    return rows
 
 
 def print_shares(args: argparse.Namespace, methods: list[str]) -> None:
