@@ -113,6 +113,24 @@ def amberg(template: tuple, rigid: np.ndarray, surface: tuple) -> np.ndarray:
     return np.asarray(treg.nricp_amberg(source, target)) * scale + centre
 
 
+def consensus_landmarks(
+    data: dict, tid: str, moved: dict[tuple[str, str], np.ndarray], patients: list[str]
+):
+    """Template ``tid``'s landmarks as the mean of its annotation and those of ``patients``,
+    each read back through a method's registration onto that patient (``moved[tid, p]``: the
+    registered template vertices)."""
+    from o3dreg import TemplateLandmarks
+
+    # An annotation is read back however far its registered surface stayed from it (a part the
+    # registration did not reach): 50 mm, half a mandible.
+    return TemplateLandmarks.from_annotated_shapes(
+        data[tid]["template"],
+        [data[tid]["template"][0]] + [moved[tid, p] for p in patients],
+        [data[tid]["landmarks"]] + [data[p]["landmarks"] for p in patients],
+        max_distance=50.0,
+    )
+
+
 def decompose(vectors: np.ndarray) -> tuple[float, float]:
     """Systematic and random parts of error vectors ``(templates, patients, landmarks, 3)``."""
     mean = vectors.mean(axis=1, keepdims=True)
@@ -289,15 +307,9 @@ def main() -> int:
             vectors[name] = np.zeros_like(vectors[m])
             seconds[name] = seconds[m]
             for a, tid in enumerate(chosen):
-                template = data[tid]["template"]
                 for b, pid in enumerate(p for p in ids if p != tid):
                     others = [p for p in ids if p not in (tid, pid)]
-                    consensus = TemplateLandmarks.from_annotated_shapes(
-                        template,
-                        [template[0]] + [moved[tid, p] for p in others],
-                        [data[tid]["landmarks"]] + [data[p]["landmarks"] for p in others],
-                        max_distance=50.0,
-                    )
+                    consensus = consensus_landmarks(data, tid, moved, others)
                     found = consensus.positions(moved[tid, pid])
                     vectors[name][a, b] = found - data[pid]["landmarks"]
 
@@ -378,14 +390,7 @@ def main() -> int:
                 pred = predict_landmarks(model, attached, data[held]["surface"])
                 truth = data[held]["landmarks"]
                 # The landmarks from the annotations of all the model's patients and the template.
-                # An annotation is read back however far its registered surface stayed from it
-                # (a part the registration did not reach): 50 mm, half a mandible.
-                annotated = TemplateLandmarks.from_annotated_shapes(
-                    template,
-                    [template[0]] + [shapes[tid, p] for p in train],
-                    [data[tid]["landmarks"]] + [data[p]["landmarks"] for p in train],
-                    max_distance=50.0,
-                )
+                annotated = consensus_landmarks(data, tid, shapes, train)
                 # Read on the instance moved onto the patient (predict_landmarks' default) and
                 # on the instance itself (on_target=False): the same fit.
                 for where, mesh in (("patient", pred.vertices), ("instance", pred.fit.vertices)):
