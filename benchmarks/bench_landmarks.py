@@ -13,12 +13,12 @@ a template is that surface decimated to ``--template-vertices``.
   surface with their depth (``TemplateLandmarks.from_points``) and read off its moved vertices.
   The error is the distance to the patient's own annotation. Its **systematic** part is, per
   template and landmark, the length of the mean error vector over the 7 patients (the template's
-  own annotation differing from the others'); the rest is the **random** part. With all 8
-  templates, each method also carries **consensus** landmarks: for a pair, the mean of the
-  template's annotation and those of the 6 patients outside the pair, read back onto the
-  template through the method's own registrations onto them
-  (``TemplateLandmarks.from_annotated_shapes``); the patient's own annotation is never used.
-  It averages out the template annotator's placement, most of the systematic part.
+  own annotation differing from the others'); the rest is the **random** part. Each method also
+  carries **consensus** landmarks: for a pair, the mean of the template's annotation and those
+  of the 6 patients outside the pair, read back onto the template through the method's own
+  registrations onto them (``TemplateLandmarks.from_annotated_shapes``); the patient's own
+  annotation is never used. It averages out the template annotator's placement, most of the
+  systematic part.
 * **Prediction** (the paper's goal): for every template and every held-out patient, a shape model
   of the other 6 patients' semilandmark meshes (the transfer's registrations),
   :func:`~o3dreg.predict_landmarks` of the template's annotations (with their depth) on the
@@ -293,25 +293,23 @@ def main() -> int:
             vectors["o3dreg mean"][a, b] = 0.5 * (forward + backward) - truth
     if args.inverse_consistent:
         seconds["o3dreg mean"] = seconds["o3dreg"] + seconds["o3dreg backward"]
-    if len(chosen) == len(ids):
-        # The template annotator's placement averaged out: for every pair, the template's
-        # landmarks from its own annotation and those of the 6 patients other than the pair's
-        # (read back through the method's registrations onto them), carried by the pair's
-        # registered vertices. No registration is added; the patient's own annotation is not
-        # used.
-        for m, moved in (("o3dreg", shapes), ("nricp_amberg", peer_shapes)):
-            if m not in methods:
-                continue
-            name = f"{m} consensus"
-            methods.append(name)
-            vectors[name] = np.zeros_like(vectors[m])
-            seconds[name] = seconds[m]
-            for a, tid in enumerate(chosen):
-                for b, pid in enumerate(p for p in ids if p != tid):
-                    others = [p for p in ids if p not in (tid, pid)]
-                    consensus = consensus_landmarks(data, tid, moved, others)
-                    found = consensus.positions(moved[tid, pid])
-                    vectors[name][a, b] = found - data[pid]["landmarks"]
+    # The template annotator's placement averaged out: for every pair, the template's landmarks
+    # from its own annotation and those of the 6 patients other than the pair's (read back
+    # through the method's registrations onto them), carried by the pair's registered vertices.
+    # No registration is added; the patient's own annotation is not used.
+    for m, moved in (("o3dreg", shapes), ("nricp_amberg", peer_shapes)):
+        if m not in methods:
+            continue
+        name = f"{m} consensus"
+        methods.append(name)
+        vectors[name] = np.zeros_like(vectors[m])
+        seconds[name] = seconds[m]
+        for a, tid in enumerate(chosen):
+            for b, pid in enumerate(p for p in ids if p != tid):
+                others = [p for p in ids if p not in (tid, pid)]
+                consensus = consensus_landmarks(data, tid, moved, others)
+                found = consensus.positions(moved[tid, pid])
+                vectors[name][a, b] = found - data[pid]["landmarks"]
 
     pairs = len(chosen) * (len(ids) - 1)
     print(
