@@ -129,6 +129,8 @@ class LevelProblem:
         The numbers of ``points`` among the template's vertices (default ``0 .. n-1``).
     symmetric_scale : float
         The level's :attr:`~o3dreg.ElasticLevel.symmetric_scale`.
+    barycentre_reach : float or None
+        The level's :attr:`~o3dreg.ElasticLevel.barycentre_reach`.
     voronoi_offsets : callable, optional
         The barycentre correction's offsets (see :class:`~o3dreg.Barycentre`).
     loss : RobustLoss, optional
@@ -147,6 +149,10 @@ class LevelProblem:
     start : tuple of ndarray, optional
         :meth:`SurfaceDistanceQuery.closest` of ``points + previous`` on ``target``, where the
         caller has it (the previous level ended there); queried otherwise.
+    nearest_known : callable, optional
+        ``nearest_known(sample)``: the nearest of ``points + previous`` of every point of a
+        target sample and its distance, where the previous level's search state has them
+        (``None`` otherwise).
     """
 
     def __init__(
@@ -163,6 +169,7 @@ class LevelProblem:
         target_sample: Callable[[float], np.ndarray] | None = None,
         indices: np.ndarray | None = None,
         symmetric_scale: float = 1.0,
+        barycentre_reach: float | None = None,
         voronoi_offsets: Callable[[], np.ndarray] | None = None,
         loss: RobustLoss | None = None,
         checkers: Sequence[CorrespondenceChecker] = (),
@@ -171,6 +178,7 @@ class LevelProblem:
         normals: np.ndarray | None = None,
         prior: Any = None,
         start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+        nearest_known: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None] | None = None,
     ) -> None:
         self.lattice = lattice
         self.loss = loss or L2Loss()
@@ -205,6 +213,8 @@ class LevelProblem:
             target_sample or (lambda per_point: target.vertices),
             symmetric_scale,
             voronoi_offsets,
+            barycentre_reach,
+            nearest_known,
         )
         bound = (term.bind(offered) for term in terms)
         self.distance_terms: list[DistanceTermAtLevel] = [t for t in bound if t is not None]
@@ -217,6 +227,7 @@ class LevelProblem:
         )
         scaled = [c for c in checkers if c.needs_scale]
         self._robust = not isinstance(self.loss, L2Loss) or bool(scaled)
+        self._own_masked = any(t.masks_own for t in self.distance_terms)
         self.sigma = 1.0
         # The closest points at the level start, shared by the scales and the first evaluation.
         self._start = start
@@ -358,13 +369,17 @@ class LevelProblem:
         """Per-point weights (robust kernel times the checkers' support), support masks and
         each distance term's weights of its own correspondences at the geometry ``g``."""
         unweighted: tuple[np.ndarray | None, ...] = (None,) * len(self.distance_terms)
-        if not (self.checkers or self._robust):
-            return Weights(own=unweighted)
-        mask = support(self.checkers, g.moved, g.distances, g.faces, g.closest)
-        w = self.loss.weight(g.distances, self.sigma) * mask
         own = unweighted
         if self._robust:
             own = tuple(t.own_weights(g, f) for t, f in zip(self.distance_terms, g.own))
+        if self._own_masked:
+            own = tuple(
+                _times(v, t.own_mask(f)) for v, t, f in zip(own, self.distance_terms, g.own)
+            )
+        if not (self.checkers or self._robust):
+            return Weights(own=own)
+        mask = support(self.checkers, g.moved, g.distances, g.faces, g.closest)
+        w = self.loss.weight(g.distances, self.sigma) * mask
         return Weights(w, mask, own)
 
     def _assemble(self, g: Geometry, w: Weights, held: tuple[Any, ...] | None = None) -> Evaluation:
@@ -412,3 +427,10 @@ class LevelProblem:
         assert regulariser is not None
         g = self.assembly.vector(rhs) + regulariser
         return A, g
+
+
+def _times(weights: np.ndarray | None, mask: np.ndarray | None) -> np.ndarray | None:
+    """``weights * mask``, either ``None`` standing for all ones."""
+    if mask is None:
+        return weights
+    return mask if weights is None else weights * mask

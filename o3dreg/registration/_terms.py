@@ -202,6 +202,16 @@ class DistanceTermAtLevel:
         """Robust weights of the correspondences ``found`` at ``g`` (``None``: unweighted)."""
         return None
 
+    @property
+    def masks_own(self) -> bool:
+        """Whether :meth:`own_mask` keeps some correspondences out, robust level or not."""
+        return False
+
+    def own_mask(self, found: Any) -> np.ndarray | None:
+        """The 0/1 factor of each of the correspondences ``found`` that the term keeps, on top
+        of the robust weights (``None``: all kept)."""
+        return None
+
     def linearise(self, g: Geometry, w: Weights, state: TermState) -> TermBlock:
         raise NotImplementedError
 
@@ -334,7 +344,10 @@ class BarycentreTerm(PullTerm):
 
     Its correspondences (:meth:`correspond`) are the nearest template point of every target
     point and that distance ``e_j``; their robust weights ``v_j`` use a scale of their own and
-    the checkers measured in scales.
+    the checkers measured in scales. With ``beyond``, a target point pulls only if ``e_j``
+    exceeds ``beyond`` at its template point (:meth:`own_mask`; see
+    :attr:`~o3dreg.ElasticLevel.barycentre_reach`), and ``target_points`` may be the candidates
+    of a larger sample of ``stands_for`` points, which the rows are counted against.
     """
 
     name = "barycentre"
@@ -347,12 +360,19 @@ class BarycentreTerm(PullTerm):
         weight: float,
         offsets: np.ndarray | None = None,
         counted: bool = False,
+        beyond: np.ndarray | None = None,
+        stands_for: int | None = None,
     ) -> None:
         super().__init__(assembly)
         self.target_points = target_points
+        # The number of target points the rows are counted against: the whole sample when
+        # ``target_points`` are the candidates of ``beyond`` only.
+        self.stands_for = target_points.shape[0] if stands_for is None else stands_for
         self.sqrt_ws = float(np.sqrt(weight))
         self.offsets = offsets
         self.counted = counted
+        # Per template point, the distance a target point must exceed to pull it (None: any).
+        self.beyond = beyond
         # The robust scale of the distances e_j, the loss and the masks measured in it (set by
         # :meth:`start`), and the level start's assignment when the scale measured it.
         self.sigma = 1.0
@@ -385,6 +405,18 @@ class BarycentreTerm(PullTerm):
         self.sigma = robust.loss.scale or robust_scale(e, robust.floor)
         # The checkers measured in scales also judge the distances e_j, in their own scale.
         self.masks = bound_masks(robust.checkers, replace(robust.context, sigma=self.sigma))
+
+    @property
+    def masks_own(self) -> bool:
+        return self.beyond is not None
+
+    def own_mask(self, found: Any) -> np.ndarray | None:
+        """1 for the target points farther from their nearest template point than ``beyond``
+        there (the parts of the target the template does not reach), 0 elsewhere."""
+        if self.beyond is None:
+            return None
+        e, nearest = found
+        return (e > self.beyond.take(nearest)).astype(np.float64)
 
     def correspond(self, y: np.ndarray, at_start: bool = False) -> tuple[np.ndarray, np.ndarray]:
         if at_start and self._start is not None:
@@ -496,7 +528,7 @@ class BarycentreTerm(PullTerm):
             )
             bary = sums / np.where(vsum > 0, vsum, 1.0)[:, None]
             if self.counted:
-                assigned = vsum / (self.target_points.shape[0] / n)
+                assigned = vsum / (self.stands_for / n)
             else:
                 assigned = vsum / np.maximum(counts, 1)
         else:
@@ -506,7 +538,7 @@ class BarycentreTerm(PullTerm):
             )
             bary = sums / np.maximum(counts, 1)[:, None]
             if self.counted:
-                assigned = counts / (self.target_points.shape[0] / n)
+                assigned = counts / (self.stands_for / n)
             else:
                 assigned = (counts > 0).astype(np.float64)
         if support is not None:
@@ -519,6 +551,38 @@ class BarycentreTerm(PullTerm):
     def pulls(self, g: Geometry, w: Weights, state: TermState) -> tuple[np.ndarray, np.ndarray]:
         """The barycentres and row scales of the assignment ``state.found``."""
         return self.targets(g.moved.shape[0], state.found[1], state.weights, w.support)
+
+
+#: The neighbour whose distance is a template point's ring radius: on a triangulated surface a
+#: vertex has about 6 neighbours around it.
+RING_NEIGHBOURS = 6
+
+
+#: A target point is a candidate of the reach-limited barycentre term when, at the level start,
+#: it is farther than this share of the threshold from its nearest template point; the others
+#: are left out of the level's searches (a fine level moves a template point by a fraction of
+#: its ring, and on a covered target they are nearly all of them).
+CANDIDATE_SHARE = 0.8
+
+
+def uncovered_candidates(
+    points: np.ndarray,
+    target_points: np.ndarray,
+    reach: float,
+    known: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The threshold of every template point (``reach`` times its ring radius: its distance to
+    its :data:`RING_NEIGHBOURS`-th nearest other point, or the farthest for fewer points, 0 for
+    one; no point of a surface the points sample evenly is farther than that from its nearest
+    point) and the indices of the target points farther than :data:`CANDIDATE_SHARE` of it from
+    their nearest template point (``known``: those distances and nearest points, where the
+    caller has them)."""
+    tree = cKDTree(points)
+    k = min(RING_NEIGHBOURS + 1, points.shape[0])
+    ring = tree.query(points, k=k)[0][:, -1] if k >= 2 else np.zeros(points.shape[0])
+    beyond = reach * ring
+    e, nearest = known if known is not None else tree.query(target_points, workers=-1)
+    return beyond, np.flatnonzero(e > CANDIDATE_SHARE * beyond.take(nearest))
 
 
 #: Distances the barycentre term's search radius is estimated from (a strided share of all).

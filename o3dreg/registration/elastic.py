@@ -41,6 +41,7 @@ from ._cost import LevelProblem, bound_masks
 from ._robust import support
 from ._solvers import SolveInfo, solve
 from ._target import TARGET_VOXELS_PER_CELL, TargetSurface
+from ._terms import BarycentreTerm
 from .checkers import CheckerContext, CorrespondenceChecker, NormalAngleChecker
 from .deformation import LatticeDeformation, PartitionedDeformation
 from .distance import SurfaceDistanceQuery
@@ -454,6 +455,7 @@ class _Hierarchy:
             target_sample=lambda per_point: self.target_sample(per_point, use.size),
             indices=use,
             symmetric_scale=level.symmetric_scale,
+            barycentre_reach=level.barycentre_reach,
             voronoi_offsets=lambda: self.voronoi_offsets((points + previous)[use], deformation),
             loss=self.loss,
             checkers=self.checkers,
@@ -466,6 +468,9 @@ class _Hierarchy:
             normals=normals,
             prior=deformation if deformation.levels else None,
             start=start,
+            nearest_known=None
+            if ended is None
+            else lambda sample: ended.nearest_on(sample, use, moved[use]),
         )
         return problem, use
 
@@ -554,6 +559,7 @@ class _LevelEnd:
     moved: np.ndarray
     faces: np.ndarray
     closest: np.ndarray
+    terms: tuple[Any, ...] = ()
 
     #: Positions farther apart than this fraction of the coordinates' magnitude are not the
     #: same to rounding (a trilinear map evaluated two ways differs by ~1e-15 of it).
@@ -564,7 +570,29 @@ class _LevelEnd:
         g = ev.geometry
         if g is None:
             return None
-        return cls(problem.target, indices, g.moved, g.faces, g.closest)
+        return cls(
+            problem.target, indices, g.moved, g.faces, g.closest, tuple(problem.distance_terms)
+        )
+
+    def nearest_on(
+        self, sample: np.ndarray, indices: np.ndarray, moved: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The nearest of the template points ``indices`` at ``moved`` of every point of the
+        target ``sample`` and its distance, from the search state of this level's barycentre
+        term on the same sample (exact, and only the points whose nearest may have changed are
+        searched again), or ``None`` unless that term and the same template points exist."""
+        held = [t for t in self.terms if isinstance(t, BarycentreTerm)]
+        if not held or held[0].target_points is not sample:
+            return None
+        if indices.size != self.indices.size:
+            return None
+        row = np.full(int(max(indices.max(), self.indices.max())) + 1, -1, dtype=np.int64)
+        row[indices] = np.arange(indices.size)
+        rows = row[self.indices]  # this level's order -> the new level's rows
+        if np.any(rows < 0):
+            return None
+        distance, nearest = held[0].measure(moved.take(rows, axis=0))
+        return distance, rows.take(nearest)
 
     def closest_on(
         self, query: SurfaceDistanceQuery, indices: np.ndarray, moved: np.ndarray

@@ -128,6 +128,16 @@ class ElasticLevel:
         Multiplies :attr:`DistanceEstimation.symmetric_weight` at this level; ``0`` makes the
         level minimise the single distance (eq. 2). Default 1 (eq. 3 as published); the
         default hierarchy lowers it at its fine levels (see :func:`default_levels`).
+    barycentre_reach : float or None
+        ``None`` (default): every target point pulls its nearest template point (eq. 3). A
+        value ``c``: only the target points farther from their nearest template point than
+        ``c`` times that point's ring radius (its distance to its 6th-nearest neighbour among
+        the level's template points, measured where the level starts) pull it: the parts of
+        the target the template does not reach yet (a condyle's tip, a protrusion). Where the
+        template covers the target, no target point is that far and the term has no rows, so
+        covered vertices are not slid towards the centroids of their Voronoi cells. Only the
+        target points farther than 0.8 of that at the level start are followed through the
+        level. The default hierarchy sets 1 on its finest level.
     """
 
     resolution: int
@@ -140,10 +150,13 @@ class ElasticLevel:
     criteria: ElasticCriteria | None = None
     min_jacobian_determinant: float | None = 0.05
     symmetric_scale: float = 1.0
+    barycentre_reach: float | None = None
 
     def __post_init__(self) -> None:
         check_positive(self.resolution, "resolution", integer=True)
         check_positive(self.symmetric_scale, "symmetric_scale", allow_zero=True)
+        if self.barycentre_reach is not None:
+            check_positive(self.barycentre_reach, "barycentre_reach")
         if self.resolution > MAX_RESOLUTION:
             raise ValueError(
                 f"`resolution` must be at most {MAX_RESOLUTION} cells per axis (memory: about "
@@ -184,6 +197,8 @@ class ElasticLevel:
             extra += f", criteria={self.criteria!r}"
         if self.symmetric_scale != 1.0:
             extra += f", symmetric_scale={self.symmetric_scale:g}"
+        if self.barycentre_reach is not None:
+            extra += f", barycentre_reach={self.barycentre_reach:g}"
         return f"ElasticLevel(resolution={self.resolution}, regularization={self.regularization:g}{extra})"
 
 
@@ -498,14 +513,18 @@ def _as_terms(terms: Any, name: str) -> tuple[DistanceTerm, ...]:
 
 
 #: ``symmetric_scale`` of the default levels 2, 4, 8, 16 (see :func:`default_levels`).
-DEFAULT_SYMMETRIC_SCALES = (1.0, 1.0, 0.3, 0.0)
+DEFAULT_SYMMETRIC_SCALES = (1.0, 1.0, 0.3, 0.3)
+#: ``barycentre_reach`` of the default levels: on the finest, only the target the template does
+#: not reach pulls.
+DEFAULT_BARYCENTRE_REACH = (None, None, None, 1.0)
 
 
 def default_levels() -> list[ElasticLevel]:
     """The default hierarchy: 2, 4, 8 and 16 cells per axis, the barycentre term on coarse levels.
 
     Bending energy with weight 0.1 on every level; the barycentre term at full weight on the two
-    coarse levels, 0.3 at 8 cells, none at 16.
+    coarse levels, 0.3 at 8 cells, and 0.3 at 16 cells limited to the target the template does
+    not reach (``barycentre_reach=1``).
 
     The regularisation: 1.0 is too stiff for large warps, 0.01 leaves the Jacobian determinant
     lower for no gain in accuracy (the sweep on the bunny under known warps and on the paper's
@@ -516,10 +535,13 @@ def default_levels() -> list[ElasticLevel]:
     centroid of its Voronoi cell of target points (Lloyd's relaxation), which costs
     correspondence accuracy and, as its assignments change at every evaluation, twice the
     evaluations. This schedule keeps the spreading (the cone -> sphere of Table 1) and most of
-    the single distance's accuracy on warps of one surface (figures in docs/registration.md).
+    the single distance's accuracy on warps of one surface; on the finest level only the target
+    points farther from the template than a ring of its vertices pull (a condyle the coarse
+    levels left short), so a target the template covers gets no barycentre rows there (figures
+    in docs/registration.md).
     ``symmetric_scale=1`` on every level is eq. (3) at every level, the published method.
     """
     return [
-        ElasticLevel(resolution=r, symmetric_scale=s)
-        for r, s in zip((2, 4, 8, 16), DEFAULT_SYMMETRIC_SCALES)
+        ElasticLevel(resolution=r, symmetric_scale=s, barycentre_reach=reach)
+        for r, s, reach in zip((2, 4, 8, 16), DEFAULT_SYMMETRIC_SCALES, DEFAULT_BARYCENTRE_REACH)
     ]

@@ -23,7 +23,7 @@ import numpy as np
 
 from .._validation import check_positive
 from ._assembly import NormalAssembly
-from ._terms import BarycentreTerm, DistanceTermAtLevel, PointToSurfaceTerm
+from ._terms import BarycentreTerm, DistanceTermAtLevel, PointToSurfaceTerm, uncovered_candidates
 from .distance import SurfaceDistanceQuery
 
 __all__ = [
@@ -65,6 +65,11 @@ class TermContext:
     voronoi_offsets : callable or None
         ``voronoi_offsets()``: the offset from each point to the centroid of its own Voronoi
         cell on the template surface moved by the coarser levels (``None``: not offered).
+    barycentre_reach : float or None
+        The level's :attr:`~o3dreg.ElasticLevel.barycentre_reach`.
+    nearest_known : callable or None
+        ``nearest_known(sample)``: the nearest of ``points`` of every point of a target sample
+        and its distance, where the previous level's search state has them (else ``None``).
     """
 
     assembly: NormalAssembly
@@ -74,6 +79,8 @@ class TermContext:
     target_sample: Callable[[float], np.ndarray]
     symmetric_scale: float = 1.0
     voronoi_offsets: Callable[[], np.ndarray] | None = None
+    barycentre_reach: float | None = None
+    nearest_known: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None] | None = None
 
 
 @dataclass(frozen=True)
@@ -151,10 +158,25 @@ class Barycentre(DistanceTerm):
                     "(TermContext.voronoi_offsets)"
                 )
             offsets = context.voronoi_offsets()
+        sample = context.target_sample(self.target_points_per_source_point)
+        if context.barycentre_reach is None:
+            return BarycentreTerm(
+                context.assembly, sample, weight, offsets, counted=self.weighting == "count"
+            )
+        # Only the target points the template does not reach pull; those nowhere near the
+        # threshold at the start are left out of every search.
+        known = None if context.nearest_known is None else context.nearest_known(sample)
+        beyond, candidates = uncovered_candidates(
+            context.points, sample, context.barycentre_reach, known
+        )
+        if candidates.size == 0:
+            return None
         return BarycentreTerm(
             context.assembly,
-            context.target_sample(self.target_points_per_source_point),
+            sample.take(candidates, axis=0),
             weight,
             offsets,
             counted=self.weighting == "count",
+            beyond=beyond,
+            stands_for=sample.shape[0],
         )

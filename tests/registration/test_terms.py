@@ -446,3 +446,45 @@ def test_counted_barycentre_rows_are_the_target_to_template_distance(robust):
         uscale[assigned] ** 2,
         np.bincount(nearest, vv, minlength=y.shape[0])[assigned] / counts[assigned],
     )
+
+
+def test_uncovered_candidates_are_the_target_points_beyond_the_template():
+    # A square grid of spacing h: an inner node has 4 neighbours at h and 4 at h*sqrt(2), so its
+    # 6th-nearest (its ring radius) is at h*sqrt(2); a corner's is at h*sqrt(5).
+    from o3dreg.registration._terms import CANDIDATE_SHARE, uncovered_candidates
+
+    h, reach = 0.1, 1.2
+    g = np.arange(11) * h
+    x, y = np.meshgrid(g, g)
+    points = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    # The square sampled 4 times finer: no point is farther than h/sqrt(2) (a cell centre) from
+    # a node, below CANDIDATE_SHARE * reach * h*sqrt(2) = 0.085; a strip 0.3-0.5 beyond x = 1
+    # is farther than any node's threshold.
+    f = np.arange(41) * h / 4
+    fx, fy = np.meshgrid(f, f)
+    covered = np.column_stack([fx.ravel(), fy.ravel(), np.zeros(fx.size)])
+    sx, sy = np.meshgrid(1.0 + np.linspace(0.3, 0.5, 5), f)
+    strip = np.column_stack([sx.ravel(), sy.ravel(), np.zeros(sx.size)])
+    assert CANDIDATE_SHARE * reach * h * np.sqrt(2) > h / np.sqrt(2)
+    beyond, candidates = uncovered_candidates(points, np.vstack([covered, strip]), reach)
+    np.testing.assert_array_equal(candidates, covered.shape[0] + np.arange(strip.shape[0]))
+    inner = (points[:, :2] > 0.5 * h).all(axis=1) & (points[:, :2] < 1 - 0.5 * h).all(axis=1)
+    np.testing.assert_allclose(beyond[inner], reach * h * np.sqrt(2), rtol=1e-12)
+    corner = np.flatnonzero((points[:, :2] == 0).all(axis=1))
+    np.testing.assert_allclose(beyond[corner], reach * h * np.sqrt(5), rtol=1e-12)
+    # Given the nearest points and distances, the same answer without a search.
+    from scipy.spatial import cKDTree
+
+    target = np.vstack([covered, strip])
+    known = cKDTree(points).query(target)
+    again = uncovered_candidates(points, target, reach, known)
+    np.testing.assert_array_equal(again[1], candidates)
+
+
+def test_barycentre_reach_is_validated_and_shown():
+    with pytest.raises(ValueError, match="barycentre_reach"):
+        ElasticLevel(16, barycentre_reach=0.0)
+    with pytest.raises(ValueError, match="barycentre_reach"):
+        ElasticLevel(16, barycentre_reach=-1.0)
+    assert "barycentre_reach=1" in repr(ElasticLevel(16, barycentre_reach=1.0))
+    assert "barycentre_reach" not in repr(ElasticLevel(16))
