@@ -48,9 +48,11 @@ PAPER_TABLE2 = [
 ]
 
 
-#: The default levels with the barycentre term at every level: eq. (3) as published (the default
-#: hierarchy drops it on its finest level, see o3dreg.default_levels).
-PUBLISHED_LEVELS = [replace(lev, symmetric_scale=1.0) for lev in o3dreg.default_levels()]
+#: The default levels with the barycentre term at full weight at every level: eq. (3) as published
+#: (the default hierarchy limits it on its finest level, see o3dreg.default_levels).
+PUBLISHED_LEVELS = [
+    replace(lev, symmetric_scale=1.0, barycentre_reach=None) for lev in o3dreg.default_levels()
+]
 
 
 def register(source, target, symmetric: bool) -> o3dreg.ElasticRegistrationResult:

@@ -9,6 +9,7 @@ never carries a second copy of a default.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from typing import Any
 
 from ..app.settings import RegistrationSettings
@@ -127,12 +128,9 @@ def build_levels(args: argparse.Namespace) -> list[ElasticLevel] | None:
         )
     # The default hierarchy keeps its barycentre-term schedule; levels given on the command line
     # use the term at full weight (eq. 3 at every level, as published).
-    scales = (
-        [lev.symmetric_scale for lev in default_levels()]
-        if args.levels is None
-        else [1.0] * len(resolutions)
-    )
-    return [ElasticLevel(r, w, symmetric_scale=s) for r, w, s in zip(resolutions, weights, scales)]
+    if args.levels is None:
+        return [replace(lev, regularization=w) for lev, w in zip(default_levels(), weights)]
+    return [ElasticLevel(r, w) for r, w in zip(resolutions, weights)]
 
 
 def estimation_method(args: argparse.Namespace) -> DistanceEstimation:

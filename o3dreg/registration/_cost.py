@@ -215,6 +215,7 @@ class LevelProblem:
             voronoi_offsets,
             barycentre_reach,
             nearest_known,
+            float(lattice.cell_size.min()),
         )
         bound = (term.bind(offered) for term in terms)
         self.distance_terms: list[DistanceTermAtLevel] = [t for t in bound if t is not None]

@@ -345,9 +345,11 @@ class BarycentreTerm(PullTerm):
     Its correspondences (:meth:`correspond`) are the nearest template point of every target
     point and that distance ``e_j``; their robust weights ``v_j`` use a scale of their own and
     the checkers measured in scales. With ``beyond``, a target point pulls only if ``e_j``
-    exceeds ``beyond`` at its template point (:meth:`own_mask`; see
-    :attr:`~o3dreg.ElasticLevel.barycentre_reach`), and ``target_points`` may be the candidates
-    of a larger sample of ``stands_for`` points, which the rows are counted against.
+    exceeds ``beyond`` at its template point and not ``within`` (:meth:`own_mask`; see
+    :attr:`~o3dreg.ElasticLevel.barycentre_reach`); ``target_points`` may then be the
+    candidates of a larger sample of ``stands_for`` points, which the rows are counted
+    against, and ``scale_distances`` that sample's distances, which the robust scale is
+    measured on.
     """
 
     name = "barycentre"
@@ -362,6 +364,8 @@ class BarycentreTerm(PullTerm):
         counted: bool = False,
         beyond: np.ndarray | None = None,
         stands_for: int | None = None,
+        within: float = np.inf,
+        scale_distances: np.ndarray | None = None,
     ) -> None:
         super().__init__(assembly)
         self.target_points = target_points
@@ -371,8 +375,12 @@ class BarycentreTerm(PullTerm):
         self.sqrt_ws = float(np.sqrt(weight))
         self.offsets = offsets
         self.counted = counted
-        # Per template point, the distance a target point must exceed to pull it (None: any).
+        # Per template point, the distance a target point must exceed to pull it (None: any),
+        # and the distance it must not exceed.
         self.beyond = beyond
+        self.within = within
+        # The distances the robust scale is measured on, where not those of ``target_points``.
+        self.scale_distances = scale_distances
         # The robust scale of the distances e_j, the loss and the masks measured in it (set by
         # :meth:`start`), and the level start's assignment when the scale measured it.
         self.sigma = 1.0
@@ -402,6 +410,10 @@ class BarycentreTerm(PullTerm):
             e = e.copy()
             e[lost], _ = cKDTree(base[keep]).query(self.target_points[lost])
         self.loss = robust.loss
+        if self.scale_distances is not None:
+            # Measured on all the sample (mostly covered): a target point far beyond every
+            # other, debris rather than a part left short, is discounted by the loss.
+            e = self.scale_distances
         self.sigma = robust.loss.scale or robust_scale(e, robust.floor)
         # The checkers measured in scales also judge the distances e_j, in their own scale.
         self.masks = bound_masks(robust.checkers, replace(robust.context, sigma=self.sigma))
@@ -412,11 +424,12 @@ class BarycentreTerm(PullTerm):
 
     def own_mask(self, found: Any) -> np.ndarray | None:
         """1 for the target points farther from their nearest template point than ``beyond``
-        there (the parts of the target the template does not reach), 0 elsewhere."""
+        there (the parts of the target the template does not reach) and no farther than
+        ``within``, 0 elsewhere."""
         if self.beyond is None:
             return None
         e, nearest = found
-        return (e > self.beyond.take(nearest)).astype(np.float64)
+        return ((e > self.beyond.take(nearest)) & (e <= self.within)).astype(np.float64)
 
     def correspond(self, y: np.ndarray, at_start: bool = False) -> tuple[np.ndarray, np.ndarray]:
         if at_start and self._start is not None:
@@ -570,19 +583,19 @@ def uncovered_candidates(
     target_points: np.ndarray,
     reach: float,
     known: tuple[np.ndarray, np.ndarray] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The threshold of every template point (``reach`` times its ring radius: its distance to
     its :data:`RING_NEIGHBOURS`-th nearest other point, or the farthest for fewer points, 0 for
     one; no point of a surface the points sample evenly is farther than that from its nearest
-    point) and the indices of the target points farther than :data:`CANDIDATE_SHARE` of it from
-    their nearest template point (``known``: those distances and nearest points, where the
-    caller has them)."""
+    point), the indices of the target points farther than :data:`CANDIDATE_SHARE` of it from
+    their nearest template point, and every target point's distance to that point (``known``:
+    those distances and nearest points, where the caller has them)."""
     tree = cKDTree(points)
     k = min(RING_NEIGHBOURS + 1, points.shape[0])
     ring = tree.query(points, k=k)[0][:, -1] if k >= 2 else np.zeros(points.shape[0])
     beyond = reach * ring
     e, nearest = known if known is not None else tree.query(target_points, workers=-1)
-    return beyond, np.flatnonzero(e > CANDIDATE_SHARE * beyond.take(nearest))
+    return beyond, np.flatnonzero(e > CANDIDATE_SHARE * beyond.take(nearest)), e
 
 
 #: Distances the barycentre term's search radius is estimated from (a strided share of all).

@@ -135,9 +135,12 @@ class ElasticLevel:
         the level's template points, measured where the level starts) pull it: the parts of
         the target the template does not reach yet (a condyle's tip, a protrusion). Where the
         template covers the target, no target point is that far and the term has no rows, so
-        covered vertices are not slid towards the centroids of their Voronoi cells. Only the
-        target points farther than 0.8 of that at the level start are followed through the
-        level. The default hierarchy sets 1 on its finest level.
+        covered vertices are not slid towards the centroids of their Voronoi cells. A target
+        point farther than two lattice cells does not pull (a coarser level would have reached
+        a part of the surface that far: debris), and the robust scale is measured on all
+        target points, so the loss discounts the farthest. Only the target points farther
+        than 0.8 of the threshold at the level start are followed through the level. The
+        default hierarchy sets 1 on its finest level.
     """
 
     resolution: int
@@ -539,7 +542,8 @@ def default_levels() -> list[ElasticLevel]:
     points farther from the template than a ring of its vertices pull (a condyle the coarse
     levels left short), so a target the template covers gets no barycentre rows there (figures
     in docs/registration.md).
-    ``symmetric_scale=1`` on every level is eq. (3) at every level, the published method.
+    ``symmetric_scale=1`` and ``barycentre_reach=None`` on every level is eq. (3) at every level,
+    the published method.
     """
     return [
         ElasticLevel(resolution=r, symmetric_scale=s, barycentre_reach=reach)

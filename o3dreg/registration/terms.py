@@ -70,6 +70,8 @@ class TermContext:
     nearest_known : callable or None
         ``nearest_known(sample)``: the nearest of ``points`` of every point of a target sample
         and its distance, where the previous level's search state has them (else ``None``).
+    cell_size : float
+        The level's smallest lattice cell edge.
     """
 
     assembly: NormalAssembly
@@ -81,6 +83,7 @@ class TermContext:
     voronoi_offsets: Callable[[], np.ndarray] | None = None
     barycentre_reach: float | None = None
     nearest_known: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None] | None = None
+    cell_size: float = np.inf
 
 
 @dataclass(frozen=True)
@@ -166,7 +169,7 @@ class Barycentre(DistanceTerm):
         # Only the target points the template does not reach pull; those nowhere near the
         # threshold at the start are left out of every search.
         known = None if context.nearest_known is None else context.nearest_known(sample)
-        beyond, candidates = uncovered_candidates(
+        beyond, candidates, distances = uncovered_candidates(
             context.points, sample, context.barycentre_reach, known
         )
         if candidates.size == 0:
@@ -179,4 +182,8 @@ class Barycentre(DistanceTerm):
             counted=self.weighting == "count",
             beyond=beyond,
             stands_for=sample.shape[0],
+            # A part of the target farther than the coarser level's cell (two of these) would
+            # have been reached there: what is that far is debris.
+            within=context.cell_size,
+            scale_distances=distances,
         )

@@ -14,6 +14,7 @@ from o3dreg import (
     ElasticLevel,
     ElasticRegistrationResult,
     LatticeDeformation,
+    decimate,
     default_levels,
     evaluate_elastic,
     registration_elastic,
@@ -151,7 +152,9 @@ def test_the_symmetric_distance_fixes_the_cone_to_sphere_mismatch():
         levels=unguarded,
         estimation_method=DistanceEstimation.paper(symmetric=False),
     )
-    published = [replace(lev, symmetric_scale=1.0) for lev in default_levels()]
+    published = [
+        replace(lev, symmetric_scale=1.0, barycentre_reach=None) for lev in default_levels()
+    ]
     symmetric = registration_elastic(
         cone,
         sphere,
@@ -446,22 +449,38 @@ def test_a_level_end_serves_the_same_points_on_the_same_surface_only():
     assert end.closest_on(query, indices, moved + 1e-6) is None
 
 
+def _sphere_with_a_finger(length: float, vertices: int | None = None):
+    """A sphere of radius 30 with a finger of radius 4 growing ``length`` mm out of its top
+    (marching cubes of the union's signed distance on a 1 mm grid), decimated to ``vertices``."""
+    from skimage.measure import marching_cubes
+
+    g = np.linspace(-45.0, 70.0, 116)
+    x, y, z = np.meshgrid(g, g, g, indexing="ij")
+    sphere = np.sqrt(x**2 + y**2 + z**2) - 30.0
+    finger = np.sqrt(x**2 + y**2 + (z - np.clip(z, 25.0, 25.0 + length)) ** 2) - 4.0
+    v, f, _, _ = marching_cubes(np.minimum(sphere, finger), 0.0)
+    mesh = (v + g[0], f[:, ::-1])
+    return mesh if vertices is None else decimate(mesh, vertices)
+
+
 def test_a_reach_limited_barycentre_term_pulls_only_where_the_template_does_not_reach():
-    # The cone onto the sphere (Table 1's pair), default hierarchy: the finest level with the
-    # single distance leaves the cone short of the sphere far from its apex; the barycentre term
-    # limited to the target points the template does not reach pulls it on (measured: the
-    # farthest sphere point 3.90 mm from the cone without it, 3.10 mm with it; mean 0.27 and
-    # 0.23 mm).
-    cone, sphere = synthetic_form("cone", 1000), synthetic_form("sphere", 5000)
+    # A finger 6 mm long onto one 16 mm long (its tip at z = 45), default hierarchy: the coarse
+    # lattices cannot stretch a finger 8 mm wide, and with the single distance on the finest
+    # level the template's finger stays on the target's sides, short of its tip; the barycentre
+    # term limited to the target points the template does not reach pulls it out (measured: the
+    # template's top at z = 37.2 and the farthest target point 7.9 mm from the template without
+    # it, 44.2 and 2.4 mm with it).
+    template, target = _sphere_with_a_finger(6.0, 1500), _sphere_with_a_finger(16.0)
     finest = default_levels()[-1]
     assert finest.barycentre_reach is not None and finest.symmetric_scale > 0
     without = [*default_levels()[:-1], replace(finest, symmetric_scale=0.0)]
-    far = {}
+    found = {}
     for name, levels in (("without", without), ("default", default_levels())):
-        result = registration_elastic(cone, sphere, init=np.eye(4), levels=levels)
-        far[name] = result.distances.target_to_source_max
-    assert far["default"] < 0.9 * far["without"]
-    # A target the template covers (the sphere onto a denser sphere) has no point that far: the
+        result = registration_elastic(template, target, init=np.eye(4), levels=levels)
+        found[name] = (result.vertices[:, 2].max(), result.distances.target_to_source_max)
+    assert found["default"][0] > 43.0 > 39.0 > found["without"][0], found
+    assert found["default"][1] < 0.5 * found["without"][1], found
+    # A target the template covers (a sphere onto a denser sphere) has no point that far: the
     # term has no rows and the level is the single distance's, to the bit.
     small, dense = synthetic_form("sphere", 1000), synthetic_form("sphere", 4000)
     covered = [

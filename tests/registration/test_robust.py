@@ -1,6 +1,8 @@
 """Robust registration on imperfect targets (issue 6): partial targets, outliers, folding,
 vertex-order independence, and the new options' validation."""
 
+from dataclasses import replace
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -14,6 +16,7 @@ from o3dreg import (
     ElasticLevel,
     LatticeDeformation,
     PartitionedDeformation,
+    default_levels,
     evaluate_elastic,
     load_deformation,
     registration_elastic,
@@ -616,3 +619,28 @@ def test_a_target_patch_wound_backwards_registers_as_the_well_wound_target(
     wound = registration_elastic(bunny_template, (v, mixed), init=np.eye(4), levels=levels)
     np.testing.assert_array_equal(wound.vertices, well.vertices)
     np.testing.assert_array_equal(wound.supported, well.supported)
+
+
+def test_debris_does_not_pull_the_finest_level(bunny_warped):
+    # The default finest level pulls the template towards target points it does not reach;
+    # debris the island filter left (min_target_component=None) is such points. Farther than a
+    # cell, or discounted by the loss in the scale of the whole target, it does not pull: 5%
+    # debris ends within 10% of the error of the finest level without the term (measured 0.98x;
+    # 7.6x when the scale is measured on the far points alone and nothing is capped).
+    template, target, warp = bunny_warped
+    truth = warp(template[0])
+    noisy = debris(target, 0.05)
+    unfiltered = DistanceEstimation(min_target_component=None)
+    finest = default_levels()[-1]
+    without = [*default_levels()[:-1], replace(finest, symmetric_scale=0.0)]
+    errors = [
+        np.linalg.norm(
+            registration_elastic(
+                template, noisy, estimation_method=unfiltered, levels=levels
+            ).vertices
+            - truth,
+            axis=1,
+        ).mean()
+        for levels in (default_levels(), without)
+    ]
+    assert errors[0] < 1.1 * errors[1], errors

@@ -466,7 +466,8 @@ def test_uncovered_candidates_are_the_target_points_beyond_the_template():
     sx, sy = np.meshgrid(1.0 + np.linspace(0.3, 0.5, 5), f)
     strip = np.column_stack([sx.ravel(), sy.ravel(), np.zeros(sx.size)])
     assert CANDIDATE_SHARE * reach * h * np.sqrt(2) > h / np.sqrt(2)
-    beyond, candidates = uncovered_candidates(points, np.vstack([covered, strip]), reach)
+    target = np.vstack([covered, strip])
+    beyond, candidates, distances = uncovered_candidates(points, target, reach)
     np.testing.assert_array_equal(candidates, covered.shape[0] + np.arange(strip.shape[0]))
     inner = (points[:, :2] > 0.5 * h).all(axis=1) & (points[:, :2] < 1 - 0.5 * h).all(axis=1)
     np.testing.assert_allclose(beyond[inner], reach * h * np.sqrt(2), rtol=1e-12)
@@ -475,8 +476,8 @@ def test_uncovered_candidates_are_the_target_points_beyond_the_template():
     # Given the nearest points and distances, the same answer without a search.
     from scipy.spatial import cKDTree
 
-    target = np.vstack([covered, strip])
     known = cKDTree(points).query(target)
+    np.testing.assert_allclose(distances, known[0], rtol=1e-12)
     again = uncovered_candidates(points, target, reach, known)
     np.testing.assert_array_equal(again[1], candidates)
 
