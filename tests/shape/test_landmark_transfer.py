@@ -243,11 +243,10 @@ def _mandible(shared_data, pid: str, template_vertices: int | None = None):
 
 def test_real_annotations_a_small_template_reaches_a_tall_patients_condyles(shared_data):
     # Mandible 0522c0003 as the template for 0522c0014, whose condyles lie 14-16 mm from the
-    # template's after the rigid step. With one unit of weight per barycentre row the coarse
-    # levels stop short of them and the finest level's reach-limited term takes the condyles only
-    # part of the way: carried 6.0 / 6.7 mm from the patient's annotations (measured). Counted
-    # rows (the default) carry them to 3.8 / 4.2 mm (measured; the worst of template
-    # 0522c0003's 7 patients, whose mean is 2.4 mm).
+    # template's after the rigid step. With one unit of weight per barycentre row the template
+    # stops short of them: condyles carried 9.4 / 7.9 mm from the patient's annotations
+    # (measured). Counted rows (the default) carry them about half as far (3.9 / 4.2 mm
+    # measured; this is the worst of template 0522c0003's 7 patients, whose mean is 2.4 mm).
     from o3dreg import DistanceEstimation
 
     template, template_landmarks = _mandible(shared_data, "0522c0003", 3000)
@@ -259,7 +258,7 @@ def test_real_annotations_a_small_template_reaches_a_tall_patients_condyles(shar
     assert result.status == "ok", result.warnings
     errors = np.linalg.norm(result.transform(template_landmarks) - patient_landmarks, axis=1)
     before = np.linalg.norm(uniform.transform(template_landmarks) - patient_landmarks, axis=1)
-    assert (errors[1:] < 0.75 * before[1:]).all(), (errors, before)
+    assert (errors[1:] < 0.6 * before[1:]).all(), (errors, before)
     assert errors[1:].max() < 5.0, errors
     # The annotations lie inside the bone; carried on the semilandmark mesh with their depth
     # they land within 1 mm of where the map of space carries them (both are the same
