@@ -206,3 +206,24 @@ def test_register_and_build_model_share_one_option_set():
     # Nothing given: the library's defaults, not a copy of them.
     plain = settings_from_args(parser.parse_args(["register", "t.ply", "p.ply", "-o", "o.ply"]))
     assert plain.estimation_method is None and plain.levels is None and plain.start == "rigid"
+
+
+def test_regularization_alone_keeps_the_default_schedule():
+    # --regularization without --levels changes the weight of each default level, nothing else
+    # (each level's barycentre-term schedule included); --levels gives eq. (3) at every level.
+    from dataclasses import replace
+
+    from o3dreg import default_levels
+    from o3dreg.cli import build_parser
+    from o3dreg.cli._registration_options import settings_from_args
+
+    parser = build_parser()
+    args = parser.parse_args(
+        ["register", "t.ply", "p.ply", "-o", "o.ply", "--regularization", "0.2"]
+    )
+    assert list(settings_from_args(args).levels) == [
+        replace(lev, regularization=0.2) for lev in default_levels()
+    ]
+    given = parser.parse_args(["register", "t.ply", "p.ply", "-o", "o.ply", "--levels", "2,4"])
+    levels = settings_from_args(given).levels
+    assert all(lev.symmetric_scale == 1.0 and lev.barycentre_reach is None for lev in levels)
