@@ -136,9 +136,9 @@ class ElasticLevel:
         the target the template does not reach yet (a condyle's tip, a protrusion). Where the
         template covers the target, no target point is that far and the term has no rows, so
         covered vertices are not slid towards the centroids of their Voronoi cells. A target
-        point farther than two lattice cells does not pull (a coarser level would have reached
-        a part of the surface that far: debris), and the robust scale is measured on all
-        target points, so the loss discounts the farthest. Only the target points farther
+        point farther than one lattice cell does not pull (that far is the coarser levels' to
+        reach, so debris the island filter kept does not pull), and the robust scale is
+        measured on all target points, so the loss discounts the farthest. Only the target points farther
         than 0.8 of the threshold at the level start are followed through the level. The
         default hierarchy sets 1 on its finest level.
     """

@@ -182,8 +182,8 @@ class Barycentre(DistanceTerm):
             counted=self.weighting == "count",
             beyond=beyond,
             stands_for=sample.shape[0],
-            # A part of the target farther than the coarser level's cell (two of these) would
-            # have been reached there: what is that far is debris.
+            # Farther than a cell is the coarser levels' to reach: left to them, debris the
+            # island filter kept does not pull.
             within=context.cell_size,
             scale_distances=distances,
         )
