@@ -584,7 +584,7 @@ class _LevelEnd:
         held = [t for t in self.terms if isinstance(t, BarycentreTerm)]
         if not held or held[0].target_points is not sample:
             return None
-        if indices.size != self.indices.size:
+        if indices.size == 0 or indices.size != self.indices.size:
             return None
         row = np.full(int(max(indices.max(), self.indices.max())) + 1, -1, dtype=np.int64)
         row[indices] = np.arange(indices.size)
