@@ -166,10 +166,9 @@ def test_the_symmetric_distance_fixes_the_cone_to_sphere_mismatch():
     assert single.distances.target_to_source_mean > 10.0  # ...but covers a small part of it
     assert symmetric.distances.target_to_source_mean < 0.1 * single.distances.target_to_source_mean
     assert symmetric.distances.target_to_source_mean < 1.5
-    # The defaults (the hierarchy drops the term on its finest level; robust loss and masks)
-    # fix the mismatch too, less completely: the Cauchy weights discount the far, still
-    # uncovered sphere points whose pull opens the cone (measured 3.5 mm; 1.56 mm for the plain
-    # sum with the default levels).
+    # The defaults (the term limited to the uncovered target on the finest level; robust loss
+    # and masks) fix the mismatch too (sphere -> cone measured 0.27 mm mean, 3.9 mm max; eq. (3)
+    # at every level 0.36 / 5.5 mm; the plain sum with the default levels 0.82 / 10.2 mm).
     default = registration_elastic(cone, sphere, init=np.eye(4))
     assert default.distances.target_to_source_mean < 0.1 * single.distances.target_to_source_mean
 
