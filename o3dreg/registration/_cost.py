@@ -369,8 +369,7 @@ class LevelProblem:
     def _weights(self, g: Geometry) -> Weights:
         """Per-point weights (robust kernel times the checkers' support), support masks and
         each distance term's weights of its own correspondences at the geometry ``g``."""
-        unweighted: tuple[np.ndarray | None, ...] = (None,) * len(self.distance_terms)
-        own = unweighted
+        own: tuple[np.ndarray | None, ...] = (None,) * len(self.distance_terms)
         if self._robust:
             own = tuple(t.own_weights(g, f) for t, f in zip(self.distance_terms, g.own))
         if self._own_masked:

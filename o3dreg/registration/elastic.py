@@ -584,12 +584,10 @@ class _LevelEnd:
         held = [t for t in self.terms if isinstance(t, BarycentreTerm)]
         if not held or held[0].target_points is not sample:
             return None
-        if indices.size == 0 or indices.size != self.indices.size:
+        if indices.size != self.indices.size:
             return None
-        row = np.full(int(max(indices.max(), self.indices.max())) + 1, -1, dtype=np.int64)
-        row[indices] = np.arange(indices.size)
-        rows = row[self.indices]  # this level's order -> the new level's rows
-        if np.any(rows < 0):
+        rows = _rows_of(self.indices, indices)  # this level's order -> the new level's rows
+        if rows is None:
             return None
         distance, nearest = held[0].measure(moved.take(rows, axis=0))
         return distance, rows.take(nearest)
@@ -600,13 +598,10 @@ class _LevelEnd:
         """``query.closest(moved)`` for the template points ``indices`` at ``moved``, or
         ``None`` unless this level measured ``query`` at all of them, at ``moved`` to
         rounding."""
-        if query is not self.query or indices.size == 0:
+        if query is not self.query:
             return None
-        size = int(max(self.indices.max(initial=-1), indices.max())) + 1
-        slot = np.full(size, -1, dtype=np.int64)
-        slot[self.indices] = np.arange(self.indices.size)
-        rows = slot[indices]
-        if np.any(rows < 0):
+        rows = _rows_of(indices, self.indices)
+        if rows is None:
             return None
         before = self.moved.take(rows, axis=0)
         scale = max(1.0, float(np.abs(moved).max(initial=0.0)))
@@ -614,6 +609,17 @@ class _LevelEnd:
             return None
         closest = self.closest.take(rows, axis=0)
         return row_norms(moved - closest), self.faces.take(rows), closest
+
+
+def _rows_of(wanted: np.ndarray, among: np.ndarray) -> np.ndarray | None:
+    """The position in ``among`` of every template vertex number in ``wanted``, or ``None``
+    when ``wanted`` is empty or holds a number ``among`` does not."""
+    if wanted.size == 0:
+        return None
+    slot = np.full(int(max(among.max(initial=-1), wanted.max())) + 1, -1, dtype=np.int64)
+    slot[among] = np.arange(among.size)
+    rows = slot[wanted]
+    return None if np.any(rows < 0) else rows
 
 
 def _tests_normals(checkers: tuple[CorrespondenceChecker, ...]) -> bool:

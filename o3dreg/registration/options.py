@@ -138,9 +138,9 @@ class ElasticLevel:
         covered vertices are not slid towards the centroids of their Voronoi cells. A target
         point farther than one lattice cell does not pull (that far is the coarser levels' to
         reach, so debris the island filter kept does not pull), and the robust scale is
-        measured on all target points, so the loss discounts the farthest. Only the target points farther
-        than 0.8 of the threshold at the level start are followed through the level. The
-        default hierarchy sets 1 on its finest level.
+        measured on all target points, so the loss discounts the farthest. Only the target
+        points farther than 0.8 of the threshold at the level start are followed through the
+        level. The default hierarchy sets 1 on its finest level.
     """
 
     resolution: int
