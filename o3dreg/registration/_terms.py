@@ -461,11 +461,17 @@ class BarycentreTerm(PullTerm):
         """
         search = self._plan(y)
         if search is not None:
-            tree = cKDTree(y, leafsize=32)
+            tree = cKDTree(y, leafsize=32, balanced_tree=False, compact_nodes=False)
             k = min(2, y.shape[0])
             # take: rows gathered several times faster than by fancy indexing.
             points = self.target_points.take(search, axis=0)
-            self._keep(search, _nearest_two(tree, points, k, self._nn_bound))
+            bound = self._nn_bound
+            if not np.isfinite(bound) and points.shape[0] > 4 * FIRST_BOUND_SAMPLE:
+                # A first search: its radius as :meth:`_assignment` sets it, from a strided
+                # share of the points searched unbounded.
+                share = points[:: points.shape[0] // FIRST_BOUND_SAMPLE]
+                bound = 2.0 * float(np.percentile(tree.query(share)[0], 99))
+            self._keep(search, _nearest_two(tree, points, k, bound))
         return self._assignment(y)
 
     def _plan(self, y: np.ndarray) -> np.ndarray | None:
@@ -600,6 +606,9 @@ def uncovered_candidates(
 
 #: Distances the barycentre term's search radius is estimated from (a strided share of all).
 NN_BOUND_SAMPLE = 4096
+
+#: Target points a level's first search estimates its radius from (it knows no distances yet).
+FIRST_BOUND_SAMPLE = 256
 
 
 def _nearest_two(
