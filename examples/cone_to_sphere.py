@@ -6,8 +6,6 @@ patch of it (large sphere->cone distance); the symmetric distance spreads it ove
     python examples/cone_to_sphere.py
 """
 
-from dataclasses import replace
-
 import numpy as np
 
 import o3dreg
@@ -20,9 +18,7 @@ print(f"{'':<10}{'cone->sphere mean':>18}{'max':>8}{'sphere->cone mean':>19}{'ma
 # at every level as published; "default": the library's defaults (robust loss and rejections,
 # and the default hierarchy, which limits the barycentre term on its finest level to the target
 # the template does not reach).
-published = [
-    replace(lev, symmetric_scale=1.0, barycentre_reach=None) for lev in o3dreg.default_levels()
-]
+published = o3dreg.paper_levels()
 for name, symmetric, levels in (
     ("single", False, None),
     ("symmetric", True, published),

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import replace
 
 import numpy as np
 
@@ -48,11 +47,9 @@ PAPER_TABLE2 = [
 ]
 
 
-#: The default levels with the barycentre term at full weight at every level: eq. (3) as published
-#: (the default hierarchy limits it on its finest level, see o3dreg.default_levels).
-PUBLISHED_LEVELS = [
-    replace(lev, symmetric_scale=1.0, barycentre_reach=None) for lev in o3dreg.default_levels()
-]
+#: Eq. (3) at every level, as published (the default hierarchy limits the barycentre term on its
+#: finest level, see o3dreg.default_levels).
+PUBLISHED_LEVELS = o3dreg.paper_levels()
 
 
 def register(source, target, symmetric: bool) -> o3dreg.ElasticRegistrationResult:

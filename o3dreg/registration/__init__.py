@@ -14,7 +14,13 @@ from .elastic import evaluate_elastic, registration_elastic
 from .landmark_start import LandmarkRegistrationResult, registration_landmarks
 from .lattice import TrilinearLattice
 from .losses import CauchyLoss, HuberLoss, L2Loss, RobustLoss, TukeyLoss
-from .options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
+from .options import (
+    DistanceEstimation,
+    ElasticCriteria,
+    ElasticLevel,
+    default_levels,
+    paper_levels,
+)
 from .result import (
     ElasticRegistrationResult,
     LevelReport,
@@ -58,6 +64,7 @@ __all__ = [
     "default_levels",
     "evaluate_elastic",
     "load_deformation",
+    "paper_levels",
     "population_outliers",
     "registration_elastic",
     "registration_landmarks",

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from .._validation import check_positive, check_probability
@@ -22,6 +22,7 @@ __all__ = [
     "ElasticCriteria",
     "ElasticLevel",
     "default_levels",
+    "paper_levels",
 ]
 
 #: Solvers a level may use (see :mod:`o3dreg._solvers`).
@@ -542,10 +543,25 @@ def default_levels() -> list[ElasticLevel]:
     points farther from the template than a ring of its vertices pull (a condyle the coarse
     levels left short), so a target the template covers gets no barycentre rows there (figures
     in docs/registration.md).
-    ``symmetric_scale=1`` and ``barycentre_reach=None`` on every level is eq. (3) at every level,
-    the published method.
+    :func:`paper_levels` is eq. (3) at every level, the published method.
     """
     return [
         ElasticLevel(resolution=r, symmetric_scale=s, barycentre_reach=reach)
         for r, s, reach in zip((2, 4, 8, 16), DEFAULT_SYMMETRIC_SCALES, DEFAULT_BARYCENTRE_REACH)
     ]
+
+
+def paper_levels() -> list[ElasticLevel]:
+    """The default hierarchy with eq. (3) of Berar et al. (2005) at every level, as published.
+
+    The levels of :func:`default_levels` with the barycentre term at full weight on every level
+    (``symmetric_scale=1``) and every target point pulling (``barycentre_reach=None``). With
+    :meth:`DistanceEstimation.paper` it is the setting of ``examples/paper_tables.py``, which
+    reproduces Tables 1-2 of the paper.
+
+    Examples
+    --------
+    >>> [(lev.resolution, lev.symmetric_scale, lev.barycentre_reach) for lev in paper_levels()]
+    [(2, 1.0, None), (4, 1.0, None), (8, 1.0, None), (16, 1.0, None)]
+    """
+    return [replace(lev, symmetric_scale=1.0, barycentre_reach=None) for lev in default_levels()]

@@ -17,6 +17,7 @@ from o3dreg import (
     decimate,
     default_levels,
     evaluate_elastic,
+    paper_levels,
     registration_elastic,
 )
 from o3dreg.app.synthetic import SmoothWarp, synthetic_form
@@ -152,9 +153,7 @@ def test_the_symmetric_distance_fixes_the_cone_to_sphere_mismatch():
         levels=unguarded,
         estimation_method=DistanceEstimation.paper(symmetric=False),
     )
-    published = [
-        replace(lev, symmetric_scale=1.0, barycentre_reach=None) for lev in default_levels()
-    ]
+    published = paper_levels()
     symmetric = registration_elastic(
         cone,
         sphere,
