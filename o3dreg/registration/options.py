@@ -25,7 +25,7 @@ __all__ = [
     "paper_levels",
 ]
 
-#: Solvers a level may use (see :mod:`o3dreg._solvers`).
+#: Solvers a level may use (see :mod:`o3dreg.registration._solvers`).
 SOLVERS = ("lm", "trf", "lm-dense")
 
 #: Most cells per axis of one level. Setting a level up holds about 150 bytes per lattice node

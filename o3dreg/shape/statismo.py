@@ -70,8 +70,9 @@ def _h5py() -> Any:
 
 
 def _fixed_string(text: str) -> np.ndarray:
-    """A one-element fixed-length string (UTF-8: ASCII text is unchanged; ``patiënt_0`` was
-    written ``pati?nt_0``, so two names could collide) with room for the terminating zero."""
+    """A one-element fixed-length string (UTF-8: ASCII text is unchanged and a name such as
+    ``patiënt_0`` keeps its characters, where an ASCII encoding with replacement would write
+    ``pati?nt_0`` and let two names collide) with room for the terminating zero."""
     data = text.encode("utf-8")
     return np.array([data], dtype=f"S{len(data) + 1}")
 
