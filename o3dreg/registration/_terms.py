@@ -369,6 +369,8 @@ class BarycentreTerm(PullTerm):
     ) -> None:
         super().__init__(assembly)
         self.target_points = target_points
+        # A column per axis: gathered and summed per axis, faster than strided rows.
+        self._columns = [np.ascontiguousarray(target_points[:, c]) for c in range(3)]
         # The number of target points the rows are counted against: the whole sample when
         # ``target_points`` are the candidates of ``beyond`` only.
         self.stands_for = target_points.shape[0] if stands_for is None else stands_for
@@ -511,16 +513,22 @@ class BarycentreTerm(PullTerm):
                 first = first.copy()
                 first[tied] = nearest[tied].min(axis=1)
             second = np.minimum(e[:, 1], bound)
-        self._nearest[search] = first
-        self._gap[search] = second - e[:, 0]
-        self._mark[search] = self._moved
-        self._path_mark[search] = self._path[first]
+        # Every point searched (a level's first search, large moves): slices, not scatters.
+        at: Any = slice(None) if search.size == self._nearest.size else search
+        self._nearest[at] = first
+        self._gap[at] = second - e[:, 0]
+        self._mark[at] = self._moved
+        self._path_mark[at] = self._path.take(first)
 
     def _assignment(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The nearest template point of every target point at ``y`` (as kept) and its
         distance; the next search's radius."""
         nearest = self._nearest.copy()
-        distance = row_norms(self.target_points - y.take(nearest, axis=0))
+        # row_norms(target_points - y[nearest]), the same numbers, a column at a time.
+        d = [
+            col - np.ascontiguousarray(y[:, c]).take(nearest) for c, col in enumerate(self._columns)
+        ]
+        distance = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         # The next search's radius only decides which points are searched twice (the answer is
         # exact either way): a percentile of an even share of the distances serves.
         sample = distance[:: max(1, distance.size // NN_BOUND_SAMPLE)]
@@ -542,8 +550,7 @@ class BarycentreTerm(PullTerm):
         if v is not None:
             vsum = np.bincount(nearest, v, minlength=n)
             sums = np.stack(
-                [np.bincount(nearest, v * self.target_points[:, c], minlength=n) for c in range(3)],
-                axis=1,
+                [np.bincount(nearest, v * col, minlength=n) for col in self._columns], axis=1
             )
             bary = sums / np.where(vsum > 0, vsum, 1.0)[:, None]
             if self.counted:
@@ -552,8 +559,7 @@ class BarycentreTerm(PullTerm):
                 assigned = vsum / np.maximum(counts, 1)
         else:
             sums = np.stack(
-                [np.bincount(nearest, self.target_points[:, c], minlength=n) for c in range(3)],
-                axis=1,
+                [np.bincount(nearest, col, minlength=n) for col in self._columns], axis=1
             )
             bary = sums / np.maximum(counts, 1)[:, None]
             if self.counted:
