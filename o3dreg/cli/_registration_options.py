@@ -13,7 +13,13 @@ from dataclasses import replace
 from typing import Any
 
 from ..app.settings import RegistrationSettings
-from ..registration.options import DistanceEstimation, ElasticCriteria, ElasticLevel, default_levels
+from ..registration.options import (
+    DistanceEstimation,
+    ElasticCriteria,
+    ElasticLevel,
+    default_levels,
+    paper_levels,
+)
 from ._common import float_list, int_list
 
 #: DistanceEstimation fields set by the options below (option dest -> field).
@@ -76,8 +82,9 @@ def add_registration_options(parser: argparse.ArgumentParser) -> None:
     robust.add_argument(
         "--paper",
         action="store_true",
-        help="the paper's plain least squares: linear loss, no boundary or normal rejection, "
-        "every target component (the options below still apply on top)",
+        help="the paper's method: eq. (3) on every level of the default hierarchy with plain "
+        "least squares (linear loss, no boundary or normal rejection, every target "
+        "component; the options below still apply on top)",
     )
     robust.add_argument(
         "--loss",
@@ -115,11 +122,14 @@ def add_registration_options(parser: argparse.ArgumentParser) -> None:
 
 
 def build_levels(args: argparse.Namespace) -> list[ElasticLevel] | None:
-    """The hierarchy from ``--levels`` and ``--regularization`` (``None``: the default)."""
+    """The hierarchy from ``--levels``, ``--regularization`` and ``--paper`` (``None``: the
+    default)."""
+    # --paper is the published method: eq. (3) on every default level (paper_levels).
+    hierarchy = paper_levels() if args.paper else default_levels()
     if args.levels is None and args.regularization is None:
-        return None
-    resolutions = args.levels or [lev.resolution for lev in default_levels()]
-    weights = args.regularization or [default_levels()[0].regularization]
+        return hierarchy if args.paper else None
+    resolutions = args.levels or [lev.resolution for lev in hierarchy]
+    weights = args.regularization or [hierarchy[0].regularization]
     if len(weights) == 1:
         weights = weights * len(resolutions)
     if len(weights) != len(resolutions):
@@ -129,12 +139,13 @@ def build_levels(args: argparse.Namespace) -> list[ElasticLevel] | None:
     # The default hierarchy keeps its barycentre-term schedule; levels given on the command line
     # use the term at full weight (eq. 3 at every level, as published).
     if args.levels is None:
-        return [replace(lev, regularization=w) for lev, w in zip(default_levels(), weights)]
+        return [replace(lev, regularization=w) for lev, w in zip(hierarchy, weights)]
     return [ElasticLevel(r, w) for r, w in zip(resolutions, weights)]
 
 
 def estimation_method(args: argparse.Namespace) -> DistanceEstimation:
-    """The library's defaults (or ``--paper``'s plain least squares), with the given options."""
+    """The library's defaults (or ``--paper``'s plain least squares), with the given options
+    (``--paper``'s levels: :func:`build_levels`)."""
     changes = _estimation_changes(args)
     return DistanceEstimation.paper(**changes) if args.paper else DistanceEstimation(**changes)
 

@@ -363,9 +363,11 @@ class DistanceEstimation:
         """The paper's plain least squares: no robust loss, no rejection, every target component,
         one unit of weight per barycentre row (``barycentre_weighting='uniform'``).
 
-        Eq. (3) of Berar et al. (2005) (``symmetric=False``: eq. 2) exactly as published; the
-        setting of ``examples/paper_tables.py``, which reproduces Table 1. ``changes`` override
-        single fields, e.g. ``DistanceEstimation.paper(symmetric=False)``.
+        Eq. (3) of Berar et al. (2005) (``symmetric=False``: eq. 2) exactly as published on the
+        levels of :func:`paper_levels` (the default levels limit the barycentre term on the
+        finest one); the setting of ``examples/paper_tables.py``, which reproduces Table 1, and
+        of the command line's ``--paper``. ``changes`` override single fields, e.g.
+        ``DistanceEstimation.paper(symmetric=False)``.
         """
         fields: dict[str, Any] = {
             "loss": "linear",

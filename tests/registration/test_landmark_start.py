@@ -227,3 +227,21 @@ def test_regularization_alone_keeps_the_default_schedule():
     given = parser.parse_args(["register", "t.ply", "p.ply", "-o", "o.ply", "--levels", "2,4"])
     levels = settings_from_args(given).levels
     assert all(lev.symmetric_scale == 1.0 and lev.barycentre_reach is None for lev in levels)
+
+
+def test_paper_flag_is_the_published_method():
+    # --paper: the paper's plain least squares on eq. (3) at every level (paper_levels), as
+    # examples/paper_tables.py reproduces Tables 1-2; --regularization keeps that schedule.
+    from dataclasses import replace
+
+    from o3dreg import DistanceEstimation, paper_levels
+    from o3dreg.cli import build_parser
+    from o3dreg.cli._registration_options import settings_from_args
+
+    parser = build_parser()
+    base = ["register", "t.ply", "p.ply", "-o", "o.ply", "--paper"]
+    settings = settings_from_args(parser.parse_args(base))
+    assert settings.estimation_method == DistanceEstimation.paper()
+    assert list(settings.levels) == paper_levels()
+    weighted = settings_from_args(parser.parse_args([*base, "--regularization", "0.2"]))
+    assert list(weighted.levels) == [replace(lev, regularization=0.2) for lev in paper_levels()]
