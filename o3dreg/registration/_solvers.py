@@ -273,7 +273,7 @@ class _LevenbergMarquardtRun:
         its evaluation, the step and the determinant there; ``None`` (the stopping message set)
         when none does."""
         problem, criteria, ev = self.problem, self.criteria, self.ev
-        non_finite = 0
+        non_finite = folded = 0
         system = DampedSystem(A)
         while True:
             delta = system.solve_damped(self.mu * diag, -g)
@@ -303,6 +303,7 @@ class _LevenbergMarquardtRun:
                 trial_det = problem.min_determinant(self.u + delta)
                 if _folds_further(trial_det, self.det, self.threshold):
                     rho = -1.0
+                    folded += 1
                     self.folds_rejected += 1
             if rho > 0:
                 self.mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
@@ -312,6 +313,14 @@ class _LevenbergMarquardtRun:
                 break
         if non_finite:
             self._stop(f"non-finite step or cost ({non_finite} tries): stopped", False)
+        elif folded:
+            # Steps that lowered the cost were there; the guard refused them, and the damping
+            # they raised left none that does not fold further.
+            self._stop(
+                "the folding guard refused every step that lowered the cost (each would bring "
+                "det(dT/dx) below min_jacobian_determinant)",
+                True,
+            )
         elif self.mu > _MU_MAX:
             self._stop("no step decreases the cost (mu > 1e12)", True)
         else:

@@ -273,6 +273,10 @@ def test_folding_guard_keeps_the_map_one_to_one():
     assert guarded.min_jacobian_determinant > 0.04
     assert free.min_cell_jacobian_determinant < guarded.min_cell_jacobian_determinant
     assert guarded.flipped_triangles == 0
+    # A level the guard stopped says so (not that the model promised too little).
+    stopped = [lev.message for lev in guarded.levels if "folding guard refused" in lev.message]
+    assert stopped and all(lev.success for lev in guarded.levels)
+    assert not any("folding guard refused" in lev.message for lev in free.levels)
 
 
 def test_flipped_triangles_counts_reversed_normals():
