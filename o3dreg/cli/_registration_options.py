@@ -136,8 +136,8 @@ def build_levels(args: argparse.Namespace) -> list[ElasticLevel] | None:
         raise ValueError(
             f"--regularization must give 1 or {len(resolutions)} values, got {len(weights)}"
         )
-    # The default hierarchy keeps its barycentre-term schedule; levels given on the command line
-    # use the term at full weight (eq. 3 at every level, as published).
+    # The hierarchy (default, or --paper's) keeps its barycentre-term schedule; levels given on
+    # the command line use the term at full weight (eq. 3 at every level, as published).
     if args.levels is None:
         return [replace(lev, regularization=w) for lev, w in zip(hierarchy, weights)]
     return [ElasticLevel(r, w) for r, w in zip(resolutions, weights)]

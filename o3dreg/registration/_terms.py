@@ -469,10 +469,9 @@ class BarycentreTerm(PullTerm):
             points = self.target_points.take(search, axis=0)
             bound = self._nn_bound
             if not np.isfinite(bound) and points.shape[0] > 4 * FIRST_BOUND_SAMPLE:
-                # A first search: its radius as :meth:`_assignment` sets it, from a strided
-                # share of the points searched unbounded.
+                # A first search knows no distances yet: those of a strided share of its points.
                 share = points[:: points.shape[0] // FIRST_BOUND_SAMPLE]
-                bound = 2.0 * float(np.percentile(tree.query(share)[0], 99))
+                bound = _search_radius(tree.query(share)[0])
             self._keep(search, _nearest_two(tree, points, k, bound))
         return self._assignment(y)
 
@@ -529,10 +528,7 @@ class BarycentreTerm(PullTerm):
             col - np.ascontiguousarray(y[:, c]).take(nearest) for c, col in enumerate(self._columns)
         ]
         distance = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-        # The next search's radius only decides which points are searched twice (the answer is
-        # exact either way): a percentile of an even share of the distances serves.
-        sample = distance[:: max(1, distance.size // NN_BOUND_SAMPLE)]
-        self._nn_bound = 2.0 * float(np.percentile(sample, 99)) if distance.size else np.inf
+        self._nn_bound = _search_radius(distance[:: max(1, distance.size // NN_BOUND_SAMPLE)])
         return distance, nearest
 
     def targets(
@@ -615,6 +611,13 @@ NN_BOUND_SAMPLE = 4096
 
 #: Target points a level's first search estimates its radius from (it knows no distances yet).
 FIRST_BOUND_SAMPLE = 256
+
+
+def _search_radius(distances: np.ndarray) -> float:
+    """The radius a search of the barycentre term is bounded by, from an even share of the
+    distances to the nearest template point: twice their 99th percentile (``inf`` for none).
+    It only decides which points are searched twice (the answer is exact either way)."""
+    return 2.0 * float(np.percentile(distances, 99)) if distances.size else np.inf
 
 
 def _nearest_two(
