@@ -1,5 +1,6 @@
 """Triangle meshes, whatever the stage: components, cleaning, cropping, smoothing, decimation, and
-the shared kernels behind them (sorted edges, distinct values, canonical order, subsampling)."""
+the shared kernels behind them (sorted edges, distinct values, canonical order, subsampling,
+noise)."""
 
 from .cleaning import (
     Components,

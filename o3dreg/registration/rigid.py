@@ -16,6 +16,7 @@ import threading
 from collections.abc import Iterator
 from concurrent.futures import Executor, ThreadPoolExecutor
 from contextlib import contextmanager
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,7 @@ from .._geometry import apply_transformation, face_doubled_areas, rotation_angle
 from .._validation import as_mesh_arrays, as_transformation, check_positive
 from ..mesh.canonical import cluster_vertices
 from ..mesh.edges import SortedEdges
+from ..mesh.noise import noise_level
 from ..mesh.sampling import spatial_subsample
 from .distance import SurfaceDistanceQuery
 
@@ -102,6 +104,15 @@ SEARCH_THREADS = 4
 #: Two poses are distinct when the source vertices they place differ by more than this fraction
 #: of the target's bounding-box diagonal (RMS): about what ICP's basin of attraction spans.
 DISTINCT_POSE = 0.05
+#: On a noisy target, two poses are distinct only when the source vertices they place differ by
+#: more than DISTINCT_POSE plus this many times the target's noise (``noise_level``, RMS): every
+#: target point lies off the surface by about that much, so poses closer than that fit it alike.
+#: Measured on the bunny under isotropic noise of 2-4% of its diagonal per axis: ICP from
+#: different starts ends at poses 1-10 degrees apart, up to 0.9 noise levels beyond
+#: DISTINCT_POSE, scoring within 1-7% of each other; the half-turn that noise of 5% makes score
+#: within 3-11% of the right pose lies 5-7 noise levels beyond (and stays distinct). On a clean
+#: surface the noise is a fraction of a percent of the diagonal and changes nothing.
+DISTINCT_NOISE = 2.0
 
 
 def surface_moments(
@@ -272,7 +283,8 @@ class RigidRegistrationResult(reg.RegistrationResult):  # type: ignore[misc]
         source surface), on the whole target, in the input's units.
     runner_up_score : float or None
         The same for the best pose distinct from the winner (its source vertices more than
-        :data:`DISTINCT_POSE` of the target's diagonal away, RMS), after the same refinement when
+        :data:`DISTINCT_POSE` of the target's diagonal away, RMS, and on a noisy target more
+        than :data:`DISTINCT_NOISE` times its noise beyond), after the same refinement when
         it came within :data:`RUNNER_UP_REFINED` of the winner (otherwise its score from the
         search, the pose too far behind to come near the winner); lower than ``score`` when the
         input pose broke a near tie in its favour. ``None`` when there was none (a given
@@ -703,10 +715,19 @@ class _CandidateSearch:
         diagonal, whose ratio means nothing)."""
         return other < AMBIGUITY_RATIO * best + 1e-9 * self.diagonal
 
-    def _distinct(self, a: np.ndarray, b: np.ndarray) -> bool:
+    def _distinct(self, a: np.ndarray, b: np.ndarray, noise: bool = False) -> bool:
+        """Whether two poses place the source apart by more than ICP's basin
+        (:data:`DISTINCT_POSE`), and with ``noise`` by more than the target's noise blurs on top
+        (:data:`DISTINCT_NOISE`)."""
         pa, pb = apply_transformation(a, self.vs), apply_transformation(b, self.vs)
         rms = float(np.sqrt(((pa - pb) ** 2).sum(axis=1).mean()))
-        return rms > DISTINCT_POSE * self.diagonal
+        basin = DISTINCT_POSE * self.diagonal
+        return rms > basin and (not noise or rms > basin + DISTINCT_NOISE * self.noise)
+
+    @cached_property
+    def noise(self) -> float:
+        """The target's noise (:func:`~o3dreg.mesh.noise.noise_level`), measured on first use."""
+        return noise_level(self.query.vertices, self.query.faces)
 
     def run(
         self, candidates: list[tuple[str, np.ndarray]], method: Any, criteria: Any
@@ -728,14 +749,15 @@ class _CandidateSearch:
         """Search from every candidate, refine the best pose (and a close runner-up), then
         decide between them."""
         tried = self._preselect(candidates, pool)
-        best, runner = self._search(pool, tried, method, criteria)
-        finals = self._refine_finalists(pool, best, runner, method, criteria)
+        scored = self._search(pool, tried, method, criteria)
+        finals = self._refine_finalists(pool, scored[0], self._runner_up(scored), method, criteria)
+        finals = self._beyond_noise(finals, scored, method, criteria)
         return self._decide(finals, len(tried))
 
     def _search(
         self, pool: Executor, tried: list[tuple[str, np.ndarray]], method: Any, criteria: Any
-    ) -> tuple[tuple[float, str, Any], tuple[float, str, Any] | None]:
-        """A coarse ICP from every candidate pose; the best and the runner-up."""
+    ) -> list[tuple[float, str, Any]]:
+        """A coarse ICP from every candidate pose, scored; best first."""
         searches = [
             pool.submit(
                 self.icp,
@@ -756,17 +778,20 @@ class _CandidateSearch:
             logger.debug("rigid candidate %s: fitness %.3f, score %.4g", name, icp.fitness, score)
             scored.append((score, name, icp))
         order = sorted(range(len(scored)), key=lambda k: (scored[k][0], k))
-        best = scored[order[0]]
-        others = [scored[k] for k in order[1:] if self._distinct(_pose(best), _pose(scored[k]))]
-        # The runner-up is the best distinct pose. Where the winner is far from the input pose
-        # and several distinct poses tie with it (a shape with more than one symmetry: a box
-        # fits itself in four poses), it is the tied one nearest the input pose, so that the
-        # input pose can break the tie below.
+        return [scored[k] for k in order]
+
+    def _runner_up(self, scored: list[tuple[float, str, Any]]) -> tuple[float, str, Any] | None:
+        """The best searched pose distinct from the winner ``scored[0]``. Where the winner is
+        far from the input pose and several distinct poses tie with it (a shape with more than
+        one symmetry: a box fits itself in four poses), the tied one nearest the input pose, so
+        that the input pose can break the tie (:meth:`_decide`)."""
+        best = scored[0]
+        others = [o for o in scored[1:] if self._distinct(_pose(best), _pose(o))]
         runner = others[0] if others else None
         tied = [o for o in others if self._tie(best[0], o[0])]
         if tied and rotation_angle(_pose(best)) >= INPUT_POSE_FAR:
             runner = min(tied, key=lambda o: rotation_angle(_pose(o)))
-        return best, runner
+        return runner
 
     def _refine_finalists(
         self,
@@ -801,6 +826,29 @@ class _CandidateSearch:
         finals.sort(key=lambda f: f[0])
         return finals
 
+    def _beyond_noise(
+        self,
+        finals: list[tuple[float, str, Any]],
+        scored: list[tuple[float, str, Any]],
+        method: Any,
+        criteria: Any,
+    ) -> list[tuple[float, str, Any]]:
+        """The refined finalists, best first, with the runner-up replaced where the target's
+        noise blurs it into the winner (:data:`DISTINCT_NOISE`): by the best searched pose
+        distinct from the winner beyond the noise, refined where it could still tie (see
+        :data:`RUNNER_UP_REFINED`), or by none. Refining both near poses keeps the better start;
+        the ambiguity is judged against a pose that differs from it."""
+        if len(finals) < 2 or self._distinct(_pose(finals[0]), _pose(finals[1]), noise=True):
+            return finals
+        win = _pose(finals[0])
+        others = [o for o in scored if self._distinct(win, _pose(o), noise=True)]
+        if not others:
+            return finals[:1]
+        other = others[0]
+        if other[0] < RUNNER_UP_REFINED * finals[0][0]:
+            other = self._refined(other, self.refine(_pose(other), method, criteria))
+        return sorted([finals[0], other], key=lambda f: f[0])
+
     def _decide(
         self, finals: list[tuple[float, str, Any]], candidates: int
     ) -> RigidRegistrationResult:
@@ -811,7 +859,7 @@ class _CandidateSearch:
         runner_t: np.ndarray | None = None
         if len(finals) > 1:
             other = _pose(finals[1])
-            if self._distinct(_pose(finals[0]), other):
+            if self._distinct(_pose(finals[0]), other, noise=True):
                 runner_score, runner_t = finals[1][0], other
         warnings: list[str] = []
         near_tie = runner_score is not None and self._tie(win_score, runner_score)

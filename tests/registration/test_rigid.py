@@ -508,3 +508,52 @@ def test_a_scale_found_on_a_partial_target_is_flagged(bunny_template, bunny_targ
     part = registration_rigid(bunny_template, (v / 1000.0, cut), with_scaling=True)
     assert any("a partial scan?" in w for w in part.warnings)
     assert registration_rigid(bunny_template, (v, cut)).warnings == ()  # no scale: no flag
+
+
+def noisy(mesh, fraction, seed):
+    """``mesh`` with isotropic Gaussian noise of ``fraction`` of its diagonal per axis."""
+    v = np.asarray(mesh.vertices)
+    rng = np.random.default_rng(seed)
+    out = o3d.geometry.TriangleMesh(mesh)
+    out.vertices = o3d.utility.Vector3dVector(
+        v + rng.normal(scale=fraction * np.linalg.norm(np.ptp(v, axis=0)), size=v.shape)
+    )
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_poses_the_noise_blurs_together_are_no_ambiguity(bunny_template, bunny_target, seed):
+    from o3dreg.mesh.noise import noise_level
+    from o3dreg.registration.rigid import DISTINCT_NOISE, DISTINCT_POSE
+
+    # Under noise of 3% of the diagonal per axis, ICP from different starts ends at poses a
+    # few degrees apart that fit the fuzz alike (scores within 10%): the pose is blurred, not
+    # ambiguous. The runner-up reported is a pose farther than the noise blurs.
+    target = noisy(bunny_target, 0.03, seed)
+    result = registration_rigid(bunny_template, target)
+    assert not result.ambiguous and result.warnings == ()
+    t = np.asarray(result.transformation)
+    pts = np.asarray(bunny_template.vertices)
+    diagonal = np.linalg.norm(np.ptp(np.asarray(bunny_target.vertices), axis=0))
+    # The identity is the truth: the winner lies within ICP's basin of it (the noise blurs
+    # the pose itself by 3-4% of the diagonal here).
+    off = np.linalg.norm(pts @ t[:3, :3].T + t[:3, 3] - pts, axis=1).mean()
+    assert off < DISTINCT_POSE * diagonal
+    if result.runner_up_transformation is not None:
+        r = result.runner_up_transformation
+        apart = np.sqrt(
+            ((pts @ (t[:3, :3] - r[:3, :3]).T + t[:3, 3] - r[:3, 3]) ** 2).sum(1).mean()
+        )
+        noise = noise_level(np.asarray(target.vertices), np.asarray(target.triangles))
+        assert apart > DISTINCT_POSE * diagonal + DISTINCT_NOISE * noise
+
+
+def test_a_noisy_cube_turned_far_from_the_input_pose_stays_ambiguous():
+    # The cube's 24 poses are 90 degrees apart, far beyond what noise of 1% of the diagonal
+    # blurs together: the tie is still reported.
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("zx", [45.0, 30.0], degrees=True).as_matrix()
+    target = noisy(moved(synthetic_form("cube", 3000), turn), 0.01, 0)
+    result = registration_rigid(synthetic_form("cube", 600), target)
+    assert result.ambiguous
+    assert any("ambiguous" in w for w in result.warnings)
