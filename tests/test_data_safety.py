@@ -721,7 +721,7 @@ def test_interrupts_during_a_registration_never_kill_by_signal(tmp_path):
     # SIGINT ignored, which Python and so the CLI then keep ignored, as a background job should.
     code = (
         "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-        "from o3dreg.cli import main; sys.exit(main(sys.argv[1:]))"
+        "from o3dreg.cli import console; console()"
     )
     expected = {signal.SIGINT: (130, "interrupted"), signal.SIGTERM: (143, "terminated")}
     outcomes = []

@@ -13,7 +13,7 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NoReturn
 
 from .. import __version__
@@ -110,9 +110,28 @@ def _on_sigterm(signum: int, frame: Any) -> None:
     raise Terminated
 
 
+def _exit_with(status: int) -> Callable[[int, Any], None]:
+    """A handler for a signal that arrives once the command is done (its files written or
+    removed) and the process is ending: the documented exit ``status``, where the default
+    action would end it by the signal."""
+
+    def handler(signum: int, frame: Any) -> None:
+        try:
+            sys.stdout.flush()
+            sys.stderr.flush()
+        finally:
+            os._exit(status)
+
+    return handler
+
+
 @contextlib.contextmanager
-def _signals_and_streams() -> Iterator[None]:
+def _signals_and_streams(ending: bool = False) -> Iterator[None]:
     """SIGTERM handled like SIGINT; native (Open3D, RPly) output on fd 1 sent to stderr.
+
+    Afterwards the previous SIGTERM handler is back, or where that was the default (the signal
+    ends the process), one that ends it with status 143; with ``ending`` (the process ends
+    with the command) SIGINT and SIGTERM both end it with 130 and 143 from then on.
 
     Python's ``sys.stdout`` keeps the real standard output, so ``--json`` stays valid JSON
     whatever the C++ libraries print. Nothing is redirected when ``sys.stdout`` is not fd 1
@@ -136,7 +155,10 @@ def _signals_and_streams() -> Iterator[None]:
         yield
     finally:
         if main_thread:
-            signal.signal(signal.SIGTERM, previous)
+            if ending:
+                signal.signal(signal.SIGINT, _exit_with(EXIT_INTERRUPTED))
+            default = ending or previous in (signal.SIG_DFL, None)
+            signal.signal(signal.SIGTERM, _exit_with(EXIT_TERMINATED) if default else previous)
         if real:
             try:
                 sys.stdout.flush()
@@ -170,7 +192,27 @@ def _with_flags(message: str, parser: argparse.ArgumentParser, args: argparse.Na
 EXIT_OK, EXIT_INCOMPLETE, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def console() -> NoReturn:
+    """The ``o3dreg`` command (and ``python -m o3dreg``): :func:`main` on ``sys.argv``, then the
+    process ends with its status. A SIGINT or SIGTERM that arrives once the command is done,
+    while the interpreter shuts down, ends it with the documented 130 or 143 rather than by the
+    signal. The process ends right after the command, without the interpreter's shutdown: that
+    first gives the signals their default actions back, then frees the libraries' objects for
+    tens of milliseconds, during which a signal would end it by the signal. Every file of the
+    command is closed by then; the logs and standard streams are flushed here."""
+    status = main(ending=True)
+    try:
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+    except (OSError, ValueError):  # a closed or broken pipe: nothing more to say
+        pass
+    os._exit(status)
+
+
+def main(argv: Sequence[str] | None = None, *, ending: bool = False) -> int:
+    """Run one command line (``argv``; default ``sys.argv[1:]``) and return its exit status
+    (``ending``: the process ends with it, see :func:`console`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     level = (
@@ -184,7 +226,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     command = f"o3dreg {args.command}"
     try:
-        with _signals_and_streams():
+        with _signals_and_streams(ending):
             return int(args.func(args))
     except BrokenPipeError:  # e.g. piped into `head`: not an error of ours
         sys.stderr.close()
@@ -210,4 +252,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    console()
