@@ -153,6 +153,9 @@ class LevelProblem:
         ``nearest_known(sample)``: the nearest of ``points + previous`` of every point of a
         target sample and its distance, where the previous level's search state has them
         (``None`` otherwise).
+    template_mesh : callable, optional
+        ``template_mesh()``: every template vertex moved by the coarser levels, and the
+        template's faces, for the terms that measure the template's surface.
     """
 
     def __init__(
@@ -179,6 +182,7 @@ class LevelProblem:
         prior: Any = None,
         start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
         nearest_known: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None] | None = None,
+        template_mesh: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
     ) -> None:
         self.lattice = lattice
         self.loss = loss or L2Loss()
@@ -216,6 +220,7 @@ class LevelProblem:
             barycentre_reach,
             nearest_known,
             float(lattice.cell_size.min()),
+            template_mesh,
         )
         bound = (term.bind(offered) for term in terms)
         self.distance_terms: list[DistanceTermAtLevel] = [t for t in bound if t is not None]

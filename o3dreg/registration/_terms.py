@@ -38,6 +38,7 @@ from ._assembly import NormalAssembly, symmetric_outer
 from ._robust import CorrespondenceMask, robust_scale
 from ._threads import in_halves
 from .checkers import CheckerContext, CorrespondenceChecker, bound_masks
+from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
 
 if TYPE_CHECKING:
@@ -366,6 +367,8 @@ class BarycentreTerm(PullTerm):
         stands_for: int | None = None,
         within: float = np.inf,
         scale_distances: np.ndarray | None = None,
+        template_mesh: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
+        cell_size: float = np.inf,
     ) -> None:
         super().__init__(assembly)
         self.target_points = target_points
@@ -383,6 +386,11 @@ class BarycentreTerm(PullTerm):
         self.within = within
         # The distances the robust scale is measured on, where not those of ``target_points``.
         self.scale_distances = scale_distances
+        # The moved template surface at the level start, to find the target points it covers
+        # far from every template point (:meth:`_find_covered`), and the level's cell.
+        self.template_mesh = template_mesh
+        self.cell_size = cell_size
+        self.covered: np.ndarray | None = None
         # The robust scale of the distances e_j, the loss and the masks measured in it (set by
         # :meth:`start`), and the level start's assignment when the scale measured it.
         self.sigma = 1.0
@@ -412,6 +420,8 @@ class BarycentreTerm(PullTerm):
             e = e.copy()
             e[lost], _ = cKDTree(base[keep]).query(self.target_points[lost])
         self.loss = robust.loss
+        if self.covered is not None and not self.covered.all():
+            e = e[~self.covered]
         if self.scale_distances is not None:
             # Measured on all the sample (mostly covered): a target point far beyond every
             # other, debris rather than a part left short, is discounted by the loss.
@@ -422,16 +432,20 @@ class BarycentreTerm(PullTerm):
 
     @property
     def masks_own(self) -> bool:
-        return self.beyond is not None
+        return self.beyond is not None or self.template_mesh is not None
 
     def own_mask(self, found: Any) -> np.ndarray | None:
-        """1 for the target points farther from their nearest template point than ``beyond``
-        there (the parts of the target the template does not reach) and no farther than
-        ``within``, 0 elsewhere."""
-        if self.beyond is None:
-            return None
+        """0 for the target points the template surface covers far from every template point
+        (:meth:`_find_covered`); with ``beyond``, also for those no farther from their nearest
+        template point than ``beyond`` there (the parts of the target the template reaches) or
+        farther than ``within``; 1 elsewhere."""
         e, nearest = found
-        return ((e > self.beyond.take(nearest)) & (e <= self.within)).astype(np.float64)
+        keep = None
+        if self.beyond is not None:
+            keep = (e > self.beyond.take(nearest)) & (e <= self.within)
+        if self.covered is not None and self.covered.any():
+            keep = ~self.covered if keep is None else keep & ~self.covered
+        return None if keep is None else keep.astype(np.float64)
 
     def correspond(self, y: np.ndarray, at_start: bool = False) -> tuple[np.ndarray, np.ndarray]:
         if at_start and self._start is not None:
@@ -473,7 +487,33 @@ class BarycentreTerm(PullTerm):
                 share = points[:: points.shape[0] // FIRST_BOUND_SAMPLE]
                 bound = _search_radius(tree.query(share)[0])
             self._keep(search, _nearest_two(tree, points, k, bound))
-        return self._assignment(y)
+        found = self._assignment(y)
+        if self.covered is None and self.template_mesh is not None:
+            self.covered = self._find_covered(*found)
+        return found
+
+    def _find_covered(self, e: np.ndarray, nearest: np.ndarray) -> np.ndarray:
+        """The target points the template surface covers far from every template point: nearer
+        to the surface than to their nearest template point by more than
+        :data:`COVERED_SHARE` of a cell, measured once, at the level start (``e``: those
+        distances there).
+
+        The term stands for the target -> template distance by the distance to the nearest
+        template point. On a template with triangles far larger than its spacing elsewhere (the
+        long slivers a quadric decimation leaves on a straight shaft) a target point over such a
+        triangle is on the template's surface, yet far from every vertex; left in, it would
+        pull the few vertices around the triangle along the surface with the weight of all the
+        target it covers. The search is bounded by the same margin: no nearer point can be
+        left out.
+        """
+        margin = COVERED_SHARE * self.cell_size
+        covered = np.zeros(e.shape[0], dtype=bool)
+        far = np.flatnonzero(e > margin)
+        if far.size and self.template_mesh is not None:
+            surface = SurfaceDistanceQuery(*self.template_mesh())
+            gap = e.take(far) - surface.distance(self.target_points.take(far, axis=0))
+            covered[far[gap > margin]] = True
+        return covered
 
     def _plan(self, y: np.ndarray) -> np.ndarray | None:
         """Move the search state to ``y``; the target points to search again (indices), or
@@ -572,6 +612,13 @@ class BarycentreTerm(PullTerm):
     def pulls(self, g: Geometry, w: Weights, state: TermState) -> tuple[np.ndarray, np.ndarray]:
         """The barycentres and row scales of the assignment ``state.found``."""
         return self.targets(g.moved.shape[0], state.found[1], state.weights, w.support)
+
+
+#: A target point is covered by the template surface far from every template point (and left
+#: out of the barycentre term) when it is nearer to that surface than to its nearest template
+#: point by more than this share of the level's cell: on an evenly sampled template the two
+#: differ by less than half its spacing, a fraction of any cell the template's detail fits.
+COVERED_SHARE = 0.2
 
 
 #: The neighbour whose distance is a template point's ring radius: on a triangulated surface a

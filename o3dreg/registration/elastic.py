@@ -471,6 +471,7 @@ class _Hierarchy:
             nearest_known=None
             if ended is None
             else lambda sample: ended.nearest_on(sample, use, moved[use]),
+            template_mesh=lambda: (moved, self.faces),
         )
         return problem, use
 

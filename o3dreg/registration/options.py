@@ -236,6 +236,14 @@ class DistanceEstimation:
         assumes that density ratio: on targets as coarse as the template it moves vertices that
         are already in place, and it weakens the spreading of the paper's cone -> sphere case
         (figures in docs/registration.md).
+    barycentre_skip_covered : bool
+        ``True`` (default): target vertices that lie on the template's surface far from every
+        template vertex (over a triangle much larger than the template's spacing elsewhere, such
+        as the long slivers a quadric decimation leaves on a straight shaft) do not pull, as
+        they are on the template already; measured once per level (see
+        :attr:`~o3dreg.Barycentre.skip_covered`). On an evenly sampled template nothing is left
+        out. ``False``: every target vertex pulls its nearest template vertex (the paper's term;
+        :meth:`paper`).
     barycentre_weighting : {'count', 'uniform'}
         Weight of template vertex ``i``'s barycentre row. ``'count'`` (default): the number of
         target vertices whose nearest template vertex it is, relative to the mean (``n_i N /
@@ -315,6 +323,7 @@ class DistanceEstimation:
     min_target_component: float | None = 0.01
     # Only in a batch's resume key when set: keys made before the field existed stay valid.
     more_terms: tuple[DistanceTerm, ...] = field(default=(), metadata={"keyed_when_set": True})
+    barycentre_skip_covered: bool = field(default=True, metadata={"keyed_when_set": True})
 
     def __post_init__(self) -> None:
         if not isinstance(self.symmetric, bool):
@@ -324,6 +333,11 @@ class DistanceEstimation:
             raise TypeError(
                 "`barycentre_correction` must be a bool, "
                 f"got {type(self.barycentre_correction).__name__}"
+            )
+        if not isinstance(self.barycentre_skip_covered, bool):
+            raise TypeError(
+                "`barycentre_skip_covered` must be a bool, "
+                f"got {type(self.barycentre_skip_covered).__name__}"
             )
         if self.barycentre_weighting not in BARYCENTRE_WEIGHTINGS:
             raise ValueError(
@@ -361,7 +375,8 @@ class DistanceEstimation:
     @classmethod
     def paper(cls, **changes: Any) -> DistanceEstimation:
         """The paper's plain least squares: no robust loss, no rejection, every target component,
-        one unit of weight per barycentre row (``barycentre_weighting='uniform'``).
+        one unit of weight per barycentre row (``barycentre_weighting='uniform'``), every target
+        vertex pulling (``barycentre_skip_covered=False``).
 
         Eq. (3) of Berar et al. (2005) (``symmetric=False``: eq. 2) exactly as published on the
         levels of :func:`paper_levels` (the default levels limit the barycentre term on the
@@ -375,6 +390,7 @@ class DistanceEstimation:
             "max_normal_angle": None,
             "min_target_component": None,
             "barycentre_weighting": "uniform",
+            "barycentre_skip_covered": False,
         }
         fields.update(changes)
         return cls(**fields)
@@ -409,6 +425,7 @@ class DistanceEstimation:
             self.barycentre_correction,
             self.target_points_per_source_point,
             self.barycentre_weighting,
+            self.barycentre_skip_covered,
         )
         return (PointToSurface(), barycentre, *self.more_terms)
 
@@ -476,6 +493,7 @@ class DistanceEstimation:
             barycentre_correction=barycentre.correction,
             target_points_per_source_point=barycentre.target_points_per_source_point,
             barycentre_weighting=barycentre.weighting,
+            barycentre_skip_covered=barycentre.skip_covered,
             loss=loss.name,
             loss_scale=loss.scale,
             max_distance_factor=None if distance is None else distance.factor,  # type: ignore[attr-defined]
@@ -496,6 +514,8 @@ class DistanceEstimation:
         extra += f", max_normal_angle={'None' if angle is None else format(angle, 'g')}"
         part = self.min_target_component
         extra += f", min_target_component={'None' if part is None else format(part, 'g')}"
+        if not self.barycentre_skip_covered:
+            extra += ", barycentre_skip_covered=False"
         if self.more_terms:
             extra += f", more_terms={self.more_terms!r}"
         return (

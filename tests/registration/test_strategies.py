@@ -95,7 +95,7 @@ def test_the_flags_and_the_strategies_are_one_estimation():
     assert DistanceEstimation().checkers == (BoundaryChecker(), NormalAngleChecker(90.0))
     paper = DistanceEstimation.paper()
     assert paper == DistanceEstimation.compose(
-        terms=[PointToSurface(), Barycentre(weighting="uniform")],
+        terms=[PointToSurface(), Barycentre(weighting="uniform", skip_covered=False)],
         loss=L2Loss(),
         checkers=[],
         min_target_component=None,
