@@ -151,8 +151,8 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     if args.landmarks and args.no_rigid:
         raise ValueError("--landmarks and --no-rigid: choose one start")
-    levels = settings.levels or default_levels()
     source = read_triangle_mesh(args.source, name="SOURCE")
+    levels = settings.levels or default_levels(source)
     target = read_triangle_mesh(args.target, name="TARGET")
     emit(
         f"source {args.source}: {len(source.vertices)} vertices; "

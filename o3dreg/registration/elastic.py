@@ -95,9 +95,9 @@ def lattice_box(
     return centre - full / 2.0, np.full(3, full)
 
 
-def _check_levels(levels: Any) -> list[ElasticLevel]:
+def _check_levels(levels: Any, source: np.ndarray) -> list[ElasticLevel]:
     if levels is None:
-        return default_levels()
+        return default_levels(source)
     if isinstance(levels, ElasticLevel):
         levels = [levels]
     if not isinstance(levels, (list, tuple)) or not levels:
@@ -180,8 +180,9 @@ def registration_elastic(
         The rigid (or similarity) transformation of the source. Default ``None``: computed by
         :func:`~o3dreg.registration_rigid` (moment-based guess refined by ICP).
     levels : list of ElasticLevel, optional
-        The hierarchy, coarse to fine, at most 16 levels. Default :func:`~o3dreg.default_levels`
-        (2, 4, 8, 16 cells per axis).
+        The hierarchy, coarse to fine, at most 16 levels. Default
+        :func:`~o3dreg.default_levels` of the source (2, 4, 8, 16 cells per axis, and 32 for an
+        elongated source).
     estimation_method : DistanceEstimation, optional
         What is minimised. Default ``DistanceEstimation()``: the symmetric distance with the
         robust settings for real scans (partial targets, debris);
@@ -241,7 +242,7 @@ def registration_elastic(
     vs, fs = as_mesh_arrays(source, "source")
     check_referenced(vs, fs, "source")
     target_arrays = as_mesh_arrays(target, "target", drop_degenerate=True)
-    levels_ = _check_levels(levels)
+    levels_ = _check_levels(levels, vs)
     estimation_method = _check_estimation(estimation_method)
     surface = TargetSurface.from_mesh(*target_arrays, estimation_method.min_target_component)
     vt, ft = surface.mesh

@@ -5,7 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from .._validation import check_positive, check_probability
+import numpy as np
+
+from .._validation import as_points, check_positive, check_probability
 from .checkers import BoundaryChecker, CorrespondenceChecker, DistanceChecker, NormalAngleChecker
 from .losses import RobustLoss, loss_named
 from .terms import BARYCENTRE_WEIGHTINGS, Barycentre, DistanceTerm, PointToSurface
@@ -545,8 +547,34 @@ DEFAULT_SYMMETRIC_SCALES = (1.0, 1.0, 0.3, 0.3)
 DEFAULT_BARYCENTRE_REACH = (None, None, None, 1.0)
 
 
-def default_levels() -> list[ElasticLevel]:
-    """The default hierarchy: 2, 4, 8 and 16 cells per axis, the barycentre term on coarse levels.
+#: An elongated template gets a fifth, 32-cell level when its second principal extent spans fewer
+#: than this many cells of the 16-cell level (the lattice is a cube on the longest extent, so a
+#: long bone's cross-section gets few cells: a 450 mm femur's 80 mm condyles 2.4 of them). The
+#: bunny's 3k template spans 9.6, the development mandibles' 12.4-13.2, the paper's forms 13.
+ELONGATED_CELLS_ACROSS = 4.0
+
+
+def cells_across(template: Any, resolution: int, padding: float = 0.1) -> float:
+    """How many cells of a ``resolution``-cell lattice the template's second principal extent
+    spans: the lattice is a cube on the largest extent, grown by ``padding`` of it on each side
+    (as :func:`~o3dreg.registration_elastic` lays it, up to the target's own extent).
+
+    ``template`` is a triangle mesh or its ``(n, 3)`` vertices.
+    """
+    vertices = as_points(template, "template")
+    if vertices.shape[0] < 2:
+        return float("inf")
+    centred = vertices - vertices.mean(axis=0)
+    axes = np.linalg.eigh(centred.T @ centred)[1]
+    extents = np.sort(np.ptp(centred @ axes, axis=0))[::-1]
+    if extents[0] <= 0.0:
+        return float("inf")
+    return float(resolution * extents[1] / ((1.0 + 2.0 * padding) * extents[0]))
+
+
+def default_levels(template: Any = None) -> list[ElasticLevel]:
+    """The default hierarchy: 2, 4, 8 and 16 cells per axis, the barycentre term on coarse levels,
+    and for an elongated ``template`` a fifth level of 32 cells.
 
     Bending energy with weight 0.1 on every level; the barycentre term at full weight on the two
     coarse levels, 0.3 at 8 cells, and 0.3 at 16 cells limited to the target the template does
@@ -566,11 +594,21 @@ def default_levels() -> list[ElasticLevel]:
     levels left short), so a target the template covers gets no barycentre rows there (figures
     in docs/registration.md).
     :func:`paper_levels` is eq. (3) at every level, the published method.
+
+    The lattice is a cube on the template's longest extent, so across a long bone (a femur, an
+    ulna) the 16-cell level has only a few cells. Given the ``template`` (a mesh or its
+    ``(n, 3)`` vertices; :func:`~o3dreg.registration_elastic` passes its source), a template
+    whose second principal extent spans fewer than :data:`ELONGATED_CELLS_ACROSS` cells of the
+    16-cell level (:func:`cells_across`) gets a fifth level of 32 cells, set like the 16-cell
+    one (figures in docs/registration.md). Without a template: the four levels.
     """
-    return [
+    levels = [
         ElasticLevel(resolution=r, symmetric_scale=s, barycentre_reach=reach)
         for r, s, reach in zip((2, 4, 8, 16), DEFAULT_SYMMETRIC_SCALES, DEFAULT_BARYCENTRE_REACH)
     ]
+    if template is not None and cells_across(template, 16) < ELONGATED_CELLS_ACROSS:
+        levels.append(replace(levels[-1], resolution=32))
+    return levels
 
 
 def paper_levels() -> list[ElasticLevel]:
