@@ -113,6 +113,11 @@ DISTINCT_POSE = 0.05
 #: within 3-11% of the right pose lies 5-7 noise levels beyond (and stays distinct). On a clean
 #: surface the noise is a fraction of a percent of the diagonal and changes nothing.
 DISTINCT_NOISE = 2.0
+#: Noise lifts every pose's score (the symmetric distance) by about half the noise level (0.45-0.75
+#: of it measured on the bunny under noise of 0.2-5% of its diagonal): a target's noise is taken
+#: to be at most this many times the winner's score, so a pose farther than that noise would blur
+#: is distinct without measuring it (the half-turns of a clean target: no cost).
+NOISE_PER_SCORE = 4.0
 
 
 def surface_moments(
@@ -715,14 +720,19 @@ class _CandidateSearch:
         diagonal, whose ratio means nothing)."""
         return other < AMBIGUITY_RATIO * best + 1e-9 * self.diagonal
 
-    def _distinct(self, a: np.ndarray, b: np.ndarray, noise: bool = False) -> bool:
+    def _distinct(self, a: np.ndarray, b: np.ndarray, score: float | None = None) -> bool:
         """Whether two poses place the source apart by more than ICP's basin
-        (:data:`DISTINCT_POSE`), and with ``noise`` by more than the target's noise blurs on top
-        (:data:`DISTINCT_NOISE`)."""
+        (:data:`DISTINCT_POSE`), and with the winner's ``score`` by more than the target's noise
+        blurs on top (:data:`DISTINCT_NOISE`; the noise is measured only where a pose lies
+        within what a noise of :data:`NOISE_PER_SCORE` times ``score`` would blur)."""
         pa, pb = apply_transformation(a, self.vs), apply_transformation(b, self.vs)
         rms = float(np.sqrt(((pa - pb) ** 2).sum(axis=1).mean()))
         basin = DISTINCT_POSE * self.diagonal
-        return rms > basin and (not noise or rms > basin + DISTINCT_NOISE * self.noise)
+        if rms <= basin or score is None:
+            return rms > basin
+        if rms > basin + DISTINCT_NOISE * NOISE_PER_SCORE * score:
+            return True
+        return rms > basin + DISTINCT_NOISE * self.noise
 
     @cached_property
     def noise(self) -> float:
@@ -838,10 +848,11 @@ class _CandidateSearch:
         distinct from the winner beyond the noise, refined where it could still tie (see
         :data:`RUNNER_UP_REFINED`), or by none. Refining both near poses keeps the better start;
         the ambiguity is judged against a pose that differs from it."""
-        if len(finals) < 2 or self._distinct(_pose(finals[0]), _pose(finals[1]), noise=True):
+        best = finals[0][0]
+        if len(finals) < 2 or self._distinct(_pose(finals[0]), _pose(finals[1]), best):
             return finals
         win = _pose(finals[0])
-        others = [o for o in scored if self._distinct(win, _pose(o), noise=True)]
+        others = [o for o in scored if self._distinct(win, _pose(o), best)]
         if not others:
             return finals[:1]
         other = others[0]
@@ -859,7 +870,7 @@ class _CandidateSearch:
         runner_t: np.ndarray | None = None
         if len(finals) > 1:
             other = _pose(finals[1])
-            if self._distinct(_pose(finals[0]), other, noise=True):
+            if self._distinct(_pose(finals[0]), other, finals[0][0]):
                 runner_score, runner_t = finals[1][0], other
         warnings: list[str] = []
         near_tie = runner_score is not None and self._tie(win_score, runner_score)
