@@ -489,10 +489,10 @@ class BarycentreTerm(PullTerm):
             self._keep(search, _nearest_two(tree, points, k, bound))
         found = self._assignment(y)
         if self.covered is None and self.template_mesh is not None:
-            self.covered = self._find_covered(*found)
+            self.covered = self._find_covered(found[0])
         return found
 
-    def _find_covered(self, e: np.ndarray, nearest: np.ndarray) -> np.ndarray:
+    def _find_covered(self, e: np.ndarray) -> np.ndarray:
         """The target points the template surface covers far from every template point: nearer
         to the surface than to their nearest template point by more than
         :data:`COVERED_SHARE` of a cell, measured once, at the level start (``e``: those
@@ -503,8 +503,8 @@ class BarycentreTerm(PullTerm):
         long slivers a quadric decimation leaves on a straight shaft) a target point over such a
         triangle is on the template's surface, yet far from every vertex; left in, it would
         pull the few vertices around the triangle along the surface with the weight of all the
-        target it covers. The search is bounded by the same margin: no nearer point can be
-        left out.
+        target it covers. Only the points farther than the margin from their nearest template
+        point are measured: a nearer one cannot be nearer to the surface by more than that.
         """
         margin = COVERED_SHARE * self.cell_size
         covered = np.zeros(e.shape[0], dtype=bool)

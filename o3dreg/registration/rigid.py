@@ -856,7 +856,7 @@ class _CandidateSearch:
         if not others:
             return finals[:1]
         other = others[0]
-        if other[0] < RUNNER_UP_REFINED * finals[0][0]:
+        if other[0] < RUNNER_UP_REFINED * best:
             other = self._refined(other, self.refine(_pose(other), method, criteria))
         return sorted([finals[0], other], key=lambda f: f[0])
 
