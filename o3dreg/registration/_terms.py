@@ -495,8 +495,8 @@ class BarycentreTerm(PullTerm):
     def _find_covered(self, e: np.ndarray) -> np.ndarray:
         """The target points the template surface covers far from every template point: nearer
         to the surface than to their nearest template point by more than
-        :data:`COVERED_SHARE` of a cell, measured once, at the level start (``e``: those
-        distances there).
+        :data:`COVERED_SHARE` of a cell and at most :data:`COVERED_RATIO` times as far from it,
+        measured once, at the level start (``e``: those distances there).
 
         The term stands for the target -> template distance by the distance to the nearest
         template point. On a template with triangles far larger than its spacing elsewhere (the
@@ -511,8 +511,9 @@ class BarycentreTerm(PullTerm):
         far = np.flatnonzero(e > margin)
         if far.size and self.template_mesh is not None:
             surface = SurfaceDistanceQuery(*self.template_mesh())
-            gap = e.take(far) - surface.distance(self.target_points.take(far, axis=0))
-            covered[far[gap > margin]] = True
+            ef = e.take(far)
+            d = surface.distance(self.target_points.take(far, axis=0))
+            covered[far[(ef - d > margin) & (d < COVERED_RATIO * ef)]] = True
         return covered
 
     def _plan(self, y: np.ndarray) -> np.ndarray | None:
@@ -616,9 +617,13 @@ class BarycentreTerm(PullTerm):
 
 #: A target point is covered by the template surface far from every template point (and left
 #: out of the barycentre term) when it is nearer to that surface than to its nearest template
-#: point by more than this share of the level's cell: on an evenly sampled template the two
-#: differ by less than half its spacing, a fraction of any cell the template's detail fits.
+#: point by more than COVERED_SHARE of the level's cell (on an evenly sampled template the two
+#: differ by less than half its spacing, a fraction of any cell the template's detail fits) and
+#: at most COVERED_RATIO times as far from the surface as from that point. A point the template
+#: has not reached (the paper's cone spreading over a sphere leaves parts of it 5-10 mm away)
+#: is about as far from both, and keeps pulling.
 COVERED_SHARE = 0.2
+COVERED_RATIO = 0.5
 
 
 #: The neighbour whose distance is a template point's ring radius: on a triangulated surface a

@@ -138,8 +138,9 @@ class Barycentre(DistanceTerm):
         vertex.
     skip_covered : bool
         ``True`` (default): a target vertex nearer to the moved template's surface than to its
-        nearest template vertex by more than a fifth of the level's cell (measured once, at the
-        level start) does not pull at that level. It lies over a template triangle far larger
+        nearest template vertex by more than a fifth of the level's cell, and at most half as
+        far from the surface as from that vertex (measured once, at the level start), does not
+        pull at that level. It lies over a template triangle far larger
         than the template's spacing elsewhere (a quadric decimation leaves such slivers on a
         straight shaft); as its nearest vertex stands for the whole triangle, it would pull that
         vertex along the surface with the weight of all the target the triangle covers (a long
