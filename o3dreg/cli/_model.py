@@ -206,7 +206,7 @@ def run_build(args: argparse.Namespace) -> int:
             force=args.force,
             overwrite=args.overwrite,
             progress=not args.json and sys.stderr.isatty(),
-            settings=settings_from_args(args),
+            settings=settings_from_args(args, template),
             landmarks=args.landmarks,
             keep_flagged=args.keep_flagged,
             scaling=args.scaling,

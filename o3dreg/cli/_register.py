@@ -148,10 +148,11 @@ def run(args: argparse.Namespace) -> int:
             "--html": (".html", ".htm"),
         },
     )
-    settings = settings_from_args(args)
+    settings_from_args(args)  # the options checked before any file is read
     if args.landmarks and args.no_rigid:
         raise ValueError("--landmarks and --no-rigid: choose one start")
     source = read_triangle_mesh(args.source, name="SOURCE")
+    settings = settings_from_args(args, source)
     levels = settings.levels or default_levels(source)
     target = read_triangle_mesh(args.target, name="TARGET")
     emit(

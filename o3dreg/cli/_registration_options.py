@@ -39,7 +39,8 @@ def add_registration_options(parser: argparse.ArgumentParser) -> None:
         "--levels",
         type=int_list,
         default=None,
-        help="cells per axis of each level, coarse to fine (default 2,4,8,16)",
+        help="cells per axis of each level, coarse to fine (default 2,4,8,16; 2,4,8,16,32 for an "
+        "elongated template)",
     )
     reg.add_argument(
         "--regularization",
@@ -121,11 +122,11 @@ def add_registration_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def build_levels(args: argparse.Namespace) -> list[ElasticLevel] | None:
+def build_levels(args: argparse.Namespace, template: Any = None) -> list[ElasticLevel] | None:
     """The hierarchy from ``--levels``, ``--regularization`` and ``--paper`` (``None``: the
-    default)."""
+    default; ``--regularization`` alone reweights the default levels of ``template``)."""
     # --paper is the published method: eq. (3) on every default level (paper_levels).
-    hierarchy = paper_levels() if args.paper else default_levels()
+    hierarchy = paper_levels() if args.paper else default_levels(template)
     if args.levels is None and args.regularization is None:
         return hierarchy if args.paper else None
     resolutions = args.levels or [lev.resolution for lev in hierarchy]
@@ -167,18 +168,20 @@ def _estimation_changes(args: argparse.Namespace) -> dict[str, Any]:
     return changes
 
 
-def settings_from_args(args: argparse.Namespace) -> RegistrationSettings:
+def settings_from_args(args: argparse.Namespace, template: Any = None) -> RegistrationSettings:
     """One :class:`RegistrationSettings` from the options of :func:`add_registration_options`.
 
     Options not given leave the library's defaults in place (``estimation_method=None`` when
-    no distance option and no ``--paper`` is given).
+    no distance option and no ``--paper`` is given); ``template``: the mesh the default levels
+    are chosen for where ``--regularization`` reweights them
+    (:func:`~o3dreg.default_levels`).
     """
     given = args.paper or bool(_estimation_changes(args))
     estimation = estimation_method(args) if given else None
     criteria = None
     if args.max_iteration is not None:
         criteria = ElasticCriteria(max_iteration=args.max_iteration)
-    levels = build_levels(args)
+    levels = build_levels(args, template)
     start = "identity" if args.no_rigid else "similarity" if args.with_scaling else "rigid"
     return RegistrationSettings(
         levels=None if levels is None else tuple(levels),

@@ -245,3 +245,26 @@ def test_paper_flag_is_the_published_method():
     assert list(settings.levels) == paper_levels()
     weighted = settings_from_args(parser.parse_args([*base, "--regularization", "0.2"]))
     assert list(weighted.levels) == [replace(lev, regularization=0.2) for lev in paper_levels()]
+
+
+def test_regularization_alone_reweights_the_templates_default_levels():
+    # --regularization without --levels keeps the default hierarchy of the template at hand:
+    # five levels for an elongated one (400 x 40 x 40 mm: 1.3 cells across at 16), four else.
+    from dataclasses import replace
+
+    from o3dreg import default_levels
+    from o3dreg.cli import build_parser
+    from o3dreg.cli._registration_options import settings_from_args
+
+    corners = np.array([[x, y, z] for x in (0, 400) for y in (0, 40) for z in (0, 40)], float)
+    args = build_parser().parse_args(
+        ["register", "t.ply", "p.ply", "-o", "o.ply", "--regularization", "0.05"]
+    )
+    long = settings_from_args(args, corners)
+    assert [lev.resolution for lev in long.levels] == [2, 4, 8, 16, 32]
+    assert list(long.levels) == [
+        replace(lev, regularization=0.05) for lev in default_levels(corners)
+    ]
+    compact = settings_from_args(args, corners * [0.1, 1.0, 1.0])
+    assert [lev.resolution for lev in compact.levels] == [2, 4, 8, 16]
+    assert settings_from_args(args).levels == compact.levels  # no template: the four levels
