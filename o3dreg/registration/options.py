@@ -601,6 +601,23 @@ def default_levels(template: Any = None) -> list[ElasticLevel]:
     whose second principal extent spans fewer than :data:`ELONGATED_CELLS_ACROSS` cells of the
     16-cell level (:func:`cells_across`) gets a fifth level of 32 cells, set like the 16-cell
     one (figures in docs/registration.md). Without a template: the four levels.
+
+    Parameters
+    ----------
+    template : open3d.geometry.TriangleMesh or (n, 3) array_like, optional
+        The template the levels are for (only its extents matter).
+
+    Returns
+    -------
+    list of ElasticLevel
+
+    Examples
+    --------
+    >>> [lev.resolution for lev in default_levels()]
+    [2, 4, 8, 16]
+    >>> shaft = [[x, y, z] for x in (0.0, 400.0) for y in (0.0, 40.0) for z in (0.0, 40.0)]
+    >>> [lev.resolution for lev in default_levels(shaft)]
+    [2, 4, 8, 16, 32]
     """
     levels = [
         ElasticLevel(resolution=r, symmetric_scale=s, barycentre_reach=reach)
