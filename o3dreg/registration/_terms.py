@@ -420,7 +420,7 @@ class BarycentreTerm(PullTerm):
             e = e.copy()
             e[lost], _ = cKDTree(base[keep]).query(self.target_points[lost])
         self.loss = robust.loss
-        if self.covered is not None and not self.covered.all():
+        if self.covered is not None and self.covered.any() and not self.covered.all():
             e = e[~self.covered]
         if self.scale_distances is not None:
             # Measured on all the sample (mostly covered): a target point far beyond every

@@ -182,7 +182,7 @@ class Barycentre(DistanceTerm):
             offsets = context.voronoi_offsets()
         sample = context.target_sample(self.target_points_per_source_point)
         # Target points over the template's large triangles are left out (see skip_covered).
-        over = context.template_mesh if self.skip_covered else None
+        template_mesh = context.template_mesh if self.skip_covered else None
         if context.barycentre_reach is None:
             return BarycentreTerm(
                 context.assembly,
@@ -190,7 +190,7 @@ class Barycentre(DistanceTerm):
                 weight,
                 offsets,
                 counted=self.weighting == "count",
-                template_mesh=over,
+                template_mesh=template_mesh,
                 cell_size=context.cell_size,
             )
         # Only the target points the template does not reach pull; those nowhere near the
@@ -213,6 +213,6 @@ class Barycentre(DistanceTerm):
             # island filter kept does not pull.
             within=context.cell_size,
             scale_distances=distances,
-            template_mesh=over,
+            template_mesh=template_mesh,
             cell_size=context.cell_size,
         )
