@@ -22,7 +22,8 @@ a template is that surface decimated to ``--template-vertices``.
 * **Prediction** (the paper's goal): for every template and every held-out patient, a shape model
   of the other 6 patients' semilandmark meshes (the transfer's registrations),
   :func:`~o3dreg.predict_landmarks` of the template's annotations (with their depth) on the
-  held-out patient, read on the fitted instance moved onto the patient surface (the default) and
+  held-out patient, read on the fitted instance registered onto the patient surface (the
+  default), on it with every vertex moved to its closest patient point (``onto='closest'``) and
   on the instance itself; the same fit read with the landmarks snapped onto the surface, and with the
   landmarks averaged from the annotations of the template and the model's 6 patients
   (``TemplateLandmarks.from_annotated_shapes``); with a rigid model (size kept, the paper) and a
@@ -370,11 +371,12 @@ def main() -> int:
         f"({len(chosen) * (len(ids) - 1)} predictions), mm"
     )
     print(
-        f"{'model':<12}{'landmarks':<15}{'read on':<9}{'mean':>7}"
+        f"{'model':<12}{'landmarks':<15}{'read on':<11}{'mean':>7}"
         + "".join(f"{lab:>8}" for lab in LABELS)
         + f"{'max':>7}{'system.':>9}{'random':>8}"
     )
     for scaling in (False, True):
+        statuses = []
         rows: dict[tuple[str, str], list[np.ndarray]] = {}
         for tid in chosen:
             template = data[tid]["template"]
@@ -386,12 +388,20 @@ def main() -> int:
                     [shapes[tid, p] for p in train], template[1], scaling=scaling
                 )
                 pred = predict_landmarks(model, attached, data[held]["surface"])
+                closest = predict_landmarks(model, attached, data[held]["surface"], onto="closest")
+                statuses.append(pred.status)
                 truth = data[held]["landmarks"]
                 # The landmarks from the annotations of all the model's patients and the template.
                 annotated = consensus_landmarks(data, tid, shapes, train)
-                # Read on the instance moved onto the patient (predict_landmarks' default) and
-                # on the instance itself (on_target=False): the same fit.
-                for where, mesh in (("patient", pred.vertices), ("instance", pred.fit.vertices)):
+                # Read on the instance registered onto the patient (predict_landmarks' default),
+                # its vertices moved to their closest patient points (onto='closest') and the
+                # instance itself (on_target=False): the same fit.
+                readings = (
+                    ("registered", pred.vertices),
+                    ("closest", closest.vertices),
+                    ("instance", pred.fit.vertices),
+                )
+                for where, mesh in readings:
                     for name, landmarks in (
                         ("template", attached),
                         ("snapped", attached.on_surface()),
@@ -399,12 +409,14 @@ def main() -> int:
                     ):
                         found = landmarks.positions(mesh) - truth
                         rows.setdefault((name, where), []).append(found)
+        counts = ", ".join(f"{s} {statuses.count(s)}" for s in sorted(set(statuses)))
+        print(f"{'similarity' if scaling else 'rigid'} predictions' verdicts: {counts}")
         for (name, where), found in rows.items():
             v = np.array(found).reshape(len(chosen), len(ids) - 1, len(LABELS), 3)
             e = np.linalg.norm(v, axis=-1)
             systematic, random = decompose(v)
             print(
-                f"{'similarity' if scaling else 'rigid':<12}{name:<15}{where:<9}{e.mean():>7.2f}"
+                f"{'similarity' if scaling else 'rigid':<12}{name:<15}{where:<11}{e.mean():>7.2f}"
                 + "".join(f"{x:>8.2f}" for x in e.mean(axis=(0, 1)))
                 + f"{e.max():>7.2f}{systematic:>9.2f}{random:>8.2f}"
             )
@@ -413,8 +425,9 @@ def main() -> int:
         "scaling=True (size removed, fitted with a scale); landmarks: the template's annotations "
         "with their depth, the same snapped onto the surface, the mean of the template's and the "
         "6 model patients' annotations (TemplateLandmarks.from_annotated_shapes); read on: the "
-        "fitted instance moved onto the patient surface (predict_landmarks' default) or the "
-        "instance itself (on_target=False)"
+        "fitted instance registered onto the patient surface (predict_landmarks' default), its "
+        "vertices moved to their closest patient points (onto='closest') or the instance itself "
+        "(on_target=False)"
     )
     return 0
 

@@ -278,7 +278,17 @@ def write_report(
         lines.append(
             f"| {label} | {p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f} | {t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f} | {e:.2f} |"
         )
-    lines += ["", f"Mean error {errors.mean():.2f} mm.", ""]
+    judged = "the model's fit" + (
+        " and the registration of its instance onto the patient's surface"
+        if prediction.registration is not None
+        else ""
+    )
+    lines += [
+        "",
+        f"Mean error {errors.mean():.2f} mm; verdict {prediction.status} ({judged}).",
+        *[f"- {w}" for w in prediction.warnings],
+        "",
+    ]
     text = "\n".join(lines)
     path = out / "report.md"
     atomic_write_text(path, text, overwrite=True)

@@ -20,6 +20,7 @@ from ..io import json_text
 from ..io.landmark_files import LANDMARK_SUFFIXES
 from ..io.mesh import read_triangle_mesh
 from ..shape.landmark_transfer import (
+    PREDICTION_ONTO,
     landmark_errors,
     load_template_landmarks,
     predict_landmarks,
@@ -60,11 +61,17 @@ exit status: 0 every patient registered with verdict 'ok'; 1 a patient failed or
 (the model is built from the others), or fewer than 2 'ok' patients; 2 bad input."""
 
 
-FIT_EPILOG = """verdict: the fit is judged 'ok', 'suspect' or 'failed' against the model's own
+FIT_EPILOG = """reading: the landmarks are read on the fitted instance brought onto the patient's
+surface, by an elastic registration of the instance from where the fit left it (default,
+--onto registration: the default levels from 8 cells on) or by moving each of its vertices to
+its closest patient point (--onto closest).
+
+verdict: the fit is judged 'ok', 'suspect' or 'failed' against the model's own
 population: its distance to the patient against the model's leave-one-out residuals, the
 Mahalanobis distance of its coefficients, the patient's size against the training shapes'
 (models built without --scaling), and whether the patient's mirror image fits clearly better
-(left and right swapped).
+(left and right swapped); with --onto registration, the registration's verdict as well (the
+worse of the two is reported).
 
 exit status: 0 verdict 'ok'; 1 'suspect' or 'failed' (outputs written, the reasons printed);
 2 bad input.
@@ -165,6 +172,12 @@ def add_parser(subparsers: Any) -> None:
     add_overwrite_option(fit, "an existing --output")
     fit.add_argument("--modes", type=positive_int, default=None, help="modes used (default all)")
     fit.add_argument("--regularization", type=float, default=None, help="noise variance (mm^2)")
+    fit.add_argument(
+        "--onto",
+        choices=PREDICTION_ONTO,
+        default="registration",
+        help="how the fitted instance is brought onto the patient surface (default registration)",
+    )
     add_json_option(fit)
     fit.set_defaults(func=run_fit)
     _add_explore(sub)
@@ -366,6 +379,7 @@ def run_fit(args: argparse.Namespace) -> int:
         model,
         landmarks,
         patient,
+        onto=args.onto,
         number_of_modes=args.modes,
         regularization=args.regularization,
     )
@@ -397,13 +411,29 @@ def run_fit(args: argparse.Namespace) -> int:
                 "warnings": list(fit.warnings),
                 "mahalanobis_distance": fit.mahalanobis_distance,
             },
+            "onto": args.onto,
+            "registration": None,
+            "status": prediction.status,
+            "warnings": list(prediction.warnings),
         }
+        registration = prediction.registration
+        if registration is not None:
+            d = registration.distances
+            out["registration"] = {
+                "status": registration.status,
+                "warnings": list(registration.warnings),
+                "source_to_target_mean": d.source_to_target_mean,
+                "target_to_source_mean": d.target_to_source_mean,
+                "seconds": sum(level.seconds for level in registration.levels),
+            }
         if errors is not None:
             out["errors"] = dict(zip(prediction.labels, errors.tolist()))
             out["mean_error"] = float(errors.mean())
         print(json_text.dumps(out, indent=2))
     else:
         lines = [str(fit)]
+        if prediction.registration is not None:
+            lines.append(f"registered onto the patient: {prediction.registration.distances}")
         lines.append(
             f"{'landmark':<16}{'x':>10}{'y':>10}{'z':>10}"
             + (f"{'error':>10}" if errors is not None else "")
@@ -413,16 +443,18 @@ def run_fit(args: argparse.Namespace) -> int:
             lines.append(f"{label:<16}{p[0]:>10.2f}{p[1]:>10.2f}{p[2]:>10.2f}{err}")
         if errors is not None:
             lines.append(f"mean error {errors.mean():.3g} mm")
-        lines.append(f"verdict: {fit.status}" + ("" if fit.warnings else " (nothing looked wrong)"))
-        lines += [f"  - {w}" for w in fit.warnings]
+        status, warnings = prediction.status, prediction.warnings
+        lines.append(f"verdict: {status}" + ("" if warnings else " (nothing looked wrong)"))
+        lines += [f"  - {w}" for w in warnings]
         emit("\n".join(lines), args)
-    if fit.status != "ok" and (args.quiet or args.json):
+    if prediction.status != "ok" and (args.quiet or args.json):
         print(
-            f"o3dreg model fit: verdict {fit.status}: " + "; ".join(fit.warnings),
+            f"o3dreg model fit: verdict {prediction.status}: " + "; ".join(prediction.warnings),
             file=sys.stderr,
         )
-    # The exit status follows the verdict (a fit that did not converge is 'suspect').
-    return 0 if fit.status == "ok" else 1
+    # The exit status follows the verdict of the fit and of the registration onto the patient
+    # (a fit that did not converge is 'suspect').
+    return 0 if prediction.status == "ok" else 1
 
 
 def _vector3(text: str) -> list[float]:

@@ -13,6 +13,7 @@ from _helpers import population
 
 from o3dreg import write_landmarks, write_triangle_mesh
 from o3dreg.cli import main
+from o3dreg.registration.verdict import STATUSES, worst_status
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -87,6 +88,23 @@ def test_build_model_info_modes_fit(files, capsys):
     # A 4-mode model of 5 registered shapes: errors of a few mm at most on a 30 mm shape.
     assert result["mean_error"] < 3.0
     assert (files / "pred.csv").is_file()
+    # Read through a registration of the instance onto the patient (the default), whose verdict
+    # joins the fit's: the exit status follows the worse.
+    assert result["onto"] == "registration" and result["registration"]["status"] in STATUSES
+    assert result["status"] == worst_status(
+        result["fit"]["status"], result["registration"]["status"]
+    )
+    assert code == (0 if result["status"] == "ok" else 1)
+    code = main(
+        [
+            "model", "fit", str(out), str(files / "p5.ply"), "--landmarks",
+            str(files / "lm.mrk.json"), "--truth", str(files / "truth.csv"), "--onto", "closest",
+            "--json",
+        ]
+    )  # fmt: skip
+    closest = json.loads(capsys.readouterr().out)
+    assert closest["registration"] is None and closest["status"] == closest["fit"]["status"]
+    assert closest["mean_error"] < 3.0
     # Every landmark format its help lists is written (.fcsv and .pp were refused).
     for suffix in (".fcsv", ".pp"):
         code = main(
