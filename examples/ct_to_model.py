@@ -46,4 +46,5 @@ landmarks = o3dreg.TemplateLandmarks.from_vertices(template, [tip], labels=["ver
 prediction = o3dreg.predict_landmarks(model, landmarks, new.mesh)
 truth = new.truth(landmarks.positions(np.asarray(template.vertices)))
 print("predicted", prediction.positions[0].round(1), "truth", truth[0].round(1))
-print(f"error {o3dreg.landmark_errors(prediction.positions, truth)[0]:.2f} mm; results in {output}")
+error = o3dreg.landmark_errors(prediction.positions, truth)[0]
+print(f"error {error:.2f} mm (verdict {prediction.status}); results in {output}")
