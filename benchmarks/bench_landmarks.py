@@ -18,7 +18,8 @@ a template is that surface decimated to ``--template-vertices``.
   of the 6 patients outside the pair, read back onto the template through the method's own
   registrations onto them (``TemplateLandmarks.from_annotated_shapes``); the patient's own
   annotation is never used. It averages out the template annotator's placement, most of the
-  systematic part.
+  systematic part. Averaging over templates the other way: each patient's landmarks estimated
+  as the mean of what the templates carry there (per patient, with every template chosen).
 * **Prediction** (the paper's goal): for every template and every held-out patient, a shape model
   of the other 6 patients' semilandmark meshes (the transfer's registrations),
   :func:`~o3dreg.predict_landmarks` of the template's annotations (with their depth) on the
@@ -345,6 +346,29 @@ def main() -> int:
         if "o3dreg consensus" in means:
             ratio = means["o3dreg consensus"] / means["nricp_amberg consensus"]
             print(f"the same with consensus landmarks: {ratio:.2f}")
+    if len(chosen) > 1:
+        # Averaging over templates: each patient's landmarks estimated as the mean of what every
+        # chosen template other than the patient carries there (each template annotator's
+        # placement averages out; the patient annotator's stays).
+        print(
+            f"mean of the templates' transfers, per patient ({len(ids)} patients; each the mean "
+            "of the estimates of the chosen templates other than the patient):"
+        )
+        for m in [m for m in methods if m in ("o3dreg", "nricp_amberg")]:
+            per_patient = []
+            for pid in ids:
+                found = [
+                    vectors[m][a, [p for p in ids if p != tid].index(pid)]
+                    for a, tid in enumerate(chosen)
+                    if tid != pid
+                ]
+                per_patient.append(np.mean(found, axis=0))
+            err = np.linalg.norm(np.array(per_patient), axis=-1)
+            print(
+                f"{m:<{width}}{err.mean():>7.2f}"
+                + "".join(f"{e:>8.2f}" for e in err.mean(axis=0))
+                + f"{err.max():>7.2f}"
+            )
     if args.inverse_consistent:
         # No annotation of the patient's in it: how far the two maps disagree on one point.
         gap = np.linalg.norm(vectors["o3dreg"] - vectors["o3dreg backward"], axis=-1)
