@@ -37,7 +37,9 @@ class ModelFit:
         The fitted instance ``T(M + A alpha)`` in patient coordinates.
     faces : (m, 3) ndarray
     mean_distance : float
-        Mean distance from the fitted vertices to the patient surface.
+        Mean distance from the fitted vertices to the patient surface, over the vertices with
+        data (on a partial surface, those whose closest point is not beyond its open boundary;
+        all of them on a closed one).
     iterations : int
     success : bool
         Whether the relative change of the fit fell below the tolerance. Says nothing about
@@ -91,9 +93,13 @@ def fit_shape_model(
 ) -> ModelFit:
     """Fit pose and shape coefficients of ``model`` to a patient surface (iterated closest points).
 
-    Each iteration: (1) closest points ``y_i`` on the patient surface to the current instance;
-    and, as in the symmetric distance of eq. (3), closest points of the instance surface to
-    samples of the patient surface; (2) pose by weighted Procrustes of all these pairs; (3)
+    Each iteration: (1) closest points ``y_i`` on the patient surface to the current instance
+    (on a partial surface, an instance vertex whose closest point lies beyond the open boundary
+    is left out: the part of the bone the patient's surface lacks is inferred by the model, not
+    pulled onto the rim; the registration's rule: its closest point on an open edge, its
+    offset along the surface over a tenth of the mean edge); and, as in the
+    symmetric distance of eq. (3), closest points of the instance surface to samples of the
+    patient surface; (2) pose by weighted Procrustes of all these pairs; (3)
     coefficients minimising ``|S (M + A alpha) - T^-1 y|^2 + regularization * sum_j alpha_j^2 /
     variance_j`` (``S`` selects vertices and barycentric surface points; Tikhonov with
     1/variance: with ``S = I`` this is ``alpha_j = variance_j / (variance_j + regularization)
@@ -234,17 +240,19 @@ def _fit_model(
     stride = max(1, vt.shape[0] // (4 * n))
     samples = vt[::stride]
     for iterations in range(1, max_iteration + 1):  # noqa: B007
-        # Forward: instance vertices -> closest target points.
-        _, _, closest = query.closest(current)
+        # Forward: instance vertices -> closest target points, but for those beyond the open
+        # boundary of a partial target (a part the patient's surface lacks), which would be
+        # pulled onto its rim.
+        _, near, closest = query.closest(current)
+        kept = ~query.beyond_boundary(current, near, closest)
         # Backward: target samples -> closest points of the instance surface (barycentric).
         _, face, on_instance = SurfaceDistanceQuery(current, faces).closest(samples)
         weights = barycentric(current[faces[face]], on_instance)
         instance = _instance(model, a)
         src = np.vstack([instance, np.einsum("jc,jcd->jd", weights, instance[faces[face]])])
         dst = np.vstack([closest, samples])
-        wts = np.concatenate(
-            [np.full(n, 1.0 / n), np.full(samples.shape[0], 1.0 / samples.shape[0])]
-        )
+        forward = kept / max(int(kept.sum()), 1)
+        wts = np.concatenate([forward, np.full(samples.shape[0], 1.0 / samples.shape[0])])
         pose = fit_transformation(src, dst, model.scaling, wts)
         inverse = np.linalg.inv(pose)
         y = apply_transformation(inverse, dst)
@@ -271,7 +279,8 @@ def _fit_model(
         if change < tolerance:
             success = True
             break
-    dist = query.distance(current)
+    dist, near, closest = query.closest(current)
+    kept = ~query.beyond_boundary(current, near, closest)
     message = (
         f"converged in {iterations} iterations (relative change {change:.3g})"
         if success
@@ -282,7 +291,7 @@ def _fit_model(
         transformation=pose,
         vertices=current,
         faces=np.array(model.faces),
-        mean_distance=float(dist.mean()),
+        mean_distance=float(dist[kept].mean()) if kept.any() else float(dist.mean()),
         iterations=iterations,
         success=success,
         message=message,

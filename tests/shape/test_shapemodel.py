@@ -215,6 +215,32 @@ def test_fit_recovers_pose_and_shape(pop):
         fit_shape_model("model", target)
 
 
+@pytest.mark.parametrize("cut", [0.2, 0.4])
+def test_fit_to_a_partial_patient_infers_the_missing_part(pop, cut):
+    # The patient's surface without its top ``cut`` of its height (a field of view that misses
+    # part of the bone): its rim is an open boundary. Instance vertices beyond it are left out
+    # of the forward correspondences, so the model infers the missing part from the rest.
+    # Pulled onto the rim instead they bent the fit: 2.5 / 9.7 mm from the truth, the mean
+    # distance 3.3 / 4.1 mm and the verdict 'failed' (measured).
+    (_tv, tf), targets, truths, _, poses = pop
+    model = build_shape_model(truths[:9], tf)
+    v, f = targets[9]
+    top = v[:, 2].max() - cut * np.ptp(v[:, 2])
+    partial = (v, f[(v[f][:, :, 2] < top).all(axis=1)])
+    fit = fit_shape_model(model, partial)
+    truth = truths[9] @ poses[9][:3, :3].T + poses[9][:3, 3]
+    err = np.linalg.norm(fit.vertices - truth, axis=1)
+    missing = truth[:, 2] > top
+    assert missing.sum() > 0.05 * len(truth)
+    # 0.6 mm: the whole patient's fit is 0.17 mm from the truth; with a fifth or two fifths of
+    # the surface gone, fewer correspondences fix the modes (0.27 / 0.40 mm measured), and the
+    # missing part is as close as the rest (0.31 / 0.41 mm).
+    assert err.mean() < 0.6 and err[missing].mean() < 0.6, (err.mean(), err[missing].mean())
+    # The mean distance is over the vertices with data, as on a whole patient (0.11 mm).
+    assert fit.mean_distance < 0.3
+    assert fit.status == "ok", fit.warnings
+
+
 def test_registered_population_recovers_variance_ratios_and_modes(pop, tmp_path):
     (tv, tf), targets, truths, _, poses = pop
     # Start each registration from the true rigid pose (per-patient ``init``): Open3D's ICP
