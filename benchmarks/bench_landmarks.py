@@ -28,7 +28,9 @@ a template is that surface decimated to ``--template-vertices``.
   on the instance itself; the same fit read with the landmarks snapped onto the surface, and with the
   landmarks averaged from the annotations of the template and the model's 6 patients
   (``TemplateLandmarks.from_annotated_shapes``); with a rigid model (size kept, the paper) and a
-  similarity model (``build_shape_model(scaling=True)``).
+  similarity model (``build_shape_model(scaling=True)``). With ``--cut f`` the held-out
+  patient's surface loses its top ``f`` of its height (z) first: a partial patient, whose
+  missing part (both condyles for ``f = 0.2``) the model infers.
 * **Decomposition** of o3dreg's transfer error (``--decompose``): along the CT slice axis z and
   in the slice plane; along the patient surface's normal at the annotation and tangential to
   it; the difference of the two annotations' depths below the surface; the error the voxel
@@ -52,6 +54,7 @@ a template is that surface decimated to ``--template-vertices``.
     python benchmarks/bench_landmarks.py --skip-peer --barycentre-weighting uniform
     python benchmarks/bench_landmarks.py --skip-peer --skip-prediction --decompose
     python benchmarks/bench_landmarks.py --skip-peer --skip-prediction --inverse-consistent
+    python benchmarks/bench_landmarks.py --skip-peer --cut 0.2     # predict on partial patients
 
 Prints the figures and the ratios against the peer measured in the same run; skips with a message
 where the data are absent. Nothing derived from the masks is written.
@@ -113,6 +116,15 @@ def amberg(template: tuple, rigid: np.ndarray, surface: tuple) -> np.ndarray:
     source = trimesh.Trimesh((sv - centre) / scale, template[1], process=False)
     target = trimesh.Trimesh((surface[0] - centre) / scale, surface[1], process=False)
     return np.asarray(treg.nricp_amberg(source, target)) * scale + centre
+
+
+def without_top(surface: tuple, fraction: float) -> tuple:
+    """The surface without its triangles above ``1 - fraction`` of its height (z)."""
+    if fraction <= 0:
+        return surface
+    v, f = surface
+    top = v[:, 2].max() - fraction * np.ptp(v[:, 2])
+    return v, f[(v[f][:, :, 2] < top).all(axis=1)]
 
 
 def consensus_landmarks(
@@ -222,6 +234,13 @@ def main() -> int:
         "--barycentre-weighting",
         choices=["count", "uniform"],
         help="o3dreg's DistanceEstimation.barycentre_weighting (default: the library default)",
+    )
+    parser.add_argument(
+        "--cut",
+        type=float,
+        default=0.0,
+        help="predict on the held-out patient's surface without its top CUT of its height "
+        "(z; 0.2 removes both condyles): a partial patient (see above)",
     )
     parser.add_argument(
         "--inverse-consistent",
@@ -393,6 +412,7 @@ def main() -> int:
     print(
         f"\nprediction: model of 6 patients' semilandmark meshes, predict_landmarks on the 7th "
         f"({len(chosen) * (len(ids) - 1)} predictions), mm"
+        + (f"; the 7th without the top {args.cut:.0%} of its height" if args.cut > 0 else "")
     )
     print(
         f"{'model':<12}{'landmarks':<15}{'read on':<11}{'mean':>7}"
@@ -411,8 +431,9 @@ def main() -> int:
                 model = build_shape_model(
                     [shapes[tid, p] for p in train], template[1], scaling=scaling
                 )
-                pred = predict_landmarks(model, attached, data[held]["surface"])
-                closest = predict_landmarks(model, attached, data[held]["surface"], onto="closest")
+                patient = without_top(data[held]["surface"], args.cut)
+                pred = predict_landmarks(model, attached, patient)
+                closest = predict_landmarks(model, attached, patient, onto="closest")
                 statuses.append(pred.status)
                 truth = data[held]["landmarks"]
                 # The landmarks from the annotations of all the model's patients and the template.
