@@ -14,7 +14,8 @@ against the model's own population, each threshold derived from the model:
   the chi-squared distribution of ``k`` degrees of freedom the model assumes, and against the
   largest leave-one-out distance of its training shapes;
 * **size**: the patient's surface size against the sizes of the training shapes (models built
-  without ``scaling`` only: a ``scaling`` model holds no sizes);
+  without ``scaling`` only: a ``scaling`` model holds no sizes); a partial patient (a surface
+  with an open boundary) against the same part of them, the triangles it covers;
 * **reflection**: the patient's mirror image, fitted the same way, fits clearly better (the
   best alignment has determinant ``< 0``: left and right swapped); and the patient's triangles
   face away from the model's at most fitted points.
@@ -57,6 +58,10 @@ MAHALANOBIS_FAILED_P = 1e-9
 #: differently from the training shapes changes its size by a few percent).
 SIZE_SUSPECT_SD, SIZE_SUSPECT_MIN = 3.0, 0.10
 SIZE_FAILED_SD, SIZE_FAILED_MIN = 6.0, 0.25
+#: A partial patient's size is compared with the training shapes' over the triangles it
+#: covers; covering fewer than this fraction of them, it is not compared (too small a part to
+#: say anything about scale).
+SIZE_MIN_COVERED = 0.25
 #: The mirror image fits with a symmetric mean distance below this fraction of the patient's:
 #: the patient is a reflection of the model's anatomy. A bilaterally symmetric bone fits
 #: itself and its mirror image alike (ratio near 1); a mirrored patient's own fit leaves
@@ -82,14 +87,29 @@ def surface_size(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.sqrt(max(second.sum() / total, 0.0)))
 
 
-def population_sizes(model: ShapeModel) -> np.ndarray:
-    """:func:`surface_size` of each training shape ``M + A alpha_i`` (``(s,)``)."""
+def population_sizes(model: ShapeModel, faces: np.ndarray | None = None) -> np.ndarray:
+    """:func:`surface_size` of each training shape ``M + A alpha_i`` (``(s,)``), over ``faces``
+    (some of the model's triangles; default all)."""
+    faces = model.faces if faces is None else faces
     return np.array(
         [
-            surface_size(model.mean + np.tensordot(a, model.modes, axes=1), model.faces)
+            surface_size(model.mean + np.tensordot(a, model.modes, axes=1), faces)
             for a in model.scores
         ]
     )
+
+
+def _covered_faces(model: ShapeModel, fit: Any, surface: SurfaceDistanceQuery) -> np.ndarray:
+    """The model's triangles the patient's surface covers: on a partial surface (an open
+    boundary), those whose three fitted vertices have their closest point inside the boundary;
+    all of them on a closed surface."""
+    faces = np.asarray(model.faces)
+    if not surface.has_boundary:
+        return faces
+    vertices = np.asarray(fit.vertices)
+    _, face, closest = surface.closest(vertices)
+    kept = ~surface.beyond_boundary(vertices, face, closest)
+    return faces[kept[faces].all(axis=1)]
 
 
 def population_residuals(model: ShapeModel, number_of_modes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -197,9 +217,16 @@ def assess_model_fit(model: ShapeModel, fit: Any, target: Any, *, mirrored: Any 
                 )
                 break
 
-    # Size outside the population's (a model without scaling keeps the training sizes).
+    # Size outside the population's (a model without scaling keeps the training sizes). A
+    # partial patient is compared with the same part of the training shapes: the triangles it
+    # covers.
+    covered = None
     if not model.scaling and model.scores.shape[0] >= 3:
-        sizes = population_sizes(model)
+        covered = _covered_faces(model, fit, SurfaceDistanceQuery(vt, ft))
+    if covered is not None and covered.shape[0] >= SIZE_MIN_COVERED * model.faces.shape[0]:
+        sizes = population_sizes(model, covered)
+        share = covered.shape[0] / max(model.faces.shape[0], 1)
+        part = "" if share >= 1.0 else f"; over the {share:.0%} of the model's triangles it covers"
         logs = np.log(sizes[sizes > 0])
         patient = surface_size(vt, ft)
         if logs.size >= 3 and patient > 0:
@@ -216,8 +243,8 @@ def assess_model_fit(model: ShapeModel, fit: Any, target: Any, *, mirrored: Any 
                             f"the patient's size ({patient:.3g}, RMS radius of its surface) is "
                             f"{np.exp(np.log(patient) - centre):.3g} times the training shapes' "
                             f"median ({np.exp(centre):.3g}; they range over "
-                            f"{sizes.min():.3g}-{sizes.max():.3g}): another scale or other "
-                            "units than the model's population",
+                            f"{sizes.min():.3g}-{sizes.max():.3g}{part}): another scale or "
+                            "other units than the model's population",
                         )
                     )
                     break
