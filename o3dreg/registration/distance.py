@@ -254,6 +254,14 @@ class SurfaceDistanceQuery:
             beyond[near] = self._beyond(points[near], face[near], closest[near])
         return beyond
 
+    def closest_with_data(
+        self, points: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`closest`, and whether each point has data: its closest point is not beyond
+        the open boundary (:meth:`beyond_boundary`; every point of a closed surface has)."""
+        dist, face, closest = self.closest(points)
+        return dist, face, closest, ~self.beyond_boundary(points, face, closest)
+
     @cached_property
     def _touches_boundary(self) -> np.ndarray:
         """Per triangle: whether an edge or a corner of it lies on the open boundary."""

@@ -243,8 +243,7 @@ def _fit_model(
         # Forward: instance vertices -> closest target points, but for those beyond the open
         # boundary of a partial target (a part the patient's surface lacks), which would be
         # pulled onto its rim.
-        _, near, closest = query.closest(current)
-        kept = ~query.beyond_boundary(current, near, closest)
+        _, _, closest, kept = query.closest_with_data(current)
         # Backward: target samples -> closest points of the instance surface (barycentric).
         _, face, on_instance = SurfaceDistanceQuery(current, faces).closest(samples)
         weights = barycentric(current[faces[face]], on_instance)
@@ -279,8 +278,7 @@ def _fit_model(
         if change < tolerance:
             success = True
             break
-    dist, near, closest = query.closest(current)
-    kept = ~query.beyond_boundary(current, near, closest)
+    dist, _, _, kept = query.closest_with_data(current)
     message = (
         f"converged in {iterations} iterations (relative change {change:.3g})"
         if success

@@ -106,9 +106,7 @@ def _covered_faces(model: ShapeModel, fit: Any, surface: SurfaceDistanceQuery) -
     faces = np.asarray(model.faces)
     if not surface.has_boundary:
         return faces
-    vertices = np.asarray(fit.vertices)
-    _, face, closest = surface.closest(vertices)
-    kept = ~surface.beyond_boundary(vertices, face, closest)
+    kept = surface.closest_with_data(np.asarray(fit.vertices))[3]
     return faces[kept[faces].all(axis=1)]
 
 

@@ -62,9 +62,16 @@ def test_boundary_detection_on_a_square():
     np.testing.assert_array_equal(
         q.beyond_boundary(pts, face, closest), [False, True, False, True, True]
     )
+    # closest_with_data: the same closest points, and data where not beyond.
+    dist, face2, closest2, with_data = q.closest_with_data(pts)
+    np.testing.assert_array_equal(face2, face)
+    np.testing.assert_array_equal(closest2, closest)
+    np.testing.assert_allclose(dist[0], 0.3)
+    np.testing.assert_array_equal(with_data, [True, False, True, False, False])
     assert q.has_boundary
-    closed = synthetic_form("sphere", 300)
-    assert not SurfaceDistanceQuery(*arrays(closed)).has_boundary
+    closed = SurfaceDistanceQuery(*arrays(synthetic_form("sphere", 300)))
+    assert not closed.has_boundary
+    assert closed.closest_with_data(pts)[3].all()
 
 
 def beyond_by_numpy(q, points, face, closest):
