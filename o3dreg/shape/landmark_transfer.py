@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from .._geometry import barycentric
-from .._validation import as_mesh_arrays, as_points, check_positive
+from .._validation import as_mesh_arrays, as_points, check_positive, check_referenced
 from ..io.landmark_files import check_landmark_suffix, read_landmarks, write_landmarks
 from ..registration.distance import SurfaceDistanceQuery
 from ..registration.elastic import registration_elastic
@@ -573,6 +573,7 @@ def predict_landmarks(
         vt, ft = as_mesh_arrays(target, "target", drop_degenerate=True)
         vertices = SurfaceDistanceQuery(vt, ft).closest(vertices)[2]
     elif on_target:
+        _check_registrable(vertices, model.faces)
         options.setdefault("init", np.eye(4))
         if options.get("levels") is None:
             options["levels"] = [
@@ -585,6 +586,19 @@ def predict_landmarks(
     return LandmarkPrediction(
         landmarks.labels, landmarks.positions(vertices), fit, vertices, registration
     )
+
+
+def _check_registrable(vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Refuse, before any work, a fitted instance that cannot be a registration's template (a
+    model read from another tool may hold degenerate triangles or vertices of no triangle)."""
+    try:
+        v, f = as_mesh_arrays((vertices, faces), "the fitted instance")
+        check_referenced(v, f, "the fitted instance")
+    except ValueError as exc:
+        raise ValueError(
+            f"`onto='registration'` registers the fitted instance onto the patient, and {exc}; "
+            "read the landmarks on its closest points instead (onto='closest')"
+        ) from exc
 
 
 def landmark_errors(predicted: Any, truth: Any) -> np.ndarray:

@@ -186,6 +186,19 @@ def test_predict_landmarks_on_new_patient(pop):
         predict_landmarks(model, other, targets[9])
 
 
+def test_a_model_with_a_vertex_of_no_triangle_is_read_on_closest_points(pop):
+    # A model read from another tool can hold a vertex no triangle uses: its instance cannot be
+    # a registration's template. The default reading refuses before any registration and names
+    # the way out; the closest-point reading works.
+    (_tv, tf), targets, truths, _, _ = pop
+    shapes = np.concatenate([truths[:9], truths[:9, :1] + 1.0], axis=1)
+    model = build_shape_model(shapes, tf)
+    lm = TemplateLandmarks.from_vertices((shapes[0], tf), np.array([0, 40]))
+    with pytest.raises(ValueError, match=r"onto='registration'.*no triangle.*onto='closest'"):
+        predict_landmarks(model, lm, targets[9])
+    assert predict_landmarks(model, lm, targets[9], onto="closest").registration is None
+
+
 def test_landmarks_from_annotated_shapes_average_the_annotations(pop):
     (tv, tf), _, _, _, _ = pop
     feet = tv[tf[[4, 60]]].mean(axis=1)
