@@ -161,6 +161,8 @@ def assess_model_fit(model: ShapeModel, fit: Any, target: Any, *, mirrored: Any 
         A copy of ``fit`` with ``status``, ``warnings`` and ``mahalanobis_distance`` set.
     """
     vt, ft = (np.asarray(a) for a in target)
+    # One distance query of the patient (its AABB tree) for the size and facing checks.
+    patient_surface = SurfaceDistanceQuery(vt, ft)
     k = int(fit.coefficients.size)
     variances = model.variances[:k]
     alpha = np.asarray(fit.coefficients, dtype=np.float64)
@@ -220,7 +222,7 @@ def assess_model_fit(model: ShapeModel, fit: Any, target: Any, *, mirrored: Any 
     # covers.
     covered = None
     if not model.scaling and model.scores.shape[0] >= 3:
-        covered = _covered_faces(model, fit, SurfaceDistanceQuery(vt, ft))
+        covered = _covered_faces(model, fit, patient_surface)
     if covered is not None and covered.shape[0] >= SIZE_MIN_COVERED * model.faces.shape[0]:
         sizes = population_sizes(model, covered)
         share = covered.shape[0] / max(model.faces.shape[0], 1)
@@ -269,7 +271,7 @@ def assess_model_fit(model: ShapeModel, fit: Any, target: Any, *, mirrored: Any 
                         )
                     )
                     break
-    away = _facing_away(fit.vertices, fit.faces, vt, ft)
+    away = _facing_away(fit.vertices, fit.faces, patient_surface)
     if away > FACING_AWAY:
         found.append(
             (
@@ -302,7 +304,7 @@ def _unit_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
 
 
-def _facing_away(vertices: np.ndarray, faces: np.ndarray, vt: np.ndarray, ft: np.ndarray) -> float:
+def _facing_away(vertices: np.ndarray, faces: np.ndarray, patient: SurfaceDistanceQuery) -> float:
     """Fraction of the fitted vertices whose closest patient triangle faces the other way
     (area-weighted vertex normal of the fit against the patient triangle's normal)."""
     faces = np.asarray(faces)
@@ -310,7 +312,7 @@ def _facing_away(vertices: np.ndarray, faces: np.ndarray, vt: np.ndarray, ft: np
     vertex_normals = np.zeros_like(vertices)
     for c in range(3):
         np.add.at(vertex_normals, faces[:, c], face_normals)
-    _, face, _ = SurfaceDistanceQuery(vt, ft).closest(vertices)
-    dots = (vertex_normals * _unit_normals(vt, ft)[face]).sum(axis=1)
+    _, face, _ = patient.closest(vertices)
+    dots = (vertex_normals * patient.face_normal(face)).sum(axis=1)
     used = np.linalg.norm(vertex_normals, axis=1) > 0
     return float(np.mean(dots[used] < 0)) if used.any() else 0.0

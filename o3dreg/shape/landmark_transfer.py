@@ -566,6 +566,10 @@ def predict_landmarks(
             f"got {type(registration_options).__name__}"
         )
     options = dict(registration_options or {})
+    if on_target and onto == "registration":
+        # The instance has the model's triangles: a mesh the registration refuses is refused
+        # here, before the fit.
+        _check_registrable(model.mean, model.faces)
     fit = fit_shape_model(model, target, **fit_options)
     vertices = np.array(fit.vertices)
     registration = None
@@ -573,7 +577,6 @@ def predict_landmarks(
         vt, ft = as_mesh_arrays(target, "target", drop_degenerate=True)
         vertices = SurfaceDistanceQuery(vt, ft).closest(vertices)[2]
     elif on_target:
-        _check_registrable(vertices, model.faces)
         options.setdefault("init", np.eye(4))
         if options.get("levels") is None:
             options["levels"] = [
@@ -589,14 +592,15 @@ def predict_landmarks(
 
 
 def _check_registrable(vertices: np.ndarray, faces: np.ndarray) -> None:
-    """Refuse, before any work, a fitted instance that cannot be a registration's template (a
-    model read from another tool may hold degenerate triangles or vertices of no triangle)."""
+    """Refuse a model whose instances cannot be a registration's template (a model read from
+    another tool may hold degenerate triangles or vertices of no triangle)."""
     try:
-        v, f = as_mesh_arrays((vertices, faces), "the fitted instance")
-        check_referenced(v, f, "the fitted instance")
+        v, f = as_mesh_arrays((vertices, faces), "the model's mesh")
+        check_referenced(v, f, "the model's mesh")
     except ValueError as exc:
         raise ValueError(
-            f"`onto='registration'` registers the fitted instance onto the patient, and {exc}; "
+            f"`onto='registration'` registers the model's fitted instance onto the patient, and "
+            f"{exc}; "
             "read the landmarks on its closest points instead (onto='closest')"
         ) from exc
 

@@ -188,7 +188,7 @@ def test_predict_landmarks_on_new_patient(pop):
 
 def test_a_model_with_a_vertex_of_no_triangle_is_read_on_closest_points(pop):
     # A model read from another tool can hold a vertex no triangle uses: its instance cannot be
-    # a registration's template. The default reading refuses before any registration and names
+    # a registration's template. The default reading refuses it before the fit and names
     # the way out; the closest-point reading works.
     (_tv, tf), targets, truths, _, _ = pop
     shapes = np.concatenate([truths[:9], truths[:9, :1] + 1.0], axis=1)
