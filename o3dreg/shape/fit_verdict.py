@@ -306,7 +306,8 @@ def _unit_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def _facing_away(vertices: np.ndarray, faces: np.ndarray, patient: SurfaceDistanceQuery) -> float:
     """Fraction of the fitted vertices whose closest patient triangle faces the other way
-    (area-weighted vertex normal of the fit against the patient triangle's normal)."""
+    (the fit's vertex normal, the sum of its triangles' unit normals, against the patient
+    triangle's normal)."""
     faces = np.asarray(faces)
     face_normals = _unit_normals(vertices, faces)
     vertex_normals = np.zeros_like(vertices)
