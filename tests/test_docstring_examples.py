@@ -1,7 +1,7 @@
 """The examples in the package's docstrings run and print what they say (doctest).
 
-``registration_rigid``'s example was false for a release (a box came back half-turned) and no
-test ran it: every module with an example is now collected here."""
+Every module with an example is collected here: an example no test runs can be false unnoticed
+(``registration_rigid``'s box half-turned is one such example)."""
 
 import doctest
 import importlib

@@ -1,4 +1,4 @@
-"""Small geometric kernels: the same numbers as the NumPy expressions they replace."""
+"""Small geometric kernels: the same numbers as the plain NumPy expressions of their formulas."""
 
 import numpy as np
 import pytest

@@ -187,8 +187,8 @@ def test_pictures_are_not_mirrored(tmp_path):
 
 @pytest.mark.parametrize("scale", [0.0031, 0.052, 37.0])
 def test_the_colour_bar_label_stays_inside_the_picture(tmp_path, scale):
-    # Long tick labels ("-0.75") pushed the label's second line past the right edge (audit):
-    # the last column of the picture held ink. Now a margin of white is left, whatever the scale.
+    # Long tick labels ("-0.75") can push the label's second line past the right edge (the
+    # last column of the picture holding ink): a margin of white must stay, whatever the scale.
     import matplotlib.image
     from _helpers import population
 

@@ -196,9 +196,9 @@ def test_sizes_in_other_units_stop_with_the_fix(bunny_template, bunny_target):
 
 def test_far_from_the_origin(demo_population):
     # The demo's patient01 moved 1e4 mm away: Open3D's point-to-plane ICP linearises the
-    # rotation about the origin, and from the centroid-matched start it diverged (fitness 0;
-    # the pose ended 105 degrees off, the registration 74 mm from the truth). ICP now runs on
-    # centred copies.
+    # rotation about the origin, and on uncentred clouds it diverges from the centroid-matched
+    # start (fitness 0; the pose 105 degrees off, the registration 74 mm from the truth). ICP
+    # must run on centred copies.
     template, patients = demo_population
     patient = patients[0]
     far = o3d.geometry.TriangleMesh(patient.mesh).translate((1e4, 1e4, 1e4))
@@ -418,10 +418,10 @@ def test_a_large_target_is_aligned_to_in_a_simplified_copy(
 @pytest.mark.parametrize("angle", [0.0, 20.0])
 def test_a_box_keeps_the_input_pose_among_its_symmetric_fits(dims, subdivisions, angle):
     # A box fits itself exactly in four poses (the identity and three half-turns): every start
-    # ties, and the ranking's winner is a matter of rounding (1e-16 apart). Only the winner and
-    # the best distinct other pose were compared with the input pose, so a half-turn won in 6
-    # of these 8 cases, 3 of them without the ambiguity warning. Among tied poses the one
-    # nearest the input now competes with a far winner, and the input pose breaks the tie.
+    # ties, and the ranking's winner is a matter of rounding (1e-16 apart). Comparing only the
+    # winner and the best distinct other pose with the input pose, a half-turn wins in 6 of
+    # these 8 cases, 3 of them without the ambiguity warning: among tied poses the one nearest
+    # the input must compete with a far winner, and the input pose break the tie.
     box = o3d.geometry.TriangleMesh.create_box(*dims)
     if subdivisions:
         box = box.subdivide_midpoint(subdivisions)
@@ -493,8 +493,8 @@ def test_overlapping_rigid_steps_keep_open3d_on_one_thread():
 
 
 def test_a_scale_found_on_a_partial_target_is_flagged(bunny_template, bunny_target):
-    # A part of a shape fits a smaller template: a similarity start on a cut target gave a
-    # mandible 44% too small with verdict ok (audit). The bunny with its small holes is not
+    # A part of a shape fits a smaller template: a similarity start on a cut target can make a
+    # mandible 44% too small that nothing else in the verdict sees. The bunny with its small holes is not
     # flagged; cut by a quarter of its height (in metres), it is.
     from o3dreg.registration.rigid import PARTIAL_BOUNDARY, open_boundary_ratio
 

@@ -461,8 +461,8 @@ def test_small_target_components_can_be_ignored(bunny_template, bunny_target):
 def test_max_distance_factor_keeps_the_correspondences_it_should():
     # A sphere of radius 40 onto one of radius 50: every template vertex starts 10 mm from the
     # target, so every distance is within a few robust scales of the median and none may be
-    # dropped. The factor used to be measured in input units (sigma read as 1.0 while the scale
-    # was computed), which dropped all 402 vertices and left the template where it was.
+    # dropped. Measured in input units instead of robust scales (sigma read as 1.0), the factor
+    # would drop all 402 vertices and leave the template where it was.
     small = synthetic_form("sphere", 400)
     big = synthetic_form("sphere", 2000)
     big.scale(1.25, center=(0.0, 0.0, 0.0))

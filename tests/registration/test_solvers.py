@@ -37,7 +37,7 @@ def small_problem(
 
 def test_a_non_finite_step_stops_with_a_message(monkeypatch):
     # A linear solver that returns NaN whatever the damping (as a singular or overflowing system
-    # would): the solver used to retry with a larger damping forever.
+    # would): retrying with a larger damping would never end.
     problem = small_problem()
     monkeypatch.setattr(
         _solvers.DampedSystem, "solve_damped", lambda self, d, b: np.full(b.shape, np.nan)

@@ -179,8 +179,8 @@ def test_population_outliers():
 
 
 def test_a_one_triangle_target_is_refused_by_the_rigid_start():
-    # With the default (rigid) start a one-triangle target used to be reported as a size
-    # mismatch ("are they in the same units?"); the error now says what is wrong with it.
+    # A triangle's moments would read as a size mismatch ("are they in the same units?"):
+    # the error must say what is wrong with the target instead.
     template = synthetic_form("sphere", 400)
     triangle = (np.array([[0.0, 0, 0], [40, 0, 0], [0, 40, 0]]), np.array([[0, 1, 2]]))
     with pytest.raises(ValueError, match=r"`target` must be a surface of at least 4 .* got 1"):

@@ -267,8 +267,8 @@ def test_registered_population_recovers_variance_ratios_and_modes(pop, tmp_path)
 
 
 def test_a_model_file_that_breaks_the_models_invariants_is_refused(pop, tmp_path):
-    # Modes scaled by 5 loaded and projected shapes 5 times too far; unsorted variances gave a
-    # wrong Table 4; a missing member raised a bare KeyError (audit).
+    # Modes scaled by 5 would project shapes 5 times too far, unsorted variances give a wrong
+    # Table 4, and a missing member raise a bare KeyError.
     from o3dreg.io.archive import read_archive, write_archive
 
     _, tf = pop[0]

@@ -196,8 +196,8 @@ def test_a_scaled_basis_is_the_same_model(model, tmp_path):
 
 
 def test_damaged_statismo_files_are_value_errors(model, tmp_path):
-    # NaN in the basis raised LinAlgError, a mean of 3k+1 values numpy's reshape error, and a
-    # variance of -1e-9 (rounding) made a whole file unreadable (audit).
+    # NaN in the basis would raise LinAlgError and a mean of 3k+1 values numpy's reshape error;
+    # a variance of -1e-9 (rounding) must not make a whole file unreadable.
     path = write_statismo(tmp_path / "m.h5", model)
 
     def damaged(name, dataset, change):
@@ -227,7 +227,7 @@ def test_damaged_statismo_files_are_value_errors(model, tmp_path):
 
 
 def test_names_beyond_ascii_survive_a_round_trip(tmp_path):
-    # Written ASCII with replacement ("pati?nt_0"), so two names could collide (audit).
+    # Written as ASCII with replacement ("pati?nt_0"), two names could collide.
     (_, tf), _, truths, _, _ = population(4, seed=1)
     names = ["patiënt_0", "patiënt_1", "pätient_2", "p3"]
     model = build_shape_model(truths, tf, names=names)

@@ -207,9 +207,9 @@ def test_dicom_series_missing_slice_detected(tmp_path, stored_slices):
     ],
 )
 def test_dicom_series_that_one_grid_cannot_hold_is_refused(tmp_path, stored_slices, case, message):
-    # Read from the first slice's orientation and pixel spacing, stacked along its normal, a
-    # tilted gantry sheared a sphere by 4 mm, turned or finer slices were placed 9.5 mm off or
-    # at half size, all without a word (audit).
+    # Read from the first slice's orientation and pixel spacing and stacked along its normal, a
+    # tilted gantry would shear a sphere by 4 mm, and turned or finer slices land 9.5 mm off or
+    # at half size, all without a word.
     def edit(n, ds):
         if case == "tilt":  # 20 degrees: each slice 0.73 mm further along y
             ds.ImagePositionPatient = [-10.0, 20.0 + 2.0 * n * np.tan(np.radians(20)), 2.0 * n]
@@ -385,7 +385,7 @@ def test_a_nifti_whose_qform_and_sform_disagree_is_read_by_the_qform_with_a_warn
     tmp_path, caplog
 ):
     # ITK places the volume by the qform, nibabel by the sform: the same file lands 80 mm
-    # apart depending on the software (audit). Read as before, and said.
+    # apart depending on the software. Read by the qform, as ITK does, and said.
     data = np.zeros((6, 7, 8), np.int16)
     affine = np.diag([0.8, 0.9, 2.0, 1.0])
     affine[:3, 3] = [10, 20, 30]
