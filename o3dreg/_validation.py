@@ -312,6 +312,13 @@ def check_positive(
     return int(value) if integer else float(value)
 
 
+def check_bool(value: Any, name: str) -> bool:
+    """Check that ``value`` is ``True`` or ``False`` (a NumPy bool too) and return it as a bool."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"`{name}` must be True or False, got {_describe(value)}")
+    return bool(value)
+
+
 def check_probability(value: Any, name: str) -> float:
     """Check that ``value`` is a number in ``[0, 1]`` and return it as float."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from .._validation import as_mesh_arrays, check_output_path, to_open3d
+from .._validation import as_mesh_arrays, check_bool, check_output_path, to_open3d
 from . import formats
 from .integrity import check_ply_complete
 
@@ -310,8 +310,7 @@ def write_triangle_mesh(
     """
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`{name}` must be a path, got {type(path).__name__}")
-    if not isinstance(semilandmarks, (bool, np.bool_)):
-        raise TypeError(f"`semilandmarks` must be a bool, got {type(semilandmarks).__name__}")
+    semilandmarks = check_bool(semilandmarks, "semilandmarks")
     check = check_semilandmark_suffix if semilandmarks else check_mesh_suffix
     suffix = check(os.fspath(path), name)
     if isinstance(mesh, o3d.geometry.TriangleMesh):

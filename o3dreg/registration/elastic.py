@@ -34,7 +34,13 @@ from .._geometry import (
     into_frame,
     row_norms,
 )
-from .._validation import as_mesh_arrays, as_transformation, check_positive, check_referenced
+from .._validation import (
+    as_mesh_arrays,
+    as_transformation,
+    check_bool,
+    check_positive,
+    check_referenced,
+)
 from ..mesh.distinct import distinct
 from ..mesh.sampling import morton_order, spatial_subsample
 from ._cost import LevelProblem, bound_masks
@@ -139,8 +145,7 @@ def _check_options(
         raise TypeError(f"`callback` must be callable, got {type(callback).__name__}")
     if parts not in ("joint", "connected"):
         raise ValueError(f"`parts` must be 'joint' or 'connected', got {parts!r}")
-    if not isinstance(with_scaling, bool):
-        raise TypeError(f"`with_scaling` must be a bool, got {type(with_scaling).__name__}")
+    with_scaling = check_bool(with_scaling, "with_scaling")
     if with_scaling and has_init:
         raise ValueError(
             "`with_scaling` applies to the start computed without `init`; with `init` given "

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from .._geometry import apply_transformation
-from .._validation import as_points
+from .._validation import as_points, check_bool
 from ..io.landmark_files import read_landmarks
 
 __all__ = ["LandmarkRegistrationResult", "registration_landmarks"]
@@ -229,8 +229,7 @@ def registration_landmarks(
     >>> round(result.scale, 6), bool(result.rms < 1e-9)
     (2.0, True)
     """
-    if not isinstance(with_scaling, bool):
-        raise TypeError(f"`with_scaling` must be a bool, got {type(with_scaling).__name__}")
+    with_scaling = check_bool(with_scaling, "with_scaling")
     labels, ps, pt = _pair(source, target)
     if ps.shape[0] < 3:
         raise ValueError(

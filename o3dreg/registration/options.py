@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import as_points, check_positive, check_probability
+from .._validation import as_points, check_bool, check_positive, check_probability
 from .checkers import BoundaryChecker, CorrespondenceChecker, DistanceChecker, NormalAngleChecker
 from .losses import RobustLoss, loss_named
 from .terms import BARYCENTRE_WEIGHTINGS, Barycentre, DistanceTerm, PointToSurface
@@ -328,19 +328,18 @@ class DistanceEstimation:
     barycentre_skip_covered: bool = field(default=True, metadata={"keyed_when_set": True})
 
     def __post_init__(self) -> None:
-        if not isinstance(self.symmetric, bool):
-            raise TypeError(f"`symmetric` must be a bool, got {type(self.symmetric).__name__}")
+        object.__setattr__(self, "symmetric", check_bool(self.symmetric, "symmetric"))
         check_positive(self.symmetric_weight, "symmetric_weight", allow_zero=True)
-        if not isinstance(self.barycentre_correction, bool):
-            raise TypeError(
-                "`barycentre_correction` must be a bool, "
-                f"got {type(self.barycentre_correction).__name__}"
-            )
-        if not isinstance(self.barycentre_skip_covered, bool):
-            raise TypeError(
-                "`barycentre_skip_covered` must be a bool, "
-                f"got {type(self.barycentre_skip_covered).__name__}"
-            )
+        object.__setattr__(
+            self,
+            "barycentre_correction",
+            check_bool(self.barycentre_correction, "barycentre_correction"),
+        )
+        object.__setattr__(
+            self,
+            "barycentre_skip_covered",
+            check_bool(self.barycentre_skip_covered, "barycentre_skip_covered"),
+        )
         if self.barycentre_weighting not in BARYCENTRE_WEIGHTINGS:
             raise ValueError(
                 f"`barycentre_weighting` must be one of {BARYCENTRE_WEIGHTINGS}, "
@@ -357,10 +356,9 @@ class DistanceEstimation:
             check_positive(self.loss_scale, "loss_scale")
         if self.max_distance_factor is not None:
             check_positive(self.max_distance_factor, "max_distance_factor")
-        if not isinstance(self.reject_boundary, bool):
-            raise TypeError(
-                f"`reject_boundary` must be a bool, got {type(self.reject_boundary).__name__}"
-            )
+        object.__setattr__(
+            self, "reject_boundary", check_bool(self.reject_boundary, "reject_boundary")
+        )
         if self.max_normal_angle is not None:
             a = check_positive(self.max_normal_angle, "max_normal_angle")
             if a > 180.0:

@@ -24,7 +24,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from .._geometry import apply_transformation, face_doubled_areas, rotation_angle, row_norms
-from .._validation import as_mesh_arrays, as_transformation, check_positive
+from .._validation import as_mesh_arrays, as_transformation, check_bool, check_positive
 from ..mesh.canonical import cluster_vertices
 from ..mesh.edges import SortedEdges
 from ..mesh.noise import noise_level
@@ -458,8 +458,7 @@ def _registration_rigid(
     if vt.shape[0] > LARGE_TARGET:
         vt, ft = _simplified(vt, ft, DETAIL_VERTICES)
         target_query = None
-    if not isinstance(with_scaling, bool):
-        raise TypeError(f"`with_scaling` must be a bool, got {type(with_scaling).__name__}")
+    with_scaling = check_bool(with_scaling, "with_scaling")
     given = init is not None
     if given:
         candidates = [("init", as_transformation(init, "init"))]

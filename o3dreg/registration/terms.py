@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._validation import check_positive
+from .._validation import check_bool, check_positive
 from ._assembly import NormalAssembly
 from ._terms import BarycentreTerm, DistanceTermAtLevel, PointToSurfaceTerm, uncovered_candidates
 from .distance import SurfaceDistanceQuery
@@ -156,12 +156,8 @@ class Barycentre(DistanceTerm):
 
     def __post_init__(self) -> None:
         check_positive(self.weight, "weight", allow_zero=True)
-        if not isinstance(self.correction, bool):
-            raise TypeError(f"`correction` must be a bool, got {type(self.correction).__name__}")
-        if not isinstance(self.skip_covered, bool):
-            raise TypeError(
-                f"`skip_covered` must be a bool, got {type(self.skip_covered).__name__}"
-            )
+        object.__setattr__(self, "correction", check_bool(self.correction, "correction"))
+        object.__setattr__(self, "skip_covered", check_bool(self.skip_covered, "skip_covered"))
         check_positive(self.target_points_per_source_point, "target_points_per_source_point")
         if self.weighting not in BARYCENTRE_WEIGHTINGS:
             raise ValueError(

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from .._validation import as_faces, as_mesh_arrays, check_positive
+from .._validation import as_faces, as_mesh_arrays, check_bool, check_positive
 from .model import ShapeModel
 from .procrustes import as_shape_array, generalized_procrustes
 
@@ -101,8 +101,7 @@ def build_shape_model(
     """
     x = as_shape_array(shapes)
     f = template_faces(faces, x.shape[1])
-    if not isinstance(scaling, bool):
-        raise TypeError(f"`scaling` must be a bool, got {type(scaling).__name__}")
+    scaling = check_bool(scaling, "scaling")
     s = x.shape[0]
     if number_of_modes is not None:
         number_of_modes = check_positive(number_of_modes, "number_of_modes", integer=True)
@@ -113,6 +112,8 @@ def build_shape_model(
     if names is None:
         names_ = tuple(f"shape{i:03d}" for i in range(s))
     else:
+        if isinstance(names, str):
+            raise TypeError(f"`names` must be a sequence of {s} names, got one string {names!r}")
         names_ = tuple(str(n) for n in names)
         if len(names_) != s:
             raise ValueError(f"`names` must hold {s} names, got {len(names_)}")

@@ -12,7 +12,7 @@ import numpy as np
 import open3d as o3d
 
 from .._geometry import apply_transformation, barycentric
-from .._validation import as_mesh_arrays, as_transformation, check_positive
+from .._validation import as_mesh_arrays, as_transformation, check_bool, check_positive
 from ..io.mesh import to_open3d
 from ..registration.distance import SurfaceDistanceQuery
 from ..registration.rigid import default_start
@@ -153,8 +153,7 @@ def fit_shape_model(
     else:
         reg = check_positive(regularization, "regularization", allow_zero=True)
     max_iteration = check_positive(max_iteration, "max_iteration", integer=True)
-    if not isinstance(check_reflection, (bool, np.bool_)):
-        raise TypeError(f"`check_reflection` must be a bool, got {type(check_reflection).__name__}")
+    check_reflection = check_bool(check_reflection, "check_reflection")
     tolerance = check_positive(tolerance, "tolerance", allow_zero=True)
     # One distance query (its AABB tree) per surface, shared by every start fitted to it.
     surface = SurfaceDistanceQuery(vt, ft)

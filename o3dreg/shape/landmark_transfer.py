@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from .._geometry import barycentric
-from .._validation import as_mesh_arrays, as_points, check_positive, check_referenced
+from .._validation import as_mesh_arrays, as_points, check_bool, check_positive, check_referenced
 from ..io.landmark_files import check_landmark_suffix, read_landmarks, write_landmarks
 from ..registration.distance import SurfaceDistanceQuery
 from ..registration.elastic import registration_elastic
@@ -184,8 +184,7 @@ class TemplateLandmarks:
         """
         v, f = as_mesh_arrays(template, "template")
         pts = as_points(points, "points")
-        if not isinstance(on_surface, bool):
-            raise TypeError(f"`on_surface` must be a bool, got {type(on_surface).__name__}")
+        on_surface = check_bool(on_surface, "on_surface")
         if max_distance is None:
             max_distance = 0.05 * float(np.linalg.norm(np.ptp(v, axis=0)))
         else:
@@ -403,9 +402,13 @@ def load_template_landmarks(
         if not os.path.isfile(path):
             raise OSError(f"`path`: no such file {path!r}")
         with open(path, newline="", encoding="utf-8") as fh:
-            rows = list(csv.DictReader(fh))
+            # Column names as written by people: any case, spaces around them.
+            rows = [
+                {k.strip().lower(): v for k, v in r.items() if isinstance(k, str)}
+                for r in csv.DictReader(fh)
+            ]
         if rows:
-            keys = {k.strip().lower() for k in rows[0] if k}
+            keys = set(rows[0])
             lab = [str(r.get("label") or f"L{k + 1}").strip() for k, r in enumerate(rows)]
             try:
                 if "vertex" in keys:
@@ -556,8 +559,7 @@ def predict_landmarks(
             "`landmarks` were defined on another template than the model's "
             f"({landmarks.number_of_vertices} vs {model.number_of_points} vertices)"
         )
-    if not isinstance(on_target, (bool, np.bool_)):
-        raise TypeError(f"`on_target` must be a bool, got {type(on_target).__name__}")
+    on_target = check_bool(on_target, "on_target")
     if onto not in PREDICTION_ONTO:
         raise ValueError(f"`onto` must be one of {PREDICTION_ONTO}, got {onto!r}")
     if not isinstance(registration_options, (dict, type(None))):

@@ -65,7 +65,8 @@ class ShapeModel:
     Attributes
     ----------
     mean : (n, 3) ndarray
-        ``M``, the Procrustes mean (centred at the origin), in the input's units (mm).
+        ``M``, the mean shape (the Procrustes mean, centred at the origin, unless the model was
+        built without alignment), in the input's units (mm).
     modes : (k, n, 3) ndarray
         ``A``: orthonormal principal directions (each mode has unit norm as a ``3n`` vector).
     variances : (k,) ndarray
@@ -134,6 +135,17 @@ class ShapeModel:
         scores = np.array(self.scores, dtype=np.float64)
         if scores.ndim != 2 or scores.shape[1] != modes.shape[0]:
             raise ValueError(f"`scores` must have shape (s, {modes.shape[0]}), got {scores.shape}")
+        # The denominators of Table 4 and the fit's regularisation: a NaN or a total below the
+        # modes' own variances would give ratios above 1 or a fit that cannot converge.
+        total = float(self.total_variance)
+        if not (np.isfinite(total) and total >= variances.sum() * (1.0 - 1e-6)):
+            raise ValueError(
+                "`total_variance` must be finite and at least the sum of `variances` "
+                f"({variances.sum():.6g}), got {total!r}"
+            )
+        noise = float(self.noise_variance)
+        if not (np.isfinite(noise) and noise >= 0):
+            raise ValueError(f"`noise_variance` must be finite and >= 0, got {noise!r}")
         names = tuple(str(x) for x in self.names) or tuple(
             f"shape{i:03d}" for i in range(scores.shape[0])
         )
@@ -146,8 +158,8 @@ class ShapeModel:
             ("faces", faces),
             ("scores", scores),
             ("names", names),
-            ("total_variance", float(self.total_variance)),
-            ("noise_variance", float(self.noise_variance)),
+            ("total_variance", total),
+            ("noise_variance", noise),
         ):
             object.__setattr__(self, attr, value)
         for arr in (mean, modes, variances, faces, scores):
@@ -196,11 +208,12 @@ class ShapeModel:
 
     def variance_table(self, *, number_of_modes: int | None = None) -> str:
         """The paper's Table 4 as text: variance % and cumulated variance % per mode."""
-        k = (
-            self.number_of_modes
-            if number_of_modes is None
-            else min(number_of_modes, self.number_of_modes)
-        )
+        k = self.number_of_modes
+        if number_of_modes is not None:
+            asked = check_positive(
+                number_of_modes, "number_of_modes", integer=True, allow_zero=True
+            )
+            k = min(int(asked), k)
         ratio, cumulative = self.explained_variance_ratio, self.cumulative_variance_ratio
         head = f"{'Parameter':<22}" + "".join(f"{i + 1:>9d}" for i in range(k))
         sd = f"{'Standard deviation':<22}" + "".join(
@@ -364,7 +377,7 @@ class ShapeModel:
         """Random shapes ``M + A alpha``, ``alpha_i ~ N(0, variance_i)``: ``(count, n, 3)``."""
         count = check_positive(number_of_samples, "number_of_samples", integer=True)
         k = self.check_number_of_modes(number_of_modes)
-        rng = np.random.default_rng(seed)
+        rng = np.random.default_rng(check_positive(seed, "seed", integer=True, allow_zero=True))
         a = rng.standard_normal((count, k)) * self.standard_deviations[:k]
         return self.mean + np.tensordot(a, self.modes[:k], axes=1)
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from .._geometry import apply_transformation
-from .._validation import as_points, check_positive
+from .._validation import as_points, check_bool, check_positive
 
 __all__ = [
     "ProcrustesResult",
@@ -126,9 +126,8 @@ def procrustes_transform(source: Any, target: Any, *, scaling: bool = False) -> 
         raise ValueError(
             f"`source` and `target` must have the same shape, got {a.shape} and {b.shape}"
         )
-    if not isinstance(scaling, bool):
-        raise TypeError(f"`scaling` must be a bool, got {type(scaling).__name__}")
-    return fit_transformation(a, b, scaling)
+    scaling = check_bool(scaling, "scaling")
+    return fit_transformation(a, b, bool(scaling))
 
 
 @dataclass(frozen=True, eq=False)
@@ -218,11 +217,19 @@ def generalized_procrustes(
        statistical skull model", ICIAR 2004, LNCS 3212, section 3.3.
     """
     x = as_shape_array(shapes)
-    if not isinstance(scaling, bool):
-        raise TypeError(f"`scaling` must be a bool, got {type(scaling).__name__}")
+    scaling = check_bool(scaling, "scaling")
+    # A shape whose points all coincide has no pose or size to align (with scaling it would
+    # shrink the mean, and every shape with it, to a point).
+    sizes = np.sqrt(((x - x.mean(axis=1, keepdims=True)) ** 2).sum(axis=(1, 2)))
+    flat = np.flatnonzero(~(sizes > 1e-12 * sizes.max(initial=0.0)))
+    if flat.size:
+        raise ValueError(
+            f"`shapes` must each have points at more than one place, got shape(s) "
+            f"{flat.tolist()} with all their points at one place"
+        )
     max_iteration = check_positive(max_iteration, "max_iteration", integer=True)
     tolerance = check_positive(tolerance, "tolerance", allow_zero=True)
-    return _generalized_procrustes(x, scaling, max_iteration, tolerance)
+    return _generalized_procrustes(x, bool(scaling), max_iteration, tolerance)
 
 
 def _generalized_procrustes(

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from .._geometry import apply_transformation
-from .._validation import check_positive
+from .._validation import check_bool, check_positive
 from ..io.mesh import atomic_write
 from .build import pca_model, template_faces
 from .model import ShapeModel
@@ -52,7 +52,8 @@ class QualityCurve:
 
     def __repr__(self) -> str:
         vals = ", ".join(f"{v:.3g}" for v in self.values[:6])
-        return f"QualityCurve({self.name}, modes 1..{len(self.modes)}: [{vals}])"
+        span = f"{int(self.modes[0])}..{int(self.modes[-1])}" if len(self.modes) else "none"
+        return f"QualityCurve({self.name}, modes {span}: [{vals}])"
 
     def table(self) -> str:
         """Text table: modes, value, spread (compactness has none: no spread column)."""
@@ -160,8 +161,7 @@ def generalization(
     """
     x = as_shape_array(shapes, min_shapes=3)
     f = template_faces(faces, x.shape[1])
-    if not isinstance(scaling, bool):
-        raise TypeError(f"`scaling` must be a bool, got {type(scaling).__name__}")
+    scaling = check_bool(scaling, "scaling")
     s = x.shape[0]
     top = s - 2
     if max_modes is not None:
@@ -224,7 +224,7 @@ def specificity(
     aligned = np.stack(
         [apply_transformation(fit_transformation(s, model.mean, model.scaling), s) for s in x]
     )
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(check_positive(seed, "seed", integer=True, allow_zero=True))
     z = rng.standard_normal((count, model.number_of_modes))
     values, spreads = np.zeros(top), np.zeros(top)
     for m in range(1, top + 1):

@@ -154,7 +154,13 @@ def slide_semilandmarks(
     tolerance = check_positive(tolerance, "tolerance", allow_zero=True)
     free = np.ones(x.shape[1], dtype=bool)
     if fixed is not None:
-        idx = np.asarray(fixed, dtype=np.int64).reshape(-1)
+        given = np.asarray(fixed).reshape(-1)
+        # A boolean mask read as integers would fix points 0 and 1; a float index be truncated.
+        if given.size and given.dtype.kind not in "iu":
+            raise TypeError(
+                f"`fixed` must be integer indices of points, got an array of {given.dtype}"
+            )
+        idx = given.astype(np.int64)
         if idx.size and (idx.min() < 0 or idx.max() >= x.shape[1]):
             raise ValueError(f"`fixed` must index points in [0, {x.shape[1] - 1}]")
         free[idx] = False
@@ -228,6 +234,8 @@ def _bending_step(
     """Tangential offsets minimising ``(Y + U t)^T (I_3 (x) Be) (Y + U t)`` (free points)."""
     idx = np.flatnonzero(free)
     m = idx.size
+    if m == 0:
+        return np.zeros_like(shape)
     a1, a2 = t1[idx], t2[idx]
     bff = be[np.ix_(idx, idx)]
     # U^T (I_3 (x) Be) U in 2 x 2 blocks: (U_a^T (I_3 (x) Be) U_b)_ij = Be_ij (a_i . b_j).

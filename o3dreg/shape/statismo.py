@@ -297,7 +297,7 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
             )
             parameters = _builder_entries(h5, "parameters")
             data_info = _builder_entries(h5, "dataInfo")
-            # Files o3dreg wrote before the parameters group held these.
+            # o3dreg's other layout keeps these in modelinfo (read the same way).
             if "modelinfo/total-variance" in h5:
                 parameters.setdefault(
                     "TotalVariance", str(float(np.asarray(h5["modelinfo/total-variance"])))
@@ -316,6 +316,7 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
         ("model/mean", mean),
         ("model/pcaBasis", basis),
         ("model/pcaVariance", variances),
+        ("model/noiseVariance", noise_arr),
     ):
         if not np.all(np.isfinite(values)):
             raise ValueError(f"`path`: {path!r} has NaN or infinite values in {name}")
@@ -348,17 +349,22 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
         total = float(parameters["TotalVariance"])
     except (KeyError, ValueError):
         total = float(variances.sum())
-    model = ShapeModel(
-        mean=mean,
-        modes=basis.T.reshape(k, -1, 3),
-        variances=variances,
-        faces=faces.astype(np.int64),
-        total_variance=total,
-        scores=scores,
-        names=names,
-        scaling=parameters.get("Scaling", "0").strip() in ("1", "true", "True"),
-        noise_variance=noise,
-    )
+    if noise < 0:
+        raise ValueError(f"`path`: {path!r} has a negative model/noiseVariance ({noise!r})")
+    try:
+        model = ShapeModel(
+            mean=mean,
+            modes=basis.T.reshape(k, -1, 3),
+            variances=variances,
+            faces=faces.astype(np.int64),
+            total_variance=total,
+            scores=scores,
+            names=names,
+            scaling=parameters.get("Scaling", "0").strip() in ("1", "true", "True"),
+            noise_variance=noise,
+        )
+    except ValueError as exc:
+        raise ValueError(f"`path`: {path!r} holds no valid shape model: {exc}") from exc
     if template is not None:
         model.check_template(template)
     return model

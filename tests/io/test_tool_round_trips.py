@@ -58,7 +58,7 @@ def test_every_written_format_keeps_the_vertex_order_or_is_refused(
 
 
 def test_semilandmarks_must_be_a_bool(semilandmarks, tmp_path):
-    with pytest.raises(TypeError, match="`semilandmarks` must be a bool, got str"):
+    with pytest.raises(TypeError, match="`semilandmarks` must be True or False, got str"):
         write_triangle_mesh(tmp_path / "m.ply", semilandmarks, semilandmarks="yes")
     assert list(tmp_path.iterdir()) == []
 

@@ -359,7 +359,7 @@ def test_a_similarity_start_prepares_the_target_once(monkeypatch):
     # registration_elastic's own option, refused where it means nothing.
     from o3dreg import registration_elastic
 
-    with pytest.raises(TypeError, match="`with_scaling` must be a bool, got str"):
+    with pytest.raises(TypeError, match="`with_scaling` must be True or False, got str"):
         registration_elastic(source, target, with_scaling="yes")
     with pytest.raises(ValueError, match="`with_scaling` applies to the start computed without"):
         registration_elastic(source, target, init=np.eye(4), with_scaling=True)

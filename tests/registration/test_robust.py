@@ -331,7 +331,7 @@ def test_new_options_validate():
         DistanceEstimation(max_normal_angle=270.0)
     with pytest.raises(ValueError, match="`loss_scale` must be a finite number > 0"):
         DistanceEstimation(loss_scale=0.0)
-    with pytest.raises(TypeError, match="`reject_boundary` must be a bool"):
+    with pytest.raises(TypeError, match="`reject_boundary` must be True or False"):
         DistanceEstimation(reject_boundary=1)
     with pytest.raises(ValueError, match="`min_jacobian_determinant` must be in"):
         ElasticLevel(2, min_jacobian_determinant=1.5)

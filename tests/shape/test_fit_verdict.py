@@ -116,7 +116,7 @@ def test_without_the_reflection_check_a_mirrored_patient_is_not_caught_by_size(c
 
 def test_fit_bad_input(chiral):
     model, faces, draw = chiral
-    with pytest.raises(TypeError, match="`check_reflection` must be a bool, got str"):
+    with pytest.raises(TypeError, match="`check_reflection` must be True or False, got str"):
         fit_shape_model(model, (draw(), faces), check_reflection="yes")
 
 

@@ -130,6 +130,11 @@ def test_files_roundtrip_csv_and_slicer(pop, tmp_path):
     (tmp_path / "v.csv").write_text("label,vertex\nA,3\nB,50\n")
     lm = load_template_landmarks(tmp_path / "v.csv", (tv, tf))
     np.testing.assert_allclose(lm.positions(tv), pts)
+    # Column names as people write them: capitals, spaces after the commas.
+    (tmp_path / "V.csv").write_text("Label, Vertex\nA,3\nB,50\n")
+    lm = load_template_landmarks(tmp_path / "V.csv", (tv, tf))
+    assert lm.labels == ("A", "B")
+    np.testing.assert_allclose(lm.positions(tv), pts)
     (tmp_path / "t.csv").write_text("label,triangle,b0,b1,b2\nA,4,1,0,0\n")
     np.testing.assert_allclose(
         load_template_landmarks(tmp_path / "t.csv", (tv, tf)).positions(tv)[0], tv[tf[4, 0]]

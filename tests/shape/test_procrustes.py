@@ -121,3 +121,15 @@ def test_procrustes_bad_input():
         procrustes_transform(x, x[:-1])
     with pytest.raises(TypeError, match="scaling"):
         procrustes_transform(x, x, scaling="yes")
+    # A NumPy bool is a bool.
+    np.testing.assert_allclose(procrustes_transform(x, x, scaling=np.True_), np.eye(4), atol=1e-12)
+
+
+def test_gpa_refuses_a_shape_with_all_its_points_at_one_place():
+    # With scaling, such a shape (first, as the mean's start) would shrink every shape to a point
+    # and report success.
+    x = _shape()
+    point = np.repeat(x.mean(axis=0, keepdims=True), x.shape[0], axis=0)
+    for scaling in (False, True):
+        with pytest.raises(ValueError, match=r"got shape\(s\) \[0\] with all their points at one"):
+            generalized_procrustes([point, x, x + 1.0], scaling=scaling)

@@ -67,3 +67,7 @@ def test_quality_bad_input(data):
     model = build_shape_model(truths, tf)
     with pytest.raises(ValueError, match="points"):
         specificity(model, truths[:, :-1])
+    with pytest.raises(ValueError, match="`seed` must be a finite integer >= 0"):
+        specificity(model, truths, seed=-3)
+    # The generalisation curve starts at the mean alone (0 modes).
+    assert "modes 0.." in repr(generalization(truths, tf, max_modes=2))

@@ -293,11 +293,38 @@ def test_a_model_file_that_breaks_the_models_invariants_is_refused(pop, tmp_path
     missing = rewritten("missing.npz", scores=None)
     with pytest.raises(ValueError, match="a ShapeModel without 'scores'"):
         ShapeModel.load(missing)
+    # The denominators of Table 4 and of the fit's regularisation.
+    half = rewritten("half.npz", total_variance=np.array(0.5 * float(fields["variances"].sum())))
+    with pytest.raises(ValueError, match="`total_variance` must be finite and at least"):
+        ShapeModel.load(half)
+    negative = rewritten("negative.npz", noise_variance=np.array(-1.0))
+    with pytest.raises(ValueError, match="`noise_variance` must be finite and >= 0"):
+        ShapeModel.load(negative)
+    kept = {k: getattr(model, k) for k in ("mean", "modes", "variances", "faces", "scores")}
+    with pytest.raises(ValueError, match="`total_variance` must be finite"):
+        ShapeModel(**kept, total_variance=np.nan)
+    with pytest.raises(ValueError, match="`noise_variance` must be finite"):
+        ShapeModel(**kept, total_variance=model.total_variance, noise_variance=np.nan)
+
+
+def test_model_arguments_are_checked_where_given(pop):
+    _, tf = pop[0]
+    model = build_shape_model(pop[2], tf)
+    with pytest.raises(ValueError, match="`number_of_modes` must be a finite integer >= 0"):
+        model.variance_table(number_of_modes=-1)
+    with pytest.raises(TypeError, match="`number_of_modes` must be a integer"):
+        model.variance_table(number_of_modes=2.5)
+    # More modes than the model holds: all of them.
+    assert model.variance_table(number_of_modes=99) == model.variance_table()
+    with pytest.raises(ValueError, match="`seed` must be a finite integer >= 0"):
+        model.sample(2, seed=-1)
+    with pytest.raises(TypeError, match="`names` must be a sequence of"):
+        build_shape_model(pop[2], tf, names="abcdef"[: len(pop[2])])
 
 
 def test_the_docs_pipeline_takes_open3d_triangles_and_a_new_modes_folder(pop, tmp_path):
     # docs/shape-model.md passes `template.triangles` (an Open3D Vector3iVector) and writes
-    # into a "modes" folder that does not exist yet: both raised (docs audit).
+    # into a "modes" folder that does not exist yet: both must work.
     from o3dreg.io.mesh import to_open3d
 
     (tv, tf), _, truths, _, _ = pop

@@ -55,3 +55,20 @@ def test_sliding_bad_input(registered):
         slide_semilandmarks(shapes, targets[:-1])
     with pytest.raises(ValueError, match="fixed"):
         slide_semilandmarks(shapes, targets, fixed=[10**6])
+    # A boolean mask read as indices would fix points 0 and 1 instead of the marked ones.
+    mask = np.zeros(shapes.shape[1], dtype=bool)
+    mask[[5, 10]] = True
+    with pytest.raises(TypeError, match="`fixed` must be integer indices"):
+        slide_semilandmarks(shapes, targets, fixed=mask)
+    with pytest.raises(TypeError, match="`fixed` must be integer indices"):
+        slide_semilandmarks(shapes, targets, fixed=[2.7])
+
+
+def test_bending_sliding_with_every_point_fixed_moves_nothing(registered):
+    _, targets, shapes = registered
+    every = np.arange(shapes.shape[1])
+    result = slide_semilandmarks(shapes, targets, criterion="bending", max_iteration=2, fixed=every)
+    start = np.stack(
+        [SurfaceDistanceQuery(v, f).closest(s)[2] for (v, f), s in zip(targets, shapes)]
+    )
+    np.testing.assert_allclose(result.shapes, start, atol=1e-9)

@@ -224,6 +224,13 @@ def test_damaged_statismo_files_are_value_errors(model, tmp_path):
     )
     back = read_statismo(rounding)
     assert back.variances[-1] == 0.0
+    # The noise variance is the fit's default regularisation: NaN would stop the fit's SVD.
+    noisy = damaged("noise.h5", "model/noiseVariance", lambda v: np.full_like(v, np.nan))
+    with pytest.raises(ValueError, match="NaN or infinite values in model/noiseVariance"):
+        read_statismo(noisy)
+    negative = damaged("negative.h5", "model/noiseVariance", lambda v: np.full_like(v, -2.0))
+    with pytest.raises(ValueError, match="negative model/noiseVariance"):
+        read_statismo(negative)
 
 
 def test_names_beyond_ascii_survive_a_round_trip(tmp_path):
