@@ -917,6 +917,8 @@ def evaluate_elastic(
     target: Any,
     transformation: Any = None,
     deformation: LatticeDeformation | PartitionedDeformation | None = None,
+    *,
+    estimation_method: DistanceEstimation | None = None,
 ) -> SurfaceDistances:
     """Measure an alignment with the metric of :func:`registration_elastic`.
 
@@ -931,6 +933,11 @@ def evaluate_elastic(
     deformation : LatticeDeformation or PartitionedDeformation, optional
         Elastic part applied after ``transformation`` (a result's ``deformation``, or one read by
         :func:`~o3dreg.load_deformation`). Default none.
+    estimation_method : DistanceEstimation, optional
+        The registration's, for the target it measures on: pieces of the target smaller than
+        its ``min_target_component`` of the largest are left out, as the registration leaves
+        them out of its distances. Default ``DistanceEstimation()`` (the registration's
+        default); ``DistanceEstimation(min_target_component=None)`` measures every piece.
 
     Returns
     -------
@@ -940,7 +947,10 @@ def evaluate_elastic(
     """
     vs, fs = as_mesh_arrays(source, "source")
     check_referenced(vs, fs, "source")  # as registration_elastic: every vertex on a triangle
-    surface = TargetSurface.from_mesh(*as_mesh_arrays(target, "target", drop_degenerate=True))
+    method = _check_estimation(estimation_method)
+    surface = TargetSurface.from_mesh(
+        *as_mesh_arrays(target, "target", drop_degenerate=True), method.min_target_component
+    )
     t = np.eye(4) if transformation is None else as_transformation(transformation, "transformation")
     if deformation is not None and not isinstance(
         deformation, (LatticeDeformation, PartitionedDeformation)

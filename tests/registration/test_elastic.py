@@ -243,6 +243,26 @@ def test_evaluate_twin_measures_the_result(bunny_case):
         assert getattr(again, name) == pytest.approx(value, rel=1e-9, abs=1e-12)
 
 
+def test_evaluate_twin_leaves_out_the_debris_the_registration_leaves_out():
+    # A sphere onto a larger one with a small box far away (debris below the default
+    # min_target_component): the registration measures without the box, and so must its twin.
+    template = synthetic_form("sphere", 400)
+    sphere = synthetic_form("sphere", 2000)
+    sphere.scale(1.1, center=(0.0, 0.0, 0.0))
+    box = o3d.geometry.TriangleMesh.create_box(0.5, 0.5, 0.5).translate((80.0, 0.0, 0.0))
+    target = sphere + box
+    result = registration_elastic(template, target, init=np.eye(4), levels=FAST)
+    again = evaluate_elastic(template, target, result.transformation, result.deformation)
+    for name, value in result.distances.as_dict().items():
+        assert getattr(again, name) == pytest.approx(value, rel=1e-9, abs=1e-12)
+    # Every piece measured when asked: the box is ~40 mm from the template.
+    every = DistanceEstimation(min_target_component=None)
+    with_box = evaluate_elastic(
+        template, target, result.transformation, result.deformation, estimation_method=every
+    )
+    assert with_box.target_to_source_max > 30.0 > 10 * again.target_to_source_max
+
+
 @pytest.mark.parametrize("solver", ["trf", "lm-dense"])
 def test_solvers_agree(solver):
     cube, sphere = synthetic_form("cube", 200), synthetic_form("sphere", 1500)
