@@ -9,7 +9,7 @@ import numpy as np
 
 from .._validation import as_points, check_bool, check_positive, check_probability
 from .checkers import BoundaryChecker, CorrespondenceChecker, DistanceChecker, NormalAngleChecker
-from .losses import RobustLoss, loss_named
+from .losses import LOSS_TYPES, RobustLoss, loss_named
 from .terms import BARYCENTRE_WEIGHTINGS, Barycentre, DistanceTerm, PointToSurface
 
 ENERGIES = ("bending", "membrane")
@@ -473,15 +473,21 @@ class DistanceEstimation:
             )
         if loss is None:
             loss = loss_named("cauchy")
-        if not isinstance(loss, RobustLoss):
-            raise TypeError(f"`loss` must be a RobustLoss, got {type(loss).__name__}")
+        # The settings hold a loss by its name and the checkers by their parameters: a class of
+        # one's own (a subclass included) would be replaced by the library's, so it is refused.
+        known_losses = tuple(LOSS_TYPES.values())
+        if type(loss) not in known_losses:
+            raise TypeError(
+                "`loss` must be one of the library's losses "
+                f"({', '.join(t.__name__ for t in known_losses)}), got {type(loss).__name__}"
+            )
         by_kind = {type(c): c for c in checkers}
         if len(by_kind) != len(checkers) or not all(
-            isinstance(c, (BoundaryChecker, NormalAngleChecker, DistanceChecker)) for c in checkers
+            type(c) in (BoundaryChecker, NormalAngleChecker, DistanceChecker) for c in checkers
         ):
             raise ValueError(
                 "`checkers` must hold at most one each of BoundaryChecker, NormalAngleChecker "
-                f"and DistanceChecker, got {checkers!r}"
+                f"and DistanceChecker (the library's classes), got {checkers!r}"
             )
         angle = by_kind.get(NormalAngleChecker)
         distance = by_kind.get(DistanceChecker)

@@ -110,6 +110,20 @@ def test_compose_refuses_what_the_cost_cannot_hold():
         DistanceEstimation.compose(checkers=[DistanceChecker(2.0), DistanceChecker(3.0)])
     with pytest.raises(TypeError, match="`loss`"):
         DistanceEstimation.compose(loss="cauchy")
+
+    # The settings keep a loss by name and checkers by parameters: a subclass would silently
+    # become the library's class (its own weights and masks lost).
+    class Harder(CauchyLoss):
+        def _weights(self, z):
+            return np.where(z < 1.0, 1.0, 0.0)
+
+    class Closer(DistanceChecker):
+        pass
+
+    with pytest.raises(TypeError, match="`loss` must be one of the library's losses .* Harder"):
+        DistanceEstimation.compose(loss=Harder())
+    with pytest.raises(ValueError, match="the library's classes"):
+        DistanceEstimation.compose(checkers=[Closer(2.0)])
     with pytest.raises(ValueError, match="`max_angle`"):
         NormalAngleChecker(200.0)
     with pytest.raises(ValueError, match="`scale`"):
