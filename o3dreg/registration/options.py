@@ -54,7 +54,10 @@ class ElasticCriteria:
     Attributes
     ----------
     max_iteration : int
-        Accepted Levenberg-Marquardt steps per level. Default 20.
+        Accepted Levenberg-Marquardt steps per level (solver ``'lm'``). Default 20. SciPy's
+        solvers count function evaluations instead (``max_nfev`` of ``least_squares``):
+        ``'trf'`` at most ``3 * max_iteration``, ``'lm-dense'`` (MINPACK) at most
+        ``(n + 1) * max_iteration`` for ``n`` unknowns, and stop on their own tolerances.
     relative_cost : float
         Default 1e-3.
     relative_step : float
