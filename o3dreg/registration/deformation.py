@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from .._geometry import det3, into_frame, rotation_angle, row_norms
 from .._validation import as_points, check_positive
 from ..io.archive import read_archive, write_archive
-from .lattice import TrilinearLattice
+from .lattice import TrilinearLattice, _cell_counts
 
 __all__ = ["LatticeDeformation", "PartitionedDeformation", "load_deformation"]
 
@@ -178,13 +178,15 @@ class LatticeDeformation:
         cell-interior positions (the corners are included through neighbouring cells) gives an
         estimate of its minimum. A value ``<= 0`` means the map folds (is not one-to-one).
         """
+        n = check_positive(samples_per_cell, "samples_per_cell", integer=True)
+        if n < 2:
+            raise ValueError(f"`samples_per_cell` must be at least 2, got {samples_per_cell!r}")
         if not self.levels:
             return 1.0
         if self.frame is not None:  # the same determinants, sampled in lattice coordinates
             return self.in_frame(None).min_jacobian_determinant(samples_per_cell)
         finest = self.common_shape()
         origin, size = self.levels[0].origin, self.levels[0].size
-        n = max(int(samples_per_cell), 2)
         cells = np.asarray(finest)
         axes = [
             origin[a] + size[a] * np.linspace(0.0, 1.0, cells[a] * (n - 1) + 1) for a in range(3)
@@ -223,10 +225,10 @@ class LatticeDeformation:
         common = self.common_shape()
         if shape is None:
             shape = common
-        elif isinstance(shape, (int, np.integer)):
-            shape = (int(shape),) * 3
-        shape = tuple(int(s) for s in shape)
-        if len(shape) != 3 or any(s <= 0 or s % c for s, c in zip(shape, common)):
+        elif isinstance(shape, (int, np.integer)) and not isinstance(shape, bool):
+            shape = (shape,) * 3
+        shape = _cell_counts(shape)
+        if any(s % c for s, c in zip(shape, common)):
             raise ValueError(f"`shape` must be 3 positive multiples of {common}, got {shape}")
         total = TrilinearLattice.zeros(self.levels[0].origin, self.levels[0].size, shape)
         nodes = total.node_positions()

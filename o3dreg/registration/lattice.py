@@ -13,6 +13,7 @@ Nodes are numbered ``(i * (ny + 1) + j) * (nz + 1) + k`` for node ``(i, j, k)`` 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -48,6 +49,16 @@ def _factors(t: np.ndarray) -> tuple[Factors, Factors, Factors]:
     return (1.0 - x, x), (1.0 - y, y), (1.0 - z, z)
 
 
+def _cell_counts(shape: Any) -> tuple[int, int, int]:
+    """``shape`` as 3 positive integer cell counts, or a ``ValueError`` naming it."""
+    given = tuple(shape) if isinstance(shape, (tuple, list, np.ndarray)) else (shape,)
+    if len(given) != 3 or not all(
+        isinstance(s, (int, np.integer)) and not isinstance(s, bool) and s >= 1 for s in given
+    ):
+        raise ValueError(f"`shape` must be 3 positive integer cell counts, got {shape!r}")
+    return (int(given[0]), int(given[1]), int(given[2]))
+
+
 #: Most nodes of one lattice: 257^3, 0.4 GB of displacements (a 256-cell refinement).
 MAX_NODES = 257**3
 
@@ -76,9 +87,7 @@ class TrilinearLattice:
     @classmethod
     def zeros(cls, origin, size, shape) -> TrilinearLattice:
         """An identity lattice (all displacements zero)."""
-        shape = tuple(int(s) for s in shape)
-        if len(shape) != 3 or min(shape) < 1:
-            raise ValueError(f"`shape` must be 3 positive cell counts, got {shape}")
+        shape = _cell_counts(shape)
         count = int(np.prod([s + 1 for s in shape], dtype=np.float64))
         if count > MAX_NODES:
             raise ValueError(
@@ -86,21 +95,31 @@ class TrilinearLattice:
                 f"got {shape}: {count} nodes"
             )
         nodes = tuple(s + 1 for s in shape) + (3,)
-        return cls(
-            np.asarray(origin, dtype=np.float64).copy(),
-            np.asarray(size, dtype=np.float64).copy(),
-            shape,  # type: ignore[arg-type]
-            np.zeros(nodes),
-        )
+        return cls(origin, size, shape, np.zeros(nodes))  # type: ignore[arg-type]
 
     def __post_init__(self) -> None:
-        expected = tuple(s + 1 for s in self.shape) + (3,)
-        if self.displacements.shape != expected:
+        shape = _cell_counts(self.shape)
+        origin = np.array(self.origin, dtype=np.float64).reshape(-1)
+        size = np.array(self.size, dtype=np.float64).reshape(-1)
+        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+            raise ValueError(f"`origin` must be 3 finite coordinates, got {origin.tolist()}")
+        if size.shape != (3,) or not np.all(np.isfinite(size)) or np.any(size <= 0):
+            raise ValueError(f"`size` must be 3 finite positive extents, got {size.tolist()}")
+        # A value type: its own copy of the displacements, which no caller can change later.
+        displacements = np.array(self.displacements, dtype=np.float64)
+        expected = tuple(s + 1 for s in shape) + (3,)
+        if displacements.shape != expected:
             raise ValueError(
-                f"`displacements` must have shape {expected}, got {self.displacements.shape}"
+                f"`displacements` must have shape {expected}, got {displacements.shape}"
             )
-        if np.any(np.asarray(self.size) <= 0):
-            raise ValueError(f"`size` must be positive, got {np.asarray(self.size).tolist()}")
+        if not np.all(np.isfinite(displacements)):
+            raise ValueError("`displacements` must be finite (NaN or infinite values found)")
+        for value in (origin, size, displacements):
+            value.setflags(write=False)
+        object.__setattr__(self, "shape", shape)
+        object.__setattr__(self, "origin", origin)
+        object.__setattr__(self, "size", size)
+        object.__setattr__(self, "displacements", displacements)
 
     def __repr__(self) -> str:
         nx, ny, nz = self.shape
@@ -271,10 +290,10 @@ class TrilinearLattice:
     def with_displacements(self, displacements: np.ndarray) -> TrilinearLattice:
         """A copy of this lattice with other node displacements."""
         return TrilinearLattice(
-            self.origin.copy(),
-            self.size.copy(),
+            self.origin,
+            self.size,
             self.shape,
-            np.array(displacements, dtype=np.float64).reshape(self.displacements.shape),
+            np.asarray(displacements, dtype=np.float64).reshape(self.displacements.shape),
         )
 
     def refined(self, shape) -> TrilinearLattice:
@@ -283,8 +302,8 @@ class TrilinearLattice:
         A trilinear function restricted to a sub-cell is trilinear, so sampling the field at the
         new nodes reproduces it exactly: the map is unchanged.
         """
-        shape = tuple(int(s) for s in shape)
-        if len(shape) != 3 or any(s % o for s, o in zip(shape, self.shape)):
+        shape = _cell_counts(shape)
+        if any(s % o for s, o in zip(shape, self.shape)):
             raise ValueError(
                 f"`shape` must be 3 multiples of the lattice shape {self.shape}, got {shape}"
             )

@@ -164,6 +164,9 @@ class ElasticLevel:
     def __post_init__(self) -> None:
         check_positive(self.resolution, "resolution", integer=True)
         check_positive(self.symmetric_scale, "symmetric_scale", allow_zero=True)
+        object.__setattr__(
+            self, "simplify_target", check_bool(self.simplify_target, "simplify_target")
+        )
         if self.barycentre_reach is not None:
             check_positive(self.barycentre_reach, "barycentre_reach")
         if self.resolution > MAX_RESOLUTION:

@@ -332,6 +332,9 @@ def test_callback_and_non_convergence_flag():
 def test_bad_input():
     sphere = synthetic_form("sphere", 300)
     v, f = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    # "no" is truthy: read as a flag it would turn the simplification on.
+    with pytest.raises(TypeError, match="`simplify_target` must be True or False, got str"):
+        ElasticLevel(4, simplify_target="no")
     with pytest.raises(ValueError, match="`source.vertices` must hold at least one point"):
         registration_elastic(o3d.geometry.TriangleMesh(), sphere)
     with pytest.raises(ValueError, match="`target` must have at least 1 triangle"):

@@ -140,3 +140,43 @@ def test_bad_shape_is_refused():
     lat = random_lattice()
     with pytest.raises(ValueError, match="displacements"):
         TrilinearLattice(lat.origin, lat.size, lat.shape, np.zeros((2, 2, 2, 3)))
+
+
+def test_a_lattice_holds_only_finite_boxes_and_fields():
+    lat = random_lattice()
+    d = np.array(lat.displacements)
+    with pytest.raises(ValueError, match="`shape` must be 3 positive integer cell counts"):
+        TrilinearLattice.zeros((0, 0, 0), (1, 1, 1), (2.7, 2, 2))  # not truncated to 2
+    with pytest.raises(ValueError, match="`shape` must be 3 positive integer"):
+        lat.refined(4.5)
+    with pytest.raises(ValueError, match="`origin` must be 3 finite coordinates"):
+        TrilinearLattice((0.0, np.nan, 0.0), lat.size, lat.shape, d)
+    with pytest.raises(ValueError, match="`origin` must be 3 finite coordinates"):
+        TrilinearLattice((0.0, 1.0), lat.size, lat.shape, d)
+    with pytest.raises(ValueError, match="`size` must be 3 finite positive extents"):
+        TrilinearLattice(lat.origin, (1.0, np.nan, 1.0), lat.shape, d)
+    d[0, 0, 0, 0] = np.nan
+    # A lattice saved with a NaN could not be read back: refused when made.
+    with pytest.raises(ValueError, match="`displacements` must be finite"):
+        TrilinearLattice(lat.origin, lat.size, lat.shape, d)
+
+
+def test_a_lattice_owns_its_displacements():
+    lat = random_lattice()
+    d = np.zeros_like(lat.displacements)
+    own = TrilinearLattice(lat.origin, lat.size, lat.shape, d)
+    d[...] = 1.0  # the caller's array changes; the lattice's map does not
+    assert not own.displacements.any()
+    with pytest.raises(ValueError, match="read-only"):
+        own.displacements[0, 0, 0, 0] = 1.0
+
+
+def test_deformation_parameters_are_checked():
+    lat = random_lattice()
+    deformation = LatticeDeformation((lat,))
+    with pytest.raises(ValueError, match="`shape` must be 3 positive integer"):
+        deformation.refined((6.9, 8, 4))
+    with pytest.raises(ValueError, match="`samples_per_cell` must be at least 2"):
+        deformation.min_jacobian_determinant(1)
+    with pytest.raises(TypeError, match="`samples_per_cell` must be a integer"):
+        deformation.min_jacobian_determinant("a")
