@@ -13,8 +13,9 @@ import os
 import signal
 import sys
 import threading
+import warnings
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any, NoReturn
+from typing import Any, NoReturn, TextIO
 
 from .. import __version__
 from . import _demo, _model, _reconstruct, _register, _view
@@ -210,6 +211,19 @@ def console() -> NoReturn:
     os._exit(status)
 
 
+def _warning_to_log(
+    message: Warning | str,
+    category: type[Warning],
+    filename: str,
+    lineno: int,
+    file: TextIO | None = None,
+    line: str | None = None,
+) -> None:
+    """``warnings.showwarning`` of the command line: the message as an ``o3dreg`` log line (no
+    source line, which would read as a traceback)."""
+    logging.getLogger("o3dreg").warning("%s", message)
+
+
 def main(argv: Sequence[str] | None = None, *, ending: bool = False) -> int:
     """Run one command line (``argv``; default ``sys.argv[1:]``) and return its exit status
     (``ending``: the process ends with it, see :func:`console`)."""
@@ -226,7 +240,9 @@ def main(argv: Sequence[str] | None = None, *, ending: bool = False) -> int:
         return EXIT_BAD_INPUT
     command = f"o3dreg {args.command}"
     try:
-        with _signals_and_streams(ending):
+        with _signals_and_streams(ending), warnings.catch_warnings():
+            # The library's warnings are log lines here: one line each, hidden by --quiet.
+            warnings.showwarning = _warning_to_log
             return int(args.func(args))
     except BrokenPipeError:  # e.g. piped into `head`: not an error of ours
         sys.stderr.close()

@@ -218,7 +218,7 @@ def run_build(args: argparse.Namespace) -> int:
             executor=executor,
             force=args.force,
             overwrite=args.overwrite,
-            progress=not args.json and sys.stderr.isatty(),
+            progress=not (args.json or args.quiet) and sys.stderr.isatty(),
             settings=settings_from_args(args, template),
             landmarks=args.landmarks,
             keep_flagged=args.keep_flagged,
@@ -228,11 +228,26 @@ def run_build(args: argparse.Namespace) -> int:
     batch, model = folder.batch, folder.model
     emit(batch.table(), args)
     if model is None:
-        print(
-            f"o3dreg build-model: only {len(batch.accepted)} patient(s) registered with verdict "
-            "'ok'; a model needs at least 2 (--keep-flagged also uses flagged ones)",
-            file=sys.stderr,
+        message = (
+            f"only {len(batch.accepted)} patient(s) registered with verdict 'ok'; a model needs "
+            "at least 2 (--keep-flagged also uses flagged ones)"
         )
+        if args.json:
+            # What was done, for a script that reads the JSON: the patients and no model.
+            print(
+                json_text.dumps(
+                    {
+                        "model_dir": args.output,
+                        "model": None,
+                        "message": message,
+                        "patients": batch.as_dicts(),
+                        "registered": [r.name for r in batch.registered],
+                        "failed": [r.name for r in batch.failed],
+                    },
+                    indent=2,
+                )
+            )
+        print(f"o3dreg build-model: {message}", file=sys.stderr)
         return 1
     if args.json:
         print(json_text.dumps(folder.report, indent=2))
@@ -375,6 +390,15 @@ def run_fit(args: argparse.Namespace) -> int:
         model.check_template(template, "MODEL/template.ply")
     landmarks = load_template_landmarks(args.landmarks, template)
     patient = read_triangle_mesh(args.patient, name="PATIENT")
+    truth_file = None
+    if args.truth:  # read before the fit: a bad file costs no work
+        truth_file = read_landmarks(args.truth)
+        repeated = sorted({lab for lab in truth_file[0] if truth_file[0].count(lab) > 1})
+        if repeated:
+            raise ValueError(f"--truth repeats landmark labels {repeated}")
+        missing = [lab for lab in landmarks.labels if lab not in truth_file[0]]
+        if missing:
+            raise ValueError(f"--truth lacks landmarks {missing}")
     prediction = predict_landmarks(
         model,
         landmarks,
@@ -384,12 +408,9 @@ def run_fit(args: argparse.Namespace) -> int:
         regularization=args.regularization,
     )
     errors = None
-    if args.truth:
-        labels, truth = read_landmarks(args.truth)
+    if truth_file is not None:
+        labels, truth = truth_file
         index = {label: k for k, label in enumerate(labels)}
-        missing = [lab for lab in prediction.labels if lab not in index]
-        if missing:
-            raise ValueError(f"--truth lacks landmarks {missing}")
         truth_pts = truth[[index[lab] for lab in prediction.labels]]
         errors = landmark_errors(prediction.positions, truth_pts)
     if args.output:
@@ -509,7 +530,8 @@ def run_explore(args: argparse.Namespace) -> int:
         model,
         registrations=folder if folder and os.path.isdir(folder) else None,
         up=args.up,
-        overwrite=args.overwrite or args.output is None,
+        # A model folder's own page is rewritten; a page beside a statismo file may be anyone's.
+        overwrite=args.overwrite or (args.output is None and not _is_statismo(args.model_dir)),
     )
     emit(str(written), args)
     return 0

@@ -24,7 +24,7 @@ from ..mesh.cleaning import (
 )
 from ..volume.isosurface import isosurface
 from ..volume.readers import read_volume
-from ._common import add_json_option, add_overwrite_option, check_outputs
+from ._common import add_json_option, add_overwrite_option, check_outputs, emit
 
 logger = logging.getLogger("o3dreg")
 
@@ -149,10 +149,11 @@ def run(args: argparse.Namespace) -> int:
     else:
         extent = " x ".join(f"{e:.1f}" for e in summary["extent_mm"])
         sizes = ", ".join(str(v) for v in summary["component_vertices_found"])
-        print(
+        emit(
             f"wrote {args.output}: {summary['vertices']} vertices, {summary['triangles']} "
             f"triangles, extent {extent} mm; {summary['components_found']} component(s) found "
             f"(vertices: {sizes}{', ...' if len(found) > 10 else ''}), "
-            f"{summary['components_kept']} kept"
+            f"{summary['components_kept']} kept",
+            args,
         )
     return 0

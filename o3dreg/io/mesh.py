@@ -94,7 +94,7 @@ def read_triangle_mesh(
     Raises
     ------
     OSError
-        If the file is missing, unreadable or holds no triangles.
+        If the file is missing, unreadable, holds no triangles or NaN / infinite coordinates.
     ValueError
         If the suffix is not a mesh format.
     """
@@ -128,6 +128,13 @@ def read_triangle_mesh(
             f"`{name}`: {path!r} is malformed: its header declares {vertices} vertices and "
             f"{faces} faces, {len(mesh.vertices)} vertices and {len(mesh.triangles)} triangles "
             "could be read"
+        )
+    # Open3D reads "nan" and "inf" as coordinates: a mesh read must be one every step can use.
+    bad = ~np.isfinite(np.asarray(mesh.vertices)).all(axis=1)
+    if bad.any():
+        raise OSError(
+            f"`{name}`: {path!r} holds {int(bad.sum())} vertices with NaN or infinite "
+            f"coordinates (the first: vertex {int(np.flatnonzero(bad)[0])})"
         )
     return mesh
 

@@ -374,7 +374,16 @@ def _labels(labels: Any, count: int) -> tuple[str, ...]:
     out = tuple(str(x) for x in labels)
     if len(out) != count:
         raise ValueError(f"`labels` must hold {count} labels, got {len(out)}")
+    repeated = _repeated(out)
+    if repeated:
+        raise ValueError(f"`labels` repeats landmark labels {repeated}")
     return out
+
+
+def _repeated(labels: tuple[str, ...]) -> list[str]:
+    """The labels that occur more than once (a prediction or an error per label is then
+    ambiguous)."""
+    return sorted({lab for lab in labels if labels.count(lab) > 1})
 
 
 # -- files ------------------------------------------------------------------------------------------
@@ -423,6 +432,9 @@ def load_template_landmarks(
                     raise
                 raise ValueError(f"`path`: {path!r} has malformed landmark rows: {exc}") from exc
     labels, points = read_landmarks(path)
+    repeated = _repeated(tuple(labels))
+    if repeated:
+        raise ValueError(f"`path`: {path!r} repeats landmark labels {repeated}")
     return TemplateLandmarks.from_points(
         template, points, labels, max_distance=max_distance, on_surface=on_surface
     )

@@ -112,10 +112,29 @@ def test_build_model_info_modes_fit(files, capsys):
              str(files / "lm.mrk.json"), "-o", str(files / f"pred{suffix}"), "-q"]
         )  # fmt: skip
         assert code in (0, 1) and (files / f"pred{suffix}").is_file()
+    # Repeated labels make a prediction, or its error, ambiguous: refused before the fit.
+    (files / "dup_lm.csv").write_text("label,x,y,z\na,0,0,0\na,1,1,1\n")
+    (files / "dup_truth.csv").write_text(
+        (files / "truth.csv").read_text() + (files / "truth.csv").read_text().splitlines()[-1]
+    )
+    fit = ["model", "fit", str(out), str(files / "p5.ply"), "--landmarks"]
+    assert main([*fit, str(files / "dup_lm.csv")]) == 2
+    assert "repeats landmark labels ['a']" in capsys.readouterr().err
+    assert main([*fit, str(files / "lm.mrk.json"), "--truth", str(files / "dup_truth.csv")]) == 2
+    assert "--truth repeats landmark labels ['b']" in capsys.readouterr().err
     # -q: nothing on standard output, for every model action (they printed their tables).
     assert main(["model", "info", str(out), "-q"]) == 0
     assert main(["model", "modes", str(out), "-o", str(files / "mq"), "-q"]) == 0
     assert capsys.readouterr().out == ""
+    # The model folder's own page is rewritten; the default page beside a statismo file is
+    # anyone's: kept unless --overwrite.
+    assert main(["model", "explore", str(out), "-q"]) == 0
+    beside = out / "model_explorer.html"
+    beside.write_text("my notes")
+    assert main(["model", "explore", str(out / "model.h5"), "-q"]) == 2
+    assert "--overwrite" in capsys.readouterr().err and beside.read_text() == "my notes"
+    assert main(["model", "explore", str(out / "model.h5"), "-q", "--overwrite"]) == 0
+    assert beside.read_text() != "my notes"
 
     # A second run resumes: every patient but the broken one is skipped. The folder holds a
     # model: rebuilding it needs --overwrite.
@@ -131,7 +150,7 @@ def test_cli_errors(files, tmp_path, capsys):
     assert "no model.npz" in capsys.readouterr().err
     out = tmp_path / "one"
     code = build_model(files, [str(files / "p0.ply")], out, "--levels", "2")
-    # One patient cannot make a model: refused before any work (was: registered, then exit 1).
+    # One patient cannot make a model: refused before any work, not after the registrations.
     assert code == 2
     assert "at least 2 distinct patient meshes" in capsys.readouterr().err
     assert not out.exists()
@@ -142,9 +161,40 @@ def test_cli_errors(files, tmp_path, capsys):
     assert "expected comma-separated integers" in capsys.readouterr().err
 
 
+def test_too_few_ok_patients_still_print_their_json(files, tmp_path, capsys):
+    # One patient registers, one file cannot be read: no model (exit 1), and a script reading
+    # --json gets the patients and "model": null rather than nothing.
+    out = tmp_path / "few"
+    patients = [str(files / "p0.ply"), str(files / "broken.ply")]
+    code = build_model(files, patients, out, "--levels", "2", "--json")
+    captured = capsys.readouterr()
+    assert code == 1
+    report = json.loads(captured.out)
+    assert report["model"] is None and report["failed"] == ["broken"]
+    assert report["registered"] == ["p0"] and "a model needs at least 2" in report["message"]
+    assert "a model needs at least 2" in captured.err
+
+
+def test_quiet_build_model_draws_no_progress_bar_on_a_terminal(files, tmp_path, monkeypatch):
+    import o3dreg.cli._model as command
+
+    asked = {}
+
+    def stop(*args, progress, **kwargs):
+        asked["progress"] = progress
+        raise OSError("stopped here")
+
+    monkeypatch.setattr(command, "build_model_folder", stop)
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    patients = [str(files / "p0.ply"), str(files / "p1.ply")]
+    for quiet, shown in ((["-q"], False), ([], True)):
+        assert build_model(files, patients, tmp_path / "m", *quiet) == 2
+        assert asked["progress"] is shown
+
+
 def test_one_mesh_under_two_names_is_refused_before_any_work(files, tmp_path, capsys):
-    # Before: both were registered, model.npz written, then numpy's "cannot reshape array of
-    # size 0" (exit 2), leaving model.npz, template.ply and registrations/ behind.
+    # Registered, they would leave model.npz, template.ply and registrations/ behind and end in
+    # numpy's "cannot reshape array of size 0": refused before any work.
     twin = tmp_path / "twin.ply"
     twin.write_bytes((files / "p0.ply").read_bytes())
     out = tmp_path / "model"

@@ -32,8 +32,8 @@ def scan(tmp_path) -> Path:
     return path
 
 
-def _run(capsys, *argv: str) -> tuple[int, str, str]:
-    code = main(["-q", "reconstruct", *argv])
+def _run(capsys, *argv: str, quiet: bool = True) -> tuple[int, str, str]:
+    code = main([*(["-q"] if quiet else []), "reconstruct", *argv])
     out, err = capsys.readouterr()
     return code, out, err
 
@@ -66,7 +66,7 @@ def test_reconstruct_cleaning_options(tmp_path, scan, capsys):
         capsys, str(scan), "-o", str(output), "--threshold", "400",
         "--min-component-vertices", "30", "--smooth", "5", "--decimate", "200",
         "--crop-box", "-20", "0", "0", "20", "50", "50",
-        "--crop-plane", "0", "0", "10", "0", "0", "1",
+        "--crop-plane", "0", "0", "10", "0", "0", "1", quiet=False,
     )  # fmt: skip
     assert code == 0, err
     assert "wrote" in out and "component(s) found" in out
@@ -126,3 +126,12 @@ def test_reconstruct_headsq(tmp_path, capsys):
     assert summary["components_kept"] == 1
     assert 2900 <= summary["vertices"] <= 3000
     assert all(120 < e < 220 for e in summary["extent_mm"])
+
+
+def test_reconstruct_quiet_prints_nothing(tmp_path, scan, capsys):
+    code, out, err = _run(capsys, str(scan), "-o", str(tmp_path / "q.ply"), "--threshold", "400")
+    assert code == 0 and out == "" and err == ""
+    assert (
+        main(["reconstruct", str(scan), "-o", str(tmp_path / "v.ply"), "--threshold", "400"]) == 0
+    )
+    assert capsys.readouterr().out.startswith("wrote ")

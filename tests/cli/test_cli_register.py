@@ -1,6 +1,8 @@
 """`o3dreg register`: outputs, refusals, exit codes."""
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import open3d as o3d
@@ -172,3 +174,28 @@ def test_an_ambiguous_rigid_start_is_in_the_report_and_the_verdict(tmp_path, cap
     assert start["runner_up_score"] < 1.2 * start["score"]  # the near tie behind the warning
     assert len(start["warnings"]) == 1 and "ambiguous" in start["warnings"][0]
     assert start["warnings"][0] in report["warnings"]
+
+
+def test_library_warnings_are_one_log_line_and_quiet_hides_them(pair, tmp_path):
+    # CSV landmark files that do not say their coordinate system: the reader warns. On the
+    # command line that is one "WARNING o3dreg:" line (no source line that reads as a
+    # traceback), and --quiet means errors only. A process of its own: pytest owns the logging
+    # and warnings of this one.
+    vertices = np.asarray(o3d.io.read_triangle_mesh(str(pair / "template.ply")).vertices)
+    rows = "\n".join(f"{x},{y},{z}" for x, y, z in vertices[[0, 100, 200, 300, 400]])
+    for name in ("t.csv", "p.csv"):
+        (tmp_path / name).write_text("x,y,z\n" + rows + "\n")
+    command = [
+        sys.executable, "-m", "o3dreg", "register", str(pair / "template.ply"),
+        str(pair / "patient.ply"), "--landmarks", str(tmp_path / "t.csv"), str(tmp_path / "p.csv"),
+        "--levels", "2", "--max-iteration", "3",
+    ]  # fmt: skip
+    loud = subprocess.run([*command, "-o", str(tmp_path / "l.ply")], capture_output=True, text=True)
+    said = [line for line in loud.stderr.splitlines() if "coordinate system not stated" in line]
+    assert len(said) == 2, loud.stderr
+    assert all(line.startswith("WARNING o3dreg: ") for line in said), loud.stderr
+    assert "UserWarning" not in loud.stderr and "read_landmarks(" not in loud.stderr
+    quiet = subprocess.run(
+        [*command, "-o", str(tmp_path / "q.ply"), "-q"], capture_output=True, text=True
+    )
+    assert "coordinate system" not in quiet.stderr, quiet.stderr

@@ -88,6 +88,23 @@ def test_nan_vertices_are_refused_when_writing(semilandmarks, tmp_path):
     assert np.isnan(bad[7, 1]) and np.isnan(np.asarray(mesh.vertices)[7, 1])  # untouched
 
 
+def test_nan_vertices_are_refused_when_reading(semilandmarks, tmp_path):
+    # Open3D reads "nan" as a coordinate; written by another tool, such a file must be refused
+    # as the OBJ reader refuses it, not measured (a distance picture coloured by NaN).
+    v, f = semilandmarks
+    bad = v.copy()
+    bad[4, 2] = np.nan
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(bad), o3d.utility.Vector3iVector(f.astype(np.int32))
+    )
+    for suffix in (".ply", ".stl"):
+        path = tmp_path / f"n{suffix}"
+        mesh.compute_triangle_normals()
+        assert o3d.io.write_triangle_mesh(str(path), mesh, write_ascii=suffix == ".ply")
+        with pytest.raises(OSError, match=r"holds 1 vertices with NaN or infinite coordinates"):
+            read_triangle_mesh(path)
+
+
 # --- OFF as other tools write it ---------------------------------------------------------------
 
 SQUARE = "0 0 0\n1 0 0\n1 1 0\n0 1 0\n"
