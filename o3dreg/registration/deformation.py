@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from .._geometry import det3, into_frame, rotation_angle, row_norms
 from .._validation import as_points, check_positive
 from ..io.archive import read_archive, write_archive
-from .lattice import TrilinearLattice, _cell_counts
+from .lattice import TrilinearLattice, cell_counts
 
 __all__ = ["LatticeDeformation", "PartitionedDeformation", "load_deformation"]
 
@@ -227,7 +227,7 @@ class LatticeDeformation:
             shape = common
         elif isinstance(shape, (int, np.integer)) and not isinstance(shape, bool):
             shape = (shape,) * 3
-        shape = _cell_counts(shape)
+        shape = cell_counts(shape)
         if any(s % c for s, c in zip(shape, common)):
             raise ValueError(f"`shape` must be 3 positive multiples of {common}, got {shape}")
         total = TrilinearLattice.zeros(self.levels[0].origin, self.levels[0].size, shape)

@@ -748,6 +748,7 @@ def _register_parts(
     failures: list[str] = []
     det, cell_det = 1.0, 1.0
     count = int(labels.max()) + 1
+    idle: list[int] = []  # parts no target point is nearest to: no level runs for them
     for part in range(count):
         sel = np.flatnonzero(labels == part)
         remap = np.full(points.shape[0], -1, dtype=np.int64)
@@ -756,6 +757,7 @@ def _register_parts(
         tf = ft[np.all(face_labels == part, axis=1)]
         if pf.shape[0] == 0 or tf.shape[0] == 0:
             deformations.append(LatticeDeformation(()))
+            idle.append(part)
             continue
         used = distinct(tf, vt.shape[0])
         tmap = np.full(vt.shape[0], -1, dtype=np.int64)
@@ -784,7 +786,10 @@ def _register_parts(
         supported=supported,
         det=det,
         cell_det=cell_det,
-        converged=f"{count} parts: all levels converged",
+        converged=f"{count} parts: all levels converged"
+        if not idle
+        else f"{count} parts: all levels converged; part(s) {idle} have no target near them "
+        "and keep the start's pose (no level ran for them)",
     )
     return whole
 

@@ -49,7 +49,7 @@ def _factors(t: np.ndarray) -> tuple[Factors, Factors, Factors]:
     return (1.0 - x, x), (1.0 - y, y), (1.0 - z, z)
 
 
-def _cell_counts(shape: Any) -> tuple[int, int, int]:
+def cell_counts(shape: Any) -> tuple[int, int, int]:
     """``shape`` as 3 positive integer cell counts, or a ``ValueError`` naming it."""
     given = tuple(shape) if isinstance(shape, (tuple, list, np.ndarray)) else (shape,)
     if len(given) != 3 or not all(
@@ -87,7 +87,7 @@ class TrilinearLattice:
     @classmethod
     def zeros(cls, origin, size, shape) -> TrilinearLattice:
         """An identity lattice (all displacements zero)."""
-        shape = _cell_counts(shape)
+        shape = cell_counts(shape)
         count = int(np.prod([s + 1 for s in shape], dtype=np.float64))
         if count > MAX_NODES:
             raise ValueError(
@@ -98,7 +98,7 @@ class TrilinearLattice:
         return cls(origin, size, shape, np.zeros(nodes))  # type: ignore[arg-type]
 
     def __post_init__(self) -> None:
-        shape = _cell_counts(self.shape)
+        shape = cell_counts(self.shape)
         origin = np.array(self.origin, dtype=np.float64).reshape(-1)
         size = np.array(self.size, dtype=np.float64).reshape(-1)
         if origin.shape != (3,) or not np.all(np.isfinite(origin)):
@@ -302,7 +302,7 @@ class TrilinearLattice:
         A trilinear function restricted to a sub-cell is trilinear, so sampling the field at the
         new nodes reproduces it exactly: the map is unchanged.
         """
-        shape = _cell_counts(shape)
+        shape = cell_counts(shape)
         if any(s % o for s, o in zip(shape, self.shape)):
             raise ValueError(
                 f"`shape` must be 3 multiples of the lattice shape {self.shape}, got {shape}"

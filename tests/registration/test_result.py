@@ -64,3 +64,16 @@ def test_inverse_transform_maps_target_points_back_to_the_source(two_parts):
     for result in (two_parts, scaled):
         back = result.inverse_transform(result.transform(source))
         np.testing.assert_allclose(back, source, atol=1e-7)
+
+
+def test_a_part_without_target_is_named_in_the_message():
+    # Two spheres onto one: the second has no target point near it, no level runs for it and it
+    # keeps the start's pose; the message says so rather than "all levels converged" alone.
+    a = o3d.geometry.TriangleMesh.create_sphere(radius=5.0, resolution=10)
+    b = o3d.geometry.TriangleMesh.create_sphere(radius=5.0, resolution=10).translate((14, 0, 0))
+    target = o3d.geometry.TriangleMesh.create_sphere(radius=5.5, resolution=30)
+    result = registration_elastic(a + b, target, init=np.eye(4), levels=FAST[:2], parts="connected")
+    assert "part(s) [1] have no target near them" in result.message
+    moved = result.vertices[len(a.vertices) :]
+    np.testing.assert_array_equal(moved, np.asarray(b.vertices))
+    assert not result.supported[len(a.vertices) :].any()
