@@ -52,7 +52,7 @@ content is unusable (a truncated or corrupt `.npz`, NaN values in an archive, a 
 with zero or NaN spacing); `OSError` for a missing, unreadable or truncated file and for an output
 that cannot be written (exists without `overwrite`, folder missing or read-only, disk full);
 `RuntimeError` for a missing optional dependency or a failed renderer; `MemoryError` only when
-the machine runs out of memory. See [Robustness](robustness.md#data-safety-issue-12) for the faults
+the machine runs out of memory. See [Robustness](robustness.md#data-safety) for the faults
 tried.
 
 Pictures and pages without a GPU: `o3dreg view MESH --screenshot PNG` draws with matplotlib by
