@@ -1,7 +1,6 @@
 """The :class:`Volume` value type: a 3D voxel array with the geometry that places it in the patient.
 
 A :class:`Volume` is a 3D voxel array plus the geometry that places it in the patient:
-A :class:`Volume` is a 3D voxel array plus the geometry that places it in the patient:
 
 * ``array`` has axes in (plane, row, column) order, as in scikit-image: ``array[p, r, c]``.
   For an axial CT the planes are the slices (z), the rows run along y and the columns along x.
@@ -199,10 +198,10 @@ class Volume:
         start, stop : sequence of 3 int
             Half-open index ranges in array-axis order; clipped to the array.
         """
-        if len(start) != 3 or len(stop) != 3:
-            raise ValueError(
-                f"`start` and `stop` must have 3 entries, got {len(start)} and {len(stop)}"
-            )
+        for name, value in (("start", start), ("stop", stop)):
+            given = np.asarray(value)
+            if given.shape != (3,) or given.dtype.kind not in "iu":
+                raise ValueError(f"`{name}` must be 3 integer indices, got {value!r}")
         lo = [max(0, int(s)) for s in start]
         hi = [min(n, int(e)) for n, e in zip(self.array.shape, stop, strict=True)]
         if any(h <= b for b, h in zip(lo, hi, strict=True)):

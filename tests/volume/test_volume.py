@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+import struct
 from pathlib import Path
 
 import nibabel as nib
@@ -78,6 +79,10 @@ def test_volume_crop_moves_origin(ramp):
     assert sub.shape == (2, 3, 3)
     assert np.allclose(sub.index_to_world([[0, 0, 0]]), v.index_to_world([[1, 2, 3]]))
     assert sub.array[0, 0, 0] == ramp[1, 2, 3]
+    with pytest.raises(ValueError, match="`start` must be 3 integer indices, got 5"):
+        v.crop(5, (3, 3, 3))
+    with pytest.raises(ValueError, match="`stop` must be 3 integer indices"):
+        v.crop((0, 0, 0), (3.5, 3, 3))
 
 
 @pytest.mark.parametrize(
@@ -364,10 +369,18 @@ def test_mandible_mask_geometry(shared_data):
     assert set(np.unique(v.array).tolist()) <= {0, 1}
 
 
-@pytest.mark.parametrize("space", ["", "space: left-posterior-superior\n"])
-def test_a_negative_nrrd_spacing_runs_its_axis_the_other_way(tmp_path, space):
-    # With a `space` field SimpleITK rejects a spacings-only header and pynrrd reads it; that
-    # path dropped the sign (the same data mirrored in y depending on the header).
+@pytest.mark.parametrize(
+    "space, axes",
+    [
+        ("", (1.0, -1.0, 1.0)),
+        ("space: left-posterior-superior\n", (1.0, -1.0, 1.0)),
+        # RAS: x and y run the other way in LPS, on top of the negative y spacing.
+        ("space: right-anterior-superior\n", (-1.0, 1.0, 1.0)),
+    ],
+)
+def test_a_negative_nrrd_spacing_runs_its_axis_the_other_way(tmp_path, space, axes):
+    # With a `space` field SimpleITK rejects a spacings-only header and pynrrd reads it: the
+    # sign and the file's space must both reach the direction, or the data is mirrored.
     data = np.arange(4 * 5 * 6, dtype=np.int16).reshape(4, 5, 6)
     (tmp_path / "v.raw").write_bytes(data.tobytes())
     header = tmp_path / "v.nhdr"
@@ -377,15 +390,49 @@ def test_a_negative_nrrd_spacing_runs_its_axis_the_other_way(tmp_path, space):
     )
     v = read_volume(header)
     np.testing.assert_allclose(v.spacing, [2.5, 1.1, 0.7])
-    np.testing.assert_allclose(v.direction, np.diag([1.0, -1.0, 1.0]))
+    np.testing.assert_allclose(v.direction, np.diag(axes))
     assert np.array_equal(v.array, data)
+
+
+def test_a_nrrd_in_ras_with_spacings_lands_where_its_lps_twin_does(tmp_path):
+    # The same voxels described in RAS and in LPS: the same world positions (LPS).
+    data = np.zeros((6, 5, 4), dtype=np.uint8)
+    (tmp_path / "v.raw").write_bytes(data.tobytes())
+    placed = {}
+    for name, space, origin in (
+        ("ras", "right-anterior-superior", "(-10,-20,30)"),
+        ("lps", "left-posterior-superior", "(10,20,30)"),
+    ):
+        signs = "-1 -2 3" if name == "ras" else "1 2 3"
+        (tmp_path / f"{name}.nhdr").write_text(
+            f"NRRD0004\ntype: uchar\ndimension: 3\nspace: {space}\nsizes: 4 5 6\n"
+            f"spacings: {signs}\nspace origin: {origin}\nencoding: raw\ndata file: v.raw\n"
+        )
+        volume = read_volume(tmp_path / f"{name}.nhdr")
+        placed[name] = volume.index_to_world([[0, 0, 0], [1, 1, 1], [5, 4, 3]])
+    np.testing.assert_allclose(placed["lps"][1], [11.0, 22.0, 33.0])
+    np.testing.assert_allclose(placed["ras"], placed["lps"])
+
+
+def test_a_nifti_with_a_zero_or_nan_voxel_size_is_refused(tmp_path):
+    # SimpleITK reads such a size as 1 mm: the volume would be scaled wrong without a word.
+    image = nib.Nifti1Image(np.zeros((6, 7, 8), np.int16), np.diag([1.0, 1.0, 2.0, 1.0]))
+    image.set_qform(np.diag([1.0, 1.0, 2.0, 1.0]), code=1)
+    image.set_sform(None, code=0)
+    nib.save(image, tmp_path / "good.nii")
+    raw = bytearray((tmp_path / "good.nii").read_bytes())
+    for value in (0.0, np.nan):
+        raw[84:88] = struct.pack("<f", value)  # pixdim[2]
+        (tmp_path / "bad.nii").write_bytes(bytes(raw))
+        with pytest.raises(ValueError, match=r"voxel sizes \(pixdim\[1:4\]\)"):
+            read_volume(tmp_path / "bad.nii")
 
 
 def test_a_nifti_whose_qform_and_sform_disagree_is_read_by_the_qform_with_a_warning(
     tmp_path, caplog
 ):
-    # ITK places the volume by the qform, nibabel by the sform: the same file lands 80 mm
-    # apart depending on the software. Read by the qform, as ITK does, and said.
+    # ITK places the volume by the qform unless the sform's code is 1, nibabel by the sform:
+    # the same file lands 80 mm apart depending on the software. Read as ITK does, and said.
     data = np.zeros((6, 7, 8), np.int16)
     affine = np.diag([0.8, 0.9, 2.0, 1.0])
     affine[:3, 3] = [10, 20, 30]
@@ -402,5 +449,15 @@ def test_a_nifti_whose_qform_and_sform_disagree_is_read_by_the_qform_with_a_warn
         assert "qform and sform" not in caplog.text
         differ = read_volume(tmp_path / "differ.nii.gz")
     assert "qform and sform place the volume up to 80 mm apart" in caplog.text
+    assert "read by the qform" in caplog.text
     np.testing.assert_allclose(differ.origin, same.origin)  # by the qform (LPS: x, y negated)
     np.testing.assert_allclose(same.origin, [-10.0, -20.0, 30.0])
+    # An sform of code 1 (scanner anatomy) is the one ITK reads: the message names it.
+    caplog.clear()
+    image.set_sform(other, code=1)
+    image.set_qform(affine, code=2)
+    nib.save(image, tmp_path / "scanner.nii.gz")
+    with caplog.at_level("WARNING", logger="o3dreg"):
+        scanner = read_volume(tmp_path / "scanner.nii.gz")
+    assert "read by the sform" in caplog.text
+    np.testing.assert_allclose(scanner.origin, [-50.0, 60.0, 70.0])

@@ -158,7 +158,8 @@ def _nrrd_geometry(header: dict[str, Any], path: str) -> tuple[np.ndarray, np.nd
             )
         # A negative spacing runs that axis the other way (as SimpleITK reads it): the size is
         # its magnitude, the sign goes to the direction (dropping it would mirror the mesh).
-        direction = np.diag(np.sign(spacing))
+        # In the file's space: a RAS file's x and y axes run the other way in LPS.
+        direction = np.diag(flips * np.sign(spacing))
         spacing = np.abs(spacing)
     origin_in = header.get("space origin")
     origin = np.zeros(3)

@@ -80,6 +80,7 @@ def read_sitk_file(path: str) -> Volume:
 
     if path.lower().endswith((".nii", ".nii.gz")):
         _check_nifti_complete(path)
+        _check_nifti_spacing(path)
         _warn_if_qform_and_sform_differ(path)
     try:
         image = sitk.ReadImage(path)
@@ -117,10 +118,39 @@ def _check_nifti_complete(path: str) -> None:
         )
 
 
+def _check_nifti_spacing(path: str) -> None:
+    """``ValueError`` when a NIfTI header's voxel sizes (``pixdim[1:4]``) are zero or not
+    finite: SimpleITK reads such a size as 1 mm, which would place and scale the volume
+    silently wrong."""
+    opener: Any = gzip.open if path.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rb") as fh:
+            head = fh.read(540)
+    except (OSError, EOFError, zlib.error):
+        return  # _check_nifti_complete and SimpleITK report an unreadable file
+    for order in ("<", ">"):
+        size = struct.unpack(order + "i", head[:4])[0] if len(head) >= 4 else 0
+        if size == 348 and len(head) >= 348:
+            pixdim = np.array(struct.unpack(order + "3f", head[80:92]), dtype=np.float64)
+            break
+        if size == 540 and len(head) >= 540:
+            pixdim = np.array(struct.unpack(order + "3d", head[112:136]), dtype=np.float64)
+            break
+    else:
+        return  # not a NIfTI header: SimpleITK reports it
+    if not np.all(np.isfinite(pixdim)) or np.any(pixdim == 0):
+        raise ValueError(
+            f"`path`: {path!r} has voxel sizes (pixdim[1:4]) {pixdim.tolist()}; each must be a "
+            "finite non-zero number"
+        )
+
+
 def _warn_if_qform_and_sform_differ(path: str) -> None:
     """Log a warning when a NIfTI-1 header holds a qform and an sform that place the volume
-    differently: ITK (and so o3dreg) places it by the qform, nibabel and some viewers by the
-    sform, so the same file lands in two places depending on the software."""
+    differently: ITK (and so o3dreg) places it by the sform when its code is 1 (scanner
+    anatomy) and by the qform otherwise, other software by its own rule (nibabel by the sform
+    whenever it has a code), so the same file can land in two places depending on the
+    software."""
     opener: Any = gzip.open if path.lower().endswith(".gz") else open
     try:
         with opener(path, "rb") as fh:
@@ -154,12 +184,15 @@ def _warn_if_qform_and_sform_differ(path: str) -> None:
     points = np.array([[0, 0, 0, 1], [*corner, 1]], dtype=np.float64)
     gap = float(np.abs(points @ qform.T - points @ sform.T).max())
     if gap > 1e-3 * max(float(pixdim.max()), 1.0):
+        used, other = ("sform", "qform") if sform_code == 1 else ("qform", "sform")
         logger.warning(
             "%s: the NIfTI header's qform and sform place the volume up to %.3g mm apart; it is "
-            "read by the qform (as ITK reads it), while nibabel and some viewers use the sform: "
-            "check which the scanner meant",
+            "read by the %s (ITK's rule: the sform when its code is 1, else the qform), while "
+            "other software may use the %s: check which the scanner meant",
             path,
             gap,
+            used,
+            other,
         )
 
 
