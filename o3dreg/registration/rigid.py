@@ -118,6 +118,17 @@ DISTINCT_NOISE = 2.0
 #: to be at most this many times the winner's score, so a pose farther than that noise would blur
 #: is distinct without measuring it (the half-turns of a clean target: no cost).
 NOISE_PER_SCORE = 4.0
+#: A near tie on a target whose noise exceeds this fraction of its diagonal is not broken by the
+#: input pose: noise of that size blurs poses a half-turn apart into a tie (the bunny with
+#: isotropic noise of 4-5% of its diagonal per axis, a 1000-vertex template: wrong poses score
+#: within 15% of the right one, or below it), so the tie says nothing of a symmetry and the
+#: input pose nothing of the answer. Up to 3% per axis the right pose wins clearly (runner-ups
+#: score 1.3 times it or more). Measured only where it matters: a tie the input pose would break.
+NOISY_TIE = 0.02
+#: ...and whose winning score is at least this fraction of the measured noise: a faceted shape
+#: (a box) reads as noisy at its corners (:func:`~o3dreg.mesh.noise.noise_level`), while it fits
+#: itself exactly; a noisy target's best fit stays about half its noise away (NOISE_PER_SCORE).
+NOISY_TIE_SCORE = 0.25
 
 
 def surface_moments(
@@ -733,6 +744,13 @@ class _CandidateSearch:
             return True
         return rms > basin + DISTINCT_NOISE * self.noise
 
+    def _blurred(self, score: float) -> bool:
+        """Whether the target's noise, rather than a symmetry, can explain a near tie between
+        poses whose best scores ``score`` (:data:`NOISY_TIE`, :data:`NOISY_TIE_SCORE`)."""
+        if score < NOISY_TIE_SCORE * NOISY_TIE * self.diagonal:
+            return False  # too good a fit for a noisy target: no need to measure the noise
+        return self.noise > NOISY_TIE * self.diagonal and score >= NOISY_TIE_SCORE * self.noise
+
     @cached_property
     def noise(self) -> float:
         """The target's noise (:func:`~o3dreg.mesh.noise.noise_level`), measured on first use."""
@@ -873,9 +891,12 @@ class _CandidateSearch:
                 runner_score, runner_t = finals[1][0], other
         warnings: list[str] = []
         near_tie = runner_score is not None and self._tie(win_score, runner_score)
+        blurred = False
         if near_tie and runner_t is not None:
             turns = (rotation_angle(_pose(finals[0])), rotation_angle(runner_t))
-            if min(turns) <= INPUT_POSE_NEAR and max(turns) >= INPUT_POSE_FAR:
+            near_input = min(turns) <= INPUT_POSE_NEAR and max(turns) >= INPUT_POSE_FAR
+            blurred = self._blurred(win_score)
+            if near_input and not blurred:
                 if turns[1] < turns[0]:  # the runner-up agrees with the input pose: it wins
                     previous = win
                     win, runner_t = finals[1][2], np.asarray(previous.transformation)
@@ -890,10 +911,16 @@ class _CandidateSearch:
                 )
                 near_tie = False
         if near_tie:
+            cause = (
+                f"the target's noise ({100 * self.noise / self.diagonal:.2g}% of its size) blurs "
+                "them, so correspondences may be wrong: denoise the target or start from landmarks"
+                if blurred
+                else "the shape is nearly symmetric, so correspondences may be wrong: start from "
+                "landmarks"
+            )
             warnings.append(
                 f"the rigid start is ambiguous: two distinct poses fit almost equally well "
-                f"(symmetric distances {win_score:.3g} and {runner_score:.3g}); the shape is "
-                "nearly symmetric, so correspondences may be wrong: start from landmarks"
+                f"(symmetric distances {win_score:.3g} and {runner_score:.3g}); {cause}"
             )
             logger.warning("registration_rigid: %s", warnings[-1])
         logger.info(
