@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .._geometry import apply_transformation, bounds, corner_cross
+from .._geometry import apply_transformation, bounds, corner_cross, face_cross, row_norms
 from .._validation import as_mesh_arrays
 from ..mesh.cleaning import mesh_components
 from ..mesh.noise import noise_level
@@ -72,6 +72,15 @@ UNREACHED_AREA_FRACTION = 0.5
 #: hides misfits of its own size: the threshold is at most 7.5% of the diagonal).
 NOISE_ALLOWANCE = 2.0
 NOISE_ALLOWANCE_MAX = 0.5
+#: The areas that decide what an island is are measured through cubes of this many times the
+#: target's noise (:func:`_component_areas`): noise larger than a component's triangles crumples
+#: it and multiplies its area (a copy of the bunny at 0.3 times its size, under noise of 0.5% of
+#: the diagonal per axis, measures 0.84 times the whole bunny's area instead of 0.09), while the
+#: vector area of each cube's patch depends only on the patch's boundary. Measured on that case
+#: (clean areas in brackets): the bunny 53.6k (52.7k), its copy 5.7k (4.7k); cubes of 3 noise
+#: levels leave 64k and 9.5k, of 8 noise levels 48.9k and 4.1k (the curvature within a cube
+#: starts to cancel too). On a clean target the cubes are smaller than its triangles.
+AREA_NOISE = 5.0
 #: Fraction of template vertices the target supports: half is expected when the template
 #: covers twice the target (a face-only scan, a partial bone); below 30% most of the shape is
 #: invented by the regularisation.
@@ -306,14 +315,16 @@ def _distances(
     if backward is None:
         backward = SurfaceDistanceQuery(result.vertices, result.faces).distance(vt)
     b95 = float(np.percentile(backward, 95))
+    noise = 0.0
     if b95 > TARGET_DISTANCE_SUSPECT * diagonal:
-        reached = _reached(result, vt, ft)
+        noise = noise_level(vt, ft)
+        reached = _reached(result, vt, ft, noise)
         if reached is not None:
             diagonal = _diagonal(vt[reached])
             b95 = float(np.percentile(backward[reached], 95))
     threshold = TARGET_DISTANCE_SUSPECT * diagonal
     if b95 > threshold:
-        threshold += min(NOISE_ALLOWANCE * noise_level(vt, ft), NOISE_ALLOWANCE_MAX * threshold)
+        threshold += min(NOISE_ALLOWANCE * noise, NOISE_ALLOWANCE_MAX * threshold)
     if b95 > threshold:
         out.append(
             (
@@ -325,9 +336,10 @@ def _distances(
     return out
 
 
-def _reached(result: Any, vt: np.ndarray, ft: np.ndarray) -> np.ndarray | None:
+def _reached(result: Any, vt: np.ndarray, ft: np.ndarray, noise: float) -> np.ndarray | None:
     """The target vertices of the components the registration reached, when the others are
-    islands it may ignore (:data:`UNREACHED_AREA_FRACTION`); ``None`` to judge them all."""
+    islands it may ignore (:data:`UNREACHED_AREA_FRACTION`, areas measured through the target's
+    ``noise``: :func:`_component_areas`); ``None`` to judge them all."""
     components = mesh_components(vt, ft)
     if len(components) < 2:
         return None
@@ -338,11 +350,33 @@ def _reached(result: Any, vt: np.ndarray, ft: np.ndarray) -> np.ndarray | None:
     face = SurfaceDistanceQuery(vt, ft).closest_few(points)[1]
     used = np.zeros(len(components), dtype=bool)
     used[components.labels[face]] = True
-    if components.areas[~used].sum() > UNREACHED_AREA_FRACTION * components.areas[used].sum():
+    areas = _component_areas(vt, ft, components.labels, len(components), AREA_NOISE * noise)
+    if areas[~used].sum() > UNREACHED_AREA_FRACTION * areas[used].sum():
         return None
     reached = np.zeros(vt.shape[0], dtype=bool)
     reached[ft[used[components.labels]].ravel()] = True
     return reached
+
+
+def _component_areas(
+    vt: np.ndarray, ft: np.ndarray, labels: np.ndarray, count: int, cube: float
+) -> np.ndarray:
+    """The area of each of ``count`` components (``labels``: each triangle's), as the sum over
+    cubes of side ``cube`` of the length of its triangles' summed vector areas there (by their
+    centroids). A patch's vector area depends only on its boundary: the crumple that noise
+    smaller than the cubes puts into a surface cancels out (:data:`AREA_NOISE`). Exact for
+    ``cube`` 0."""
+    cross = face_cross(vt, ft)
+    if not cube > 0.0:
+        return np.bincount(labels, weights=0.5 * row_norms(cross), minlength=count)
+    centroids = (vt[ft[:, 0]] + vt[ft[:, 1]] + vt[ft[:, 2]]) / 3.0
+    keys = np.floor((centroids - bounds(centroids)[0]) / cube).astype(np.int64)
+    _, cell = np.unique(np.column_stack([labels, keys]), axis=0, return_inverse=True)
+    cell = cell.ravel()
+    summed = np.stack([np.bincount(cell, weights=cross[:, k]) for k in range(3)], axis=1)
+    owner = np.zeros(summed.shape[0], dtype=np.int64)
+    owner[cell] = labels
+    return np.bincount(owner, weights=0.5 * row_norms(summed), minlength=count)
 
 
 def _support(result: Any, area_s: float, area_t: float) -> list[tuple[str, str]]:

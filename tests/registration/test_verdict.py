@@ -284,6 +284,47 @@ def test_an_island_the_registration_did_not_reach_is_no_finding(spheres):
     assert any("parts of the target" in w for w in judged.warnings)
 
 
+def test_a_noisy_island_is_measured_through_its_noise(spheres):
+    # A dense island (a sphere of 0.33 times the size, 4000 vertices) under noise of 1% of the
+    # sphere's diagonal per axis, larger than its triangles: the noise crumples it and multiplies
+    # its area, which made it as large as the sphere the registration reached. Its area is
+    # measured through the noise, and the right registration of the sphere stays ok.
+    from o3dreg.registration import verdict
+
+    source, (v, f), result = spheres
+    iv, i_f = _sphere_arrays(4000, 0.33, (150.0, 0.0, 0.0))
+    vt, ft = np.vstack([v, iv]), np.vstack([f, i_f + v.shape[0]])
+    diagonal = np.linalg.norm(np.ptp(v, axis=0))
+    noisy = vt + 0.01 * diagonal * np.random.default_rng(0).normal(size=vt.shape)
+    assert assess_registration(result, source, (noisy, ft)).status == "ok"
+    labels = np.repeat([0, 1], [f.shape[0], i_f.shape[0]])
+    exact = verdict._component_areas(noisy, ft, labels, 2, 0.0)
+    assert exact[1] > 0.5 * exact[0]  # an island no longer, by its crumpled area
+
+
+def test_component_areas_see_through_noise():
+    from o3dreg.mesh.noise import noise_level
+    from o3dreg.registration.verdict import AREA_NOISE, _component_areas
+
+    # A unit square of 200 x 200 cells, each vertex moved off it by noise of 3 cells: its
+    # triangles' areas add up to 32 times the square's; the vector areas summed over cubes of
+    # AREA_NOISE noise levels cancel the crumple within a cube, not the tilt of each cube's
+    # patch as a whole (1.11 times the square's here). Without noise the areas are exact.
+    n = 201
+    x, y = np.meshgrid(np.linspace(0.0, 1.0, n), np.linspace(0.0, 1.0, n), indexing="ij")
+    v = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)])
+    k = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
+    f = np.vstack([np.column_stack([k, k + n, k + 1]), np.column_stack([k + 1, k + n, k + n + 1])])
+    labels = np.zeros(f.shape[0], dtype=np.int64)
+    assert _component_areas(v, f, labels, 1, 0.0)[0] == pytest.approx(1.0, rel=1e-12)
+    noisy = v + np.random.default_rng(0).normal(scale=3.0 / (n - 1), size=v.shape)
+    noise = noise_level(noisy, f)
+    assert _component_areas(noisy, f, labels, 1, 0.0)[0] > 3.0
+    assert _component_areas(noisy, f, labels, 1, AREA_NOISE * noise)[0] == pytest.approx(
+        1.0, rel=0.15
+    )
+
+
 def test_a_noisy_target_is_judged_beyond_its_noise(spheres):
     # The 44 mm sphere with isotropic noise of 5% of its diagonal per axis: its vertices lie off
     # any smooth surface by that much, and the right registration (1.5% of the diagonal) was
