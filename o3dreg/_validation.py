@@ -44,7 +44,13 @@ def as_points(value: Any, name: str, *, allow_empty: bool = False) -> np.ndarray
         value = np.asarray(value.vertices)
     if not isinstance(value, (np.ndarray, list, tuple)):
         raise TypeError(f"`{name}` must be an (n, 3) array of points, got {_describe(value)}")
-    arr = np.asarray(value)
+    try:
+        arr = np.asarray(value)
+    except ValueError:  # rows of different lengths
+        raise ValueError(
+            f"`{name}` must be an (n, 3) array of points, got a {type(value).__name__} whose "
+            "rows differ in length (a (vertices, faces) pair where points are expected?)"
+        ) from None
     if arr.dtype == object or not (
         np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
     ):

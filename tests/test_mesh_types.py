@@ -147,3 +147,21 @@ def test_build_shape_model_refuses_a_template_of_another_size():
     # A list of triangles stays a list of triangles (two of them is not a (V, F) pair).
     model = build_shape_model(shapes, F[:2].tolist())
     np.testing.assert_array_equal(np.asarray(model.mesh().triangles), F[:2])
+
+
+@pytest.mark.parametrize("kind", list(_meshes()))
+def test_default_levels_take_the_template_as_any_mesh_kind(kind):
+    from o3dreg import default_levels
+
+    # The levels depend on the template's vertices only, whatever kind holds them: the 1 x 2 x 3
+    # box's second extent spans 8.9 cells of the 16-cell level, so no fifth level.
+    expected = [lev.resolution for lev in default_levels(V)]
+    assert expected == [2, 4, 8, 16]
+    assert [lev.resolution for lev in default_levels(_meshes()[kind])] == expected
+
+
+def test_points_of_ragged_rows_are_refused_by_name():
+    from o3dreg._validation import as_points
+
+    with pytest.raises(ValueError, match=r"`points` must be an \(n, 3\) array.*rows differ"):
+        as_points([[0.0, 1.0, 2.0], [0.0, 1.0]], "points")

@@ -6,8 +6,9 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+import open3d as o3d
 
-from .._validation import as_points, check_bool, check_positive, check_probability
+from .._validation import as_mesh_arrays, as_points, check_bool, check_positive, check_probability
 from .checkers import BoundaryChecker, CorrespondenceChecker, DistanceChecker, NormalAngleChecker
 from .losses import LOSS_TYPES, RobustLoss, loss_named
 from .terms import BARYCENTRE_WEIGHTINGS, Barycentre, DistanceTerm, PointToSurface
@@ -569,9 +570,10 @@ def cells_across(template: Any, resolution: int, padding: float = 0.1) -> float:
     spans: the lattice is a cube on the largest extent, grown by ``padding`` of it on each side
     (as :func:`~o3dreg.registration_elastic` lays it, up to the target's own extent).
 
-    ``template`` is a triangle mesh or its ``(n, 3)`` vertices.
+    ``template`` is a triangle mesh (any kind ``registration_elastic`` takes, a ``(vertices,
+    faces)`` pair included) or its ``(n, 3)`` vertices.
     """
-    vertices = as_points(template, "template")
+    vertices = _template_vertices(template)
     if vertices.shape[0] < 2:
         return float("inf")
     centred = vertices - vertices.mean(axis=0)
@@ -580,6 +582,17 @@ def cells_across(template: Any, resolution: int, padding: float = 0.1) -> float:
     if extents[0] <= 0.0:
         return float("inf")
     return float(resolution * extents[1] / ((1.0 + 2.0 * padding) * extents[0]))
+
+
+def _template_vertices(template: Any) -> np.ndarray:
+    """The vertices of a template given as a mesh, a ``(vertices, faces)`` pair or points."""
+    if isinstance(template, (tuple, list)):
+        # Two 2-D arrays are a (vertices, faces) pair; points are rows of three numbers.
+        if len(template) == 2 and all(np.ndim(part) == 2 for part in template):
+            return as_mesh_arrays(template, "template")[0]
+    elif not isinstance(template, (np.ndarray, o3d.geometry.PointCloud)):
+        return as_mesh_arrays(template, "template")[0]
+    return as_points(template, "template")
 
 
 def default_levels(template: Any = None) -> list[ElasticLevel]:
@@ -614,8 +627,9 @@ def default_levels(template: Any = None) -> list[ElasticLevel]:
 
     Parameters
     ----------
-    template : open3d.geometry.TriangleMesh or (n, 3) array_like, optional
-        The template the levels are for (only its extents matter).
+    template : triangle mesh, (vertices, faces) or (n, 3) array_like, optional
+        The template the levels are for (only its extents matter): any mesh
+        :func:`~o3dreg.registration_elastic` takes as its source, or its vertices.
 
     Returns
     -------
