@@ -96,6 +96,13 @@ def face_doubled_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out
 
 
+def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """A third of the area of every triangle around each vertex, ``(n,)`` (0 for a vertex of no
+    triangle): the area each vertex stands for; they add up to the surface's area."""
+    third = face_doubled_areas(vertices, faces) / 6.0
+    return np.bincount(faces.ravel(), np.repeat(third, 3), minlength=vertices.shape[0])
+
+
 def _cross_block(cols: list[np.ndarray], faces: np.ndarray) -> np.ndarray:
     corner = [np.ascontiguousarray(faces[:, k]) for k in range(3)]
     a, b, c = ([col[corner[k]] for col in cols] for k in range(3))

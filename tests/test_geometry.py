@@ -1,10 +1,11 @@
 """Small geometric kernels: the same numbers as the plain NumPy expressions of their formulas."""
 
 import numpy as np
+import open3d as o3d
 import pytest
 
 from o3dreg import _geometry
-from o3dreg._geometry import det3, face_cross, face_doubled_areas, row_norms
+from o3dreg._geometry import det3, face_cross, face_doubled_areas, row_norms, vertex_areas
 from o3dreg.mesh.distinct import distinct, distinct_ranks, sort_keys
 
 
@@ -88,3 +89,15 @@ def test_distinct_ranks_are_numpys_unique_inverse():
         _, inverse = np.unique(keys, return_inverse=True)
         np.testing.assert_array_equal(distinct_ranks(keys), inverse.ravel())
     assert distinct_ranks(np.zeros(0, dtype=np.int64)).shape == (0,)
+
+
+def test_vertex_areas_share_every_triangle_in_thirds():
+    # A unit square in two triangles (area 1/2 each) and a vertex of no triangle: the corners
+    # on the diagonal touch both triangles, the others one.
+    v = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [5, 5, 5]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    np.testing.assert_allclose(vertex_areas(v, f), [1 / 3, 1 / 6, 1 / 3, 1 / 6, 0.0], rtol=1e-15)
+    # On any surface they add up to its area.
+    sphere = o3d.geometry.TriangleMesh.create_sphere(2.0, 20)
+    sv, sf = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    np.testing.assert_allclose(vertex_areas(sv, sf).sum(), sphere.get_surface_area(), rtol=1e-12)

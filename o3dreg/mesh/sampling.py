@@ -7,7 +7,7 @@ import numpy as np
 from .._geometry import bounds
 from .distinct import sort_keys
 
-__all__ = ["morton_order", "spatial_subsample"]
+__all__ = ["morton_order", "spatial_subsample", "spatial_subsample_weights"]
 
 
 def spatial_subsample(points: np.ndarray, count: int) -> np.ndarray:
@@ -23,9 +23,35 @@ def spatial_subsample(points: np.ndarray, count: int) -> np.ndarray:
     (k,) int ndarray
         Sorted indices, ``k <= len(points)``; all indices when ``count >= len(points)``.
     """
+    return _subsample(points, count, None)[0]
+
+
+def spatial_subsample_weights(
+    points: np.ndarray, count: int, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The points of :func:`spatial_subsample`, each with the summed ``weights`` of the points of
+    its cell (what it stands for: with vertex areas, the area around it).
+
+    Returns
+    -------
+    indices : (k,) int ndarray
+        As :func:`spatial_subsample`.
+    summed : (k,) float ndarray
+        Per chosen point, the sum of ``weights`` over its cell; ``weights`` itself when every
+        point is kept. The sums add up to ``weights.sum()`` (to rounding).
+    """
+    indices, summed = _subsample(points, count, weights)
+    assert summed is not None
+    return indices, summed
+
+
+def _subsample(
+    points: np.ndarray, count: int, weights: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`spatial_subsample`, and with ``weights`` the sums of :func:`spatial_subsample_weights`."""
     n = points.shape[0]
     if count >= n:
-        return np.arange(n)
+        return np.arange(n), None if weights is None else np.asarray(weights, dtype=np.float64)
     lo, hi = bounds(points)
     extent = float((hi - lo).max()) or 1.0
     # Points on a surface occupy cells in proportion to (extent / cell)^2: start there, then
@@ -56,8 +82,15 @@ def spatial_subsample(points: np.ndarray, count: int) -> np.ndarray:
         # Two points of a cell equally near its centre (rare): the coordinates decide, a total
         # order on distinct points, so the choice does not depend on their numbering.
         order = np.lexsort((points[:, 2], points[:, 1], points[:, 0], offset, flat))
-        return np.sort(order[first])
-    return np.sort(order[best])
+        chosen = order[first]
+    else:
+        chosen = order[best]
+    # Both choices list one point per cell, in the cells' order.
+    by_index = np.argsort(chosen)
+    if weights is None:
+        return chosen[by_index], None
+    summed = np.add.reduceat(np.asarray(weights, dtype=np.float64)[order], starts)
+    return chosen[by_index], summed[by_index]
 
 
 def _spread_bits(bits: int) -> np.ndarray:

@@ -125,6 +125,9 @@ class LevelProblem:
     target_sample : callable, optional
         ``target_sample(per_point)``: target vertices for the terms that measure from the
         target (default all vertices of ``target``).
+    target_areas : callable, optional
+        ``target_areas(per_point)``: the target area each of those points stands for, relative
+        to the mean (default: none given, every point counts alike).
     indices : (n,) int ndarray, optional
         The numbers of ``points`` among the template's vertices (default ``0 .. n-1``).
     symmetric_scale : float
@@ -170,6 +173,7 @@ class LevelProblem:
         energy: str = "bending",
         *,
         target_sample: Callable[[float], np.ndarray] | None = None,
+        target_areas: Callable[[float], np.ndarray] | None = None,
         indices: np.ndarray | None = None,
         symmetric_scale: float = 1.0,
         barycentre_reach: float | None = None,
@@ -221,6 +225,7 @@ class LevelProblem:
             nearest_known,
             float(lattice.cell_size.min()),
             template_mesh,
+            target_areas,
         )
         bound = (term.bind(offered) for term in terms)
         self.distance_terms: list[DistanceTermAtLevel] = [t for t in bound if t is not None]

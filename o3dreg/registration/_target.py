@@ -16,10 +16,11 @@ from functools import cached_property
 
 import numpy as np
 
+from .._geometry import bounds, vertex_areas
 from ..mesh.canonical import canonical_mesh, cluster_vertices, oriented_faces, sorted_triangles
 from ..mesh.cleaning import drop_small_components
 from ..mesh.edges import SortedEdges
-from ..mesh.sampling import spatial_subsample
+from ..mesh.sampling import spatial_subsample_weights
 from .distance import FramedQuery, SurfaceDistanceQuery
 from .result import SurfaceDistances
 from .verdict import Moments, moments
@@ -28,6 +29,9 @@ logger = logging.getLogger("o3dreg")
 
 #: A coarse level measures distances to the target simplified with this many voxels per cell.
 TARGET_VOXELS_PER_CELL = 16.0
+
+#: Subsample points per cell over which the area each stands for is averaged.
+AREA_POINTS = 10.0
 
 
 class TargetSurface:
@@ -45,7 +49,8 @@ class TargetSurface:
         self.query = query
         self.vertices, self.faces = query.vertices, query.faces
         self._details: dict[float, SurfaceDistanceQuery] = {}
-        self._subsamples: dict[int, np.ndarray] = {}
+        # Per budget, the subsample's points and the target area each stands for.
+        self._subsamples: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     @classmethod
     def from_mesh(
@@ -117,12 +122,40 @@ class TargetSurface:
         target's canonical order, along a Morton curve: a batch of nearest-neighbour queries from
         its points visits the tree cache-friendly.
         """
-        if budget in self._subsamples:
-            return self._subsamples[budget]
-        larger = [b for b in self._subsamples if b > budget]
-        source = self._subsamples[min(larger)] if larger else self.vertices
-        self._subsamples[budget] = source.take(spatial_subsample(source, budget), axis=0)
-        return self._subsamples[budget]
+        if budget not in self._subsamples:
+            larger = [b for b in self._subsamples if b > budget]
+            if larger:
+                source, areas = self._subsamples[min(larger)]
+            else:
+                source, areas = self.vertices, vertex_areas(self.vertices, self.faces)
+            keep, summed = spatial_subsample_weights(source, budget, areas)
+            self._subsamples[budget] = source.take(keep, axis=0), summed
+        return self._subsamples[budget][0]
+
+    def subsample_areas(self, budget: int) -> np.ndarray:
+        """The target area each point of :meth:`subsample` ``(budget)`` stands for, relative to
+        their mean: 1 where the target is sampled as evenly as the budget allows.
+
+        A subsample point stands for the vertex areas of its grid cell (summed); those sums are
+        averaged over the points of coarser cells holding about :data:`AREA_POINTS` of them: the
+        sample's density varies where the target's does (a part sampled finer than the budget
+        allows elsewhere), not from one fine cell to the next, whose sums vary by the 1-3
+        vertices a cell happens to hold.
+        """
+        points = self.subsample(budget)
+        areas = self._subsamples[budget][1]
+        total = float(areas.sum())
+        if points.shape[0] < 2 or total <= 0:
+            return np.ones(points.shape[0])
+        # Cells of about AREA_POINTS points on a flat surface.
+        cell = float(np.sqrt(total * AREA_POINTS / points.shape[0]))
+        lo, hi = bounds(points)
+        keys = np.floor((points - lo) / cell).astype(np.int64)
+        dims = np.floor((hi - lo) / cell).astype(np.int64) + 1
+        flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+        _, group = np.unique(flat, return_inverse=True)
+        per_point = np.bincount(group, areas) / np.bincount(group)
+        return per_point[group] / (total / points.shape[0])
 
     @cached_property
     def moments(self) -> Moments:

@@ -337,7 +337,9 @@ class BarycentreTerm(PullTerm):
     ``i`` (``counted``: ``sqrt(w_s * (N / M) * sum_j v_j) * m_i``, ``N`` template and ``M``
     target points, so that the rows weigh what the target points they stand for weigh: the
     block is then the target->template distance ``(N / M) sum_j v_j |t_j - y_i|^2`` up to a
-    constant): a template point with no data of its own gets no row, so data near a cut cannot pull
+    constant; with ``areas`` ``a_j``, the target area each point stands for relative to the
+    mean, ``a_j v_j`` replaces ``v_j`` in the sums and barycentres, so that the block is that
+    distance integrated over the target's area, whatever its sampling): a template point with no data of its own gets no row, so data near a cut cannot pull
     the unsupported part of the template into the covered part. Every template point keeps a
     (possibly zero) row, so the residual vector keeps its length. With ``offsets``,
     ``b_i - offset_i`` replaces ``b_i`` (the template's own Voronoi centroid bias, see
@@ -369,9 +371,13 @@ class BarycentreTerm(PullTerm):
         scale_distances: np.ndarray | None = None,
         template_mesh: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
         cell_size: float = np.inf,
+        areas: np.ndarray | None = None,
     ) -> None:
         super().__init__(assembly)
         self.target_points = target_points
+        # The target area each target point stands for, relative to the mean over the sample
+        # (None: every point alike).
+        self.areas = areas
         # A column per axis: gathered and summed per axis, faster than strided rows.
         self._columns = [np.ascontiguousarray(target_points[:, c]) for c in range(3)]
         # The number of target points the rows are counted against: the whole sample when
@@ -580,9 +586,11 @@ class BarycentreTerm(PullTerm):
         support: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The barycentres ``b_i`` (offsets applied) and row scales ``s_i`` of the assignment
-        ``nearest`` (of every target point) with the target points' robust weights ``v`` and the
-        template points' ``support``."""
+        ``nearest`` (of every target point) with the target points' robust weights ``v`` (times
+        their ``areas``) and the template points' ``support``."""
         n = number_of_points
+        if self.areas is not None:
+            v = self.areas if v is None else v * self.areas
         counts = np.bincount(nearest, minlength=n)
         if v is not None:
             vsum = np.bincount(nearest, v, minlength=n)

@@ -459,6 +459,7 @@ class _Hierarchy:
             level.regularization,
             level.energy,
             target_sample=lambda per_point: self.target_sample(per_point, use.size),
+            target_areas=lambda per_point: self.target_areas(per_point, use.size),
             indices=use,
             symmetric_scale=level.symmetric_scale,
             barycentre_reach=level.barycentre_reach,
@@ -487,6 +488,12 @@ class _Hierarchy:
         # The budget of the whole template first, so that every level's subsample nests in it.
         self.surface.subsample(int(per_point * self.points.shape[0]))
         return self.surface.subsample(int(per_point * count))
+
+    def target_areas(self, per_point: float, count: int) -> np.ndarray:
+        """The target area each point of :meth:`target_sample` stands for, relative to the
+        mean."""
+        self.target_sample(per_point, count)
+        return self.surface.subsample_areas(int(per_point * count))
 
     def voronoi_offsets(self, used: np.ndarray, deformation: LatticeDeformation) -> np.ndarray:
         """The offsets of :func:`_barycentre_offsets` of the template points ``used`` (moved by

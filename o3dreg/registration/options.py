@@ -257,7 +257,9 @@ class DistanceEstimation:
         Weight of template vertex ``i``'s barycentre row. ``'count'`` (default): the number of
         target vertices whose nearest template vertex it is, relative to the mean (``n_i N /
         M``, robust weights summed), so that the term is the target->template distance itself:
-        ``sum_i n_i |y_i - b_i|^2 = sum_j |t_j - y_nn(j)|^2`` minus a constant. A part of the
+        ``sum_i n_i |y_i - b_i|^2 = sum_j |t_j - y_nn(j)|^2`` minus a constant; each target
+        vertex counts with the target area it stands for (relative to the mean), so that a part
+        sampled more finely than the rest weighs its area, not its vertex count. A part of the
         target that the template does not reach yet (a longer condyle, a taller ramus) is
         assigned to the few template vertices on its edge, and pulls them with the weight of
         all its points. ``'uniform'``: one unit per template vertex that has any target vertex

@@ -75,6 +75,9 @@ class TermContext:
     template_mesh : callable or None
         ``template_mesh()``: every template vertex moved by the coarser levels, and the
         template's faces (``None``: not offered).
+    target_areas : callable or None
+        ``target_areas(per_point)``: the target area each point of ``target_sample(per_point)``
+        stands for, relative to their mean (``None``: not offered; every point counts alike).
     """
 
     assembly: NormalAssembly
@@ -88,6 +91,7 @@ class TermContext:
     nearest_known: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None] | None = None
     cell_size: float = np.inf
     template_mesh: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
+    target_areas: Callable[[float], np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
@@ -132,7 +136,9 @@ class Barycentre(DistanceTerm):
     weighting : {'count', 'uniform'}
         Weight of template vertex ``i``'s row. ``'count'`` (default): the number of target
         vertices whose nearest template vertex it is, relative to the mean (robust weights
-        summed), so that the term is the target -> template distance itself up to a constant.
+        summed; each target vertex counted with the target area it stands for, where the level
+        offers it), so that the term is the target -> template distance itself up to a
+        constant.
         ``'uniform'``: one unit per template vertex that has any target vertex (eq. 3 read
         literally); a part of the target the template does not reach yet then pulls as one
         vertex.
@@ -177,6 +183,11 @@ class Barycentre(DistanceTerm):
                 )
             offsets = context.voronoi_offsets()
         sample = context.target_sample(self.target_points_per_source_point)
+        counted = self.weighting == "count"
+        # Counted rows weigh the target area each point stands for (see `weighting`).
+        areas = None
+        if counted and context.target_areas is not None:
+            areas = context.target_areas(self.target_points_per_source_point)
         # Target points over the template's large triangles are left out (see skip_covered).
         template_mesh = context.template_mesh if self.skip_covered else None
         if context.barycentre_reach is None:
@@ -185,9 +196,10 @@ class Barycentre(DistanceTerm):
                 sample,
                 weight,
                 offsets,
-                counted=self.weighting == "count",
+                counted=counted,
                 template_mesh=template_mesh,
                 cell_size=context.cell_size,
+                areas=areas,
             )
         # Only the target points the template does not reach pull; those nowhere near the
         # threshold at the start are left out of every search.
@@ -202,7 +214,7 @@ class Barycentre(DistanceTerm):
             sample.take(candidates, axis=0),
             weight,
             offsets,
-            counted=self.weighting == "count",
+            counted=counted,
             beyond=beyond,
             stands_for=sample.shape[0],
             # Farther than a cell is the coarser levels' to reach: left to them, debris the
@@ -211,4 +223,5 @@ class Barycentre(DistanceTerm):
             scale_distances=distances,
             template_mesh=template_mesh,
             cell_size=context.cell_size,
+            areas=None if areas is None else areas.take(candidates),
         )

@@ -1,6 +1,7 @@
 """Spatial subsampling: even, sized as asked, independent of the vertex order."""
 
 import numpy as np
+import pytest
 from _helpers import morton_code
 
 from o3dreg.app.synthetic import synthetic_form
@@ -103,3 +104,34 @@ def test_morton_order_follows_the_curve_and_breaks_ties_by_coordinates():
     cells10 = np.minimum(((pts - lo) / extent * 1024).astype(np.int64), 1023)
     code10 = morton_code(cells10)[morton_order(pts)]
     assert np.all(np.diff(code10) >= 0)
+
+
+def test_weighted_subsample_sums_each_cells_weights():
+    from o3dreg.mesh.sampling import spatial_subsample_weights
+
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(0.0, 10.0, size=(3000, 3))
+    weights = rng.uniform(0.5, 2.0, size=3000)
+    idx, summed = spatial_subsample_weights(pts, 300, weights)
+    # The same points as the unweighted subsample, and every weight counted once.
+    np.testing.assert_array_equal(idx, spatial_subsample(pts, 300))
+    np.testing.assert_allclose(summed.sum(), weights.sum(), rtol=1e-12)
+    # Unit weights count the points of each cell: the cells partition the points.
+    _, counts = spatial_subsample_weights(pts, 300, np.ones(3000))
+    assert counts.min() >= 1 and counts.sum() == 3000
+    # Renumbering the points moves the weights with them.
+    perm = rng.permutation(3000)
+    idx_p, summed_p = spatial_subsample_weights(pts[perm], 300, weights[perm])
+    by_point = {tuple(p): w for p, w in zip(pts[idx], summed)}
+    for p, w in zip(pts[perm][idx_p], summed_p):
+        assert by_point[tuple(p)] == pytest.approx(w, rel=1e-12)
+
+
+def test_weighted_subsample_keeps_the_weights_when_every_point_is_kept():
+    from o3dreg.mesh.sampling import spatial_subsample_weights
+
+    pts = np.random.default_rng(1).normal(size=(50, 3))
+    weights = np.arange(50.0)
+    idx, summed = spatial_subsample_weights(pts, 50, weights)
+    np.testing.assert_array_equal(idx, np.arange(50))
+    np.testing.assert_array_equal(summed, weights)

@@ -655,3 +655,23 @@ def test_debris_does_not_pull_the_finest_level(bunny_warped):
         for levels in (default_levels(), without)
     ]
     assert errors[0] < 1.1 * errors[1], errors
+
+
+def test_a_densely_sampled_island_pulls_no_more_than_its_area():
+    # A sphere scaled by 1.1 beside an island a third its size, 150 mm away, whose triangles
+    # are 15 times smaller: twice as many vertices as the sphere on a ninth of its area. The
+    # island is kept (it is no debris by area), and its vertices all but fill the barycentre
+    # term's sample. Counted per target vertex, their small robust weights summed on the few
+    # template vertices facing the island pulled those ~5 mm out (1.85 mm mean error); counted
+    # by the area they stand for, the island weighs what a ninth of the target does and the
+    # error stays that of the sphere alone (0.41 mm measured; 0.26 with the island).
+    template = arrays(synthetic_form("sphere", 400))
+    main_v, main_f = arrays(synthetic_form("sphere", 2000))
+    island_v, island_f = arrays(synthetic_form("sphere", 4000))
+    target = (
+        np.concatenate([1.1 * main_v, 0.33 * island_v + [150.0, 0.0, 0.0]]),
+        np.concatenate([main_f, island_f + len(main_v)]),
+    )
+    result = registration_elastic(template, target, init=np.eye(4))
+    error = np.linalg.norm(result.vertices - 1.1 * template[0], axis=1)
+    assert error.mean() < 0.6 and error.max() < 1.5, (error.mean(), error.max())

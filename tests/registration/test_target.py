@@ -207,3 +207,43 @@ def test_patches_wound_the_other_way_are_turned_to_their_piece_majority():
     reference = TargetSurface.from_mesh(v, expected)
     np.testing.assert_array_equal(target.faces, reference.faces)
     np.testing.assert_array_equal(target.vertices, reference.vertices)
+
+
+def grid_patch(x0: float, x1: float, spacing: float):
+    """A flat rectangle ``[x0, x1] x [0, 100]`` (z = 0) triangulated on a square grid."""
+    xs = np.arange(x0, x1 + spacing / 2, spacing)
+    ys = np.arange(0.0, 100.0 + spacing / 2, spacing)
+    x, y = np.meshgrid(xs, ys, indexing="ij")
+    v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    k = np.arange(x.size).reshape(x.shape)[:-1, :-1].ravel()
+    ny = ys.size
+    f = np.concatenate([np.stack([k, k + ny, k + ny + 1], 1), np.stack([k, k + ny + 1, k + 1], 1)])
+    return v, f
+
+
+def test_subsample_points_stand_for_the_area_around_them():
+    # Two halves of equal area, one sampled 16 times as densely: the budget is more than the
+    # sparse half has vertices, so the subsample takes all of those and fills up with the dense
+    # half. Counted per point, the sparse half would weigh a quarter of the sample; by the
+    # areas its points stand for, half (to the cells straddling the seam, a few percent).
+    dense, sparse = grid_patch(0.0, 50.0, 0.5), grid_patch(50.0 + 1e-6, 100.0, 2.0)
+    v = np.concatenate([dense[0], sparse[0]])
+    f = np.concatenate([dense[1], sparse[1] + len(dense[0])])
+    target = TargetSurface.from_mesh(v, f)
+    points = target.subsample(10000)
+    areas = target.subsample_areas(10000)
+    assert areas.shape == (points.shape[0],)
+    right = points[:, 0] > 50.0
+    assert right.sum() < 0.25 * points.shape[0]
+    assert abs(areas[right].sum() / areas.sum() - 0.5) < 0.05
+    np.testing.assert_allclose(areas.mean(), 1.0, rtol=1e-12)
+
+
+def test_an_evenly_sampled_target_gives_its_subsample_even_areas():
+    target = TargetSurface.from_mesh(*sphere(10.0, 60))
+    for budget in (2000, 500):
+        areas = target.subsample_areas(budget)
+        # Cells of ~10 points: their sums vary with how a cell cuts the sphere, by tens of
+        # percent, not by the factor of a density change.
+        low, high = np.percentile(areas, [5, 95])
+        assert 0.6 < low and high < 1.6
