@@ -48,7 +48,8 @@ def spatial_subsample_weights(
 def _subsample(
     points: np.ndarray, count: int, weights: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """:func:`spatial_subsample`, and with ``weights`` the sums of :func:`spatial_subsample_weights`."""
+    """:func:`spatial_subsample`, and with ``weights`` the sums of
+    :func:`spatial_subsample_weights`."""
     n = points.shape[0]
     if count >= n:
         return np.arange(n), None if weights is None else np.asarray(weights, dtype=np.float64)

@@ -339,8 +339,9 @@ class BarycentreTerm(PullTerm):
     block is then the target->template distance ``(N / M) sum_j v_j |t_j - y_i|^2`` up to a
     constant; with ``areas`` ``a_j``, the target area each point stands for relative to the
     mean, ``a_j v_j`` replaces ``v_j`` in the sums and barycentres, so that the block is that
-    distance integrated over the target's area, whatever its sampling): a template point with no data of its own gets no row, so data near a cut cannot pull
-    the unsupported part of the template into the covered part. Every template point keeps a
+    distance integrated over the target's area, whatever its sampling): a template point with
+    no data of its own gets no row, so data near a cut cannot pull the unsupported part of the
+    template into the covered part. Every template point keeps a
     (possibly zero) row, so the residual vector keeps its length. With ``offsets``,
     ``b_i - offset_i`` replaces ``b_i`` (the template's own Voronoi centroid bias, see
     ``elastic._barycentre_offsets``). Its share of ``J^T J`` is ``s_i^2 I`` per point.

@@ -382,8 +382,9 @@ def registration_rigid(
     refined at ``max_correspondence_distance`` with all points and scored again, and so is the
     best distinct other pose unless it scored more than :data:`RUNNER_UP_REFINED` times the
     winner. The input pose is also refined where it lies, on all points, and wins if it scores
-    best (:data:`INPUT_POSE_REFINED`). The lower score wins. Each ICP runs on one thread (the starts side by side, see
-    :data:`SEARCH_THREADS`), so the same input gives a bit-identical pose.
+    best (:data:`INPUT_POSE_REFINED`). The lower score wins. Each ICP runs on one thread (the
+    starts side by side, see :data:`SEARCH_THREADS`), so the same input gives a bit-identical
+    pose.
     A target of more than :data:`LARGE_TARGET` vertices is aligned to in a copy simplified by
     vertex clustering to about :data:`DETAIL_VERTICES` vertices (``fitness``, ``inlier_rmse``
     and the scores are measured on it).
