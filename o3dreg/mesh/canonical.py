@@ -11,8 +11,7 @@ import igl
 import numpy as np
 
 from .._geometry import bounds, face_doubled_areas
-from .distinct import distinct_ranks
-from .sampling import morton_order
+from .sampling import morton_order, voxel_ranks
 
 __all__ = ["canonical_mesh", "cluster_vertices", "oriented_faces", "sorted_triangles"]
 
@@ -79,15 +78,7 @@ def cluster_vertices(
     :func:`canonical_mesh` sorts them) and with each mean summed in input order (Open3D sums in
     the order of a hash set, which the platform's standard library decides).
     """
-    lo = bounds(vertices)[0] - 0.5 * voxel
-    keys = np.floor((vertices - lo) / voxel).astype(np.int64)
-    dims = bounds(keys)[1] + 1
-    if float(np.prod(dims, dtype=np.float64)) < 2.0**62:
-        flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-        cluster = distinct_ranks(flat)
-    else:  # a voxel tiny for the extent: rows of keys
-        _, cluster = np.unique(keys, axis=0, return_inverse=True)
-    cluster = cluster.ravel()
+    cluster = voxel_ranks(vertices, voxel, bounds(vertices)[0] - 0.5 * voxel)
     count = np.bincount(cluster)
     v = np.stack([np.bincount(cluster, weights=vertices[:, k]) / count for k in range(3)], axis=1)
     order = morton_order(v)

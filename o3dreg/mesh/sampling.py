@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from .._geometry import bounds
-from .distinct import sort_keys
+from .distinct import distinct_ranks, sort_keys
 
-__all__ = ["morton_order", "spatial_subsample", "spatial_subsample_weights"]
+__all__ = ["morton_order", "spatial_subsample", "spatial_subsample_weights", "voxel_ranks"]
 
 
 def spatial_subsample(points: np.ndarray, count: int) -> np.ndarray:
@@ -92,6 +92,21 @@ def _subsample(
         return chosen[by_index], None
     summed = np.add.reduceat(np.asarray(weights, dtype=np.float64)[order], starts)
     return chosen[by_index], summed[by_index]
+
+
+def voxel_ranks(points: np.ndarray, voxel: float, origin: np.ndarray) -> np.ndarray:
+    """The voxel of every point on a grid of cubes of side ``voxel`` whose first corner is
+    ``origin`` (at or below every point): ranks ``0 .. k-1`` of the ``k`` occupied voxels, in the
+    order of their keys (x slowest), so that points share a rank exactly when they share a voxel.
+    """
+    keys = np.floor((points - origin) / voxel).astype(np.int64)
+    dims = bounds(keys)[1] + 1
+    if float(np.prod(dims, dtype=np.float64)) < 2.0**62:
+        flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+        return distinct_ranks(flat)
+    # A voxel tiny for the extent: rows of keys (the same order).
+    _, ranks = np.unique(keys, axis=0, return_inverse=True)
+    return np.asarray(ranks).ravel()
 
 
 def _spread_bits(bits: int) -> np.ndarray:

@@ -20,7 +20,7 @@ from .._geometry import bounds, vertex_areas
 from ..mesh.canonical import canonical_mesh, cluster_vertices, oriented_faces, sorted_triangles
 from ..mesh.cleaning import drop_small_components
 from ..mesh.edges import SortedEdges
-from ..mesh.sampling import spatial_subsample_weights
+from ..mesh.sampling import spatial_subsample_weights, voxel_ranks
 from .distance import FramedQuery, SurfaceDistanceQuery
 from .result import SurfaceDistances
 from .verdict import Moments, moments
@@ -49,8 +49,10 @@ class TargetSurface:
         self.query = query
         self.vertices, self.faces = query.vertices, query.faces
         self._details: dict[float, SurfaceDistanceQuery] = {}
-        # Per budget, the subsample's points and the target area each stands for.
+        # Per budget, the subsample's points and the target area each stands for (summed per
+        # cell), and those areas as :meth:`subsample_areas` gives them.
         self._subsamples: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._relative_areas: dict[int, np.ndarray] = {}
 
     @classmethod
     def from_mesh(
@@ -142,20 +144,21 @@ class TargetSurface:
         allows elsewhere), not from one fine cell to the next, whose sums vary by the 1-3
         vertices a cell happens to hold.
         """
+        if budget in self._relative_areas:
+            return self._relative_areas[budget]
         points = self.subsample(budget)
         areas = self._subsamples[budget][1]
         total = float(areas.sum())
         if points.shape[0] < 2 or total <= 0:
-            return np.ones(points.shape[0])
-        # Cells of about AREA_POINTS points on a flat surface.
-        cell = float(np.sqrt(total * AREA_POINTS / points.shape[0]))
-        lo, hi = bounds(points)
-        keys = np.floor((points - lo) / cell).astype(np.int64)
-        dims = np.floor((hi - lo) / cell).astype(np.int64) + 1
-        flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-        _, group = np.unique(flat, return_inverse=True)
-        per_point = np.bincount(group, areas) / np.bincount(group)
-        return per_point[group] / (total / points.shape[0])
+            relative = np.ones(points.shape[0])
+        else:
+            # Cells of about AREA_POINTS points on a flat surface.
+            cell = float(np.sqrt(total * AREA_POINTS / points.shape[0]))
+            group = voxel_ranks(points, cell, bounds(points)[0])
+            per_point = np.bincount(group, areas) / np.bincount(group)
+            relative = per_point[group] / (total / points.shape[0])
+        self._relative_areas[budget] = relative
+        return relative
 
     @cached_property
     def moments(self) -> Moments:
