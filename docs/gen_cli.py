@@ -31,6 +31,10 @@ Exit status:
 | **130** | interrupted (Ctrl-C, SIGINT): one line; finished files are kept, no partial file |
 | **143** | terminated (SIGTERM): as for SIGINT |
 
+Both hold from the moment o3dreg's package starts loading (its libraries take one to two seconds
+before the command line is read) until the process ends. Only a signal within the Python
+interpreter's own start, the first few tens of milliseconds, ends it by the signal.
+
 Outputs: no existing file is replaced unless `--overwrite` is given; two outputs of one command
 never share a path; an output never names one of the command's inputs (even with
 `--overwrite`); every output's suffix, folder and write permission are checked before any work.

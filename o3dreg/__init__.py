@@ -20,6 +20,11 @@ import warnings
 from types import ModuleType
 from typing import Any
 
+# Before the libraries load (seconds): the command ends cleanly on a signal meanwhile.
+from . import _startup
+
+_startup.guard()
+
 __version__ = "0.1.0"
 
 logging.getLogger("o3dreg").addHandler(logging.NullHandler())

@@ -762,6 +762,65 @@ def test_interrupts_during_a_registration_never_kill_by_signal(tmp_path):
     assert sum(o[3] in (130, 143) for o in outcomes) >= 20, outcomes
 
 
+def _seconds_to_run(code: str) -> float:
+    start = time.perf_counter()
+    subprocess.run(
+        [sys.executable, "-c", code], check=True, env={**os.environ, "PYTHONPATH": str(ROOT)}
+    )
+    return time.perf_counter() - start
+
+
+def test_a_signal_while_the_command_starts_up_ends_it_cleanly(tmp_path):
+    # The libraries load for a second or two before the command line is read; a signal then
+    # must end `python -m o3dreg` as one during the command does. The delays spread over that
+    # load, measured here, after the interpreter's own start (which no package can guard).
+    write_triangle_mesh(tmp_path / "t.ply", sphere(40))
+    write_triangle_mesh(tmp_path / "p.ply", sphere(80))
+    bare = _seconds_to_run("pass")
+    # The shorter of two loads: the first may read the libraries from a cold disk cache.
+    loading = min(_seconds_to_run("import o3dreg") for _ in range(2)) - bare
+    assert loading > 0.2, loading  # else the tries below would not land inside the load
+    expected = {signal.SIGINT: (130, "interrupted"), signal.SIGTERM: (143, "terminated")}
+    outcomes = []
+    for k, (sig, share) in enumerate(
+        (sig, share) for sig in expected for share in (0.1, 0.25, 0.4, 0.55, 0.7)
+    ):
+        out = tmp_path / f"run{k}"
+        out.mkdir()
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "o3dreg", "register", str(tmp_path / "t.ply"),
+             str(tmp_path / "p.ply"), "-o", str(out / "r.ply"), "--report", str(out / "r.json")],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+            # As from a terminal: SIGINT not ignored, whatever the suite was started from.
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )  # fmt: skip
+        time.sleep(2 * bare + share * loading)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=120)
+        outcomes.append((sig.name, share, proc.returncode))
+        if proc.returncode in (0, 1):  # a load faster than measured: done before the signal
+            continue
+        status, word = expected[sig]
+        assert proc.returncode == status, (outcomes, err[-2000:])
+        assert [line for line in err.splitlines() if "o3dreg" in line] == [
+            f"o3dreg register: {word}"
+        ], err[-2000:]
+        assert list(out.iterdir()) == []
+    assert sum(o[2] in (130, 143) for o in outcomes) >= 8, outcomes
+
+
+def test_importing_o3dreg_keeps_the_programs_signal_handlers():
+    code = (
+        "import signal; signal.signal(signal.SIGTERM, signal.SIG_IGN); import o3dreg; "
+        "assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN; "
+        "assert signal.getsignal(signal.SIGINT) is signal.default_int_handler"
+    )
+    subprocess.run(
+        [sys.executable, "-c", code], check=True, env={**os.environ, "PYTHONPATH": str(ROOT)}
+    )
+
+
 def test_native_output_stays_off_stdout_so_json_is_valid(tmp_path):
     # Open3D and RPly print on file descriptor 1; inside the CLI that goes to stderr.
     done = python(

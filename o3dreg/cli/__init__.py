@@ -17,7 +17,7 @@ import warnings
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NoReturn, TextIO
 
-from .. import __version__
+from .. import __version__, _startup
 from . import _demo, _model, _reconstruct, _register, _view
 
 # Each sub-command module defines ``add_parser(subparsers)`` which registers itself with a
@@ -139,7 +139,9 @@ def _signals_and_streams(ending: bool = False) -> Iterator[None]:
     (an embedding program, a test capturing output).
     """
     main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
+    previous = None
+    if main_thread:
+        previous = _startup.hand_over(signal.signal(signal.SIGTERM, _on_sigterm))
     try:
         real = sys.stdout.fileno() == 1
     except (AttributeError, OSError, ValueError):
@@ -201,7 +203,12 @@ def console() -> NoReturn:
     first gives the signals their default actions back, then frees the libraries' objects for
     tens of milliseconds, during which a signal would end it by the signal. Every file of the
     command is closed by then; the logs and standard streams are flushed here."""
-    status = main(ending=True)
+    try:
+        status = main(ending=True)
+    except SystemExit as done:  # argparse's --help, --version and usage errors
+        if isinstance(done.code, str):
+            print(done.code, file=sys.stderr)
+        status = done.code if isinstance(done.code, int) else int(done.code is not None)
     try:
         logging.shutdown()
         sys.stdout.flush()
