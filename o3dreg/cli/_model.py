@@ -19,6 +19,7 @@ from ..app.model_folder import build_model_folder, check_inputs_outside, existin
 from ..io import json_text
 from ..io.landmark_files import LANDMARK_SUFFIXES
 from ..io.mesh import read_triangle_mesh
+from ..registration.options import ElasticLevel
 from ..shape.landmark_transfer import (
     PREDICTION_ONTO,
     landmark_errors,
@@ -36,6 +37,7 @@ from ._common import (
     all_or_nothing,
     check_outputs,
     emit,
+    int_list,
     positive_int,
     process_pool,
     standard_deviations,
@@ -177,6 +179,14 @@ def add_parser(subparsers: Any) -> None:
         choices=PREDICTION_ONTO,
         default="registration",
         help="how the fitted instance is brought onto the patient surface (default registration)",
+    )
+    fit.add_argument(
+        "--registration-levels",
+        type=int_list,
+        default=None,
+        help="cells per axis of each level of that registration, coarse to fine (--onto "
+        "registration; default the default levels from 8 cells on; levels given here weigh "
+        "the barycentre term fully, as register's --levels)",
     )
     add_json_option(fit)
     fit.set_defaults(func=run_fit)
@@ -380,6 +390,11 @@ def run_fit(args: argparse.Namespace) -> int:
         inputs={"--landmarks": args.landmarks, "--truth": args.truth, "PATIENT": args.patient},
         suffixes={"--output": LANDMARK_SUFFIXES},
     )
+    if args.registration_levels is not None and args.onto != "registration":
+        raise ValueError(
+            f"--registration-levels sets the registration of --onto registration, "
+            f"got --onto {args.onto}"
+        )
     model = _load(args.model_dir)
     if _is_statismo(args.model_dir):
         # A statismo file's reference mesh is its mean: the landmarks are placed on it.
@@ -406,6 +421,9 @@ def run_fit(args: argparse.Namespace) -> int:
         onto=args.onto,
         number_of_modes=args.modes,
         regularization=args.regularization,
+        registration_options=None
+        if args.registration_levels is None
+        else {"levels": [ElasticLevel(r) for r in args.registration_levels]},
     )
     errors = None
     if truth_file is not None:
@@ -446,6 +464,7 @@ def run_fit(args: argparse.Namespace) -> int:
                 "source_to_target_mean": d.source_to_target_mean,
                 "target_to_source_mean": d.target_to_source_mean,
                 "seconds": sum(level.seconds for level in registration.levels),
+                "levels": [level.resolution for level in registration.levels],
             }
         if errors is not None:
             out["errors"] = dict(zip(prediction.labels, errors.tolist()))

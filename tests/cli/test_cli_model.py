@@ -95,6 +95,22 @@ def test_build_model_info_modes_fit(files, capsys):
         result["fit"]["status"], result["registration"]["status"]
     )
     assert code == (0 if result["status"] == "ok" else 1)
+    assert result["registration"]["levels"] == [8, 16]  # the default levels from 8 cells on
+    code = main(
+        [
+            "model", "fit", str(out), str(files / "p5.ply"), "--landmarks",
+            str(files / "lm.mrk.json"), "--truth", str(files / "truth.csv"),
+            "--registration-levels", "4,8", "--json",
+        ]
+    )  # fmt: skip
+    levels = json.loads(capsys.readouterr().out)
+    assert levels["registration"]["levels"] == [4, 8] and levels["mean_error"] < 3.0
+    # Levels for a registration that does not run are refused, naming both options.
+    fit_closest = ["model", "fit", str(out), str(files / "p5.ply"), "--onto", "closest"]
+    assert main([*fit_closest, "--landmarks", str(files / "lm.mrk.json"),
+                 "--registration-levels", "8"]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert "--registration-levels" in err and "--onto closest" in err
     code = main(
         [
             "model", "fit", str(out), str(files / "p5.ply"), "--landmarks",
