@@ -299,10 +299,9 @@ class SurfaceDistanceQuery:
         when ``(p - r) . o`` exceeds a tenth of the mean edge plus :data:`RIM_MARGIN_NOISE`
         noise levels (:func:`~o3dreg.mesh.noise.noise_level`, along the boundary). On a clean
         flat surface that is :meth:`beyond_boundary`'s rule, which holds where the boundary's
-        noise is at most :data:`RIM_NOISY_EDGES` of the mean edge: no point is outside then.
-        Only points at most the smoothing radius farther from the boundary than from the
-        surface (``distances``) are asked: a point over the surface far from its boundary is
-        not beyond it, whatever the boundary's direction.
+        noise is at most :data:`RIM_NOISY_EDGES` of the mean edge: no point is outside then. Only points at most that radius farther from the
+        boundary than from the surface (``distances``) are asked: a point over the surface far
+        from its boundary is not beyond it, whatever the boundary's direction.
 
         Returns
         -------
