@@ -7,7 +7,7 @@ import numpy as np
 __all__ = ["noise_level"]
 
 
-def noise_level(vertices: np.ndarray, faces: np.ndarray, at: np.ndarray | None = None) -> float:
+def noise_level(vertices: np.ndarray, faces: np.ndarray) -> float:
     """A surface's noise: about the standard deviation of its vertices off a smooth surface.
 
     Each vertex's offset from the mean of its triangles' other corners, along its normal, is
@@ -25,10 +25,6 @@ def noise_level(vertices: np.ndarray, faces: np.ndarray, at: np.ndarray | None =
     normal_f = np.cross(b - a, c - a)
     counts = np.bincount(faces.ravel(), minlength=n).astype(np.float64)
     used = counts > 0
-    if at is not None:
-        used = np.zeros(n, dtype=bool)
-        used[at] = True
-        used &= counts > 0
     corners = faces.ravel()
     others = np.stack([b + c, c + a, a + b], axis=1).reshape(-1, 3)
     normals_f = np.repeat(normal_f, 3, axis=0)

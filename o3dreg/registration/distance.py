@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
 
@@ -12,7 +11,6 @@ from scipy.spatial import cKDTree
 
 from .._geometry import apply_transformation, barycentric, face_cross, into_frame, row_norms
 from ..mesh.edges import SortedEdges
-from ..mesh.noise import noise_level
 
 __all__ = ["FramedQuery", "SurfaceDistanceQuery"]
 
@@ -26,28 +24,6 @@ CLOSEST_FEW_MIN_FACES = 200_000
 #: surface towards the data; a tenth of an edge only absorbs rounding (the cut targets of
 #: docs/robustness.md measure both).
 BEYOND_BOUNDARY_TOLERANCE = 0.1
-
-
-#: :meth:`SurfaceDistanceQuery.outside_boundary` takes the boundary's outward direction from
-#: the surface within this many mean edges of a boundary vertex, or this many noise levels where
-#: that is more: enough surface for the noise to average out of the direction.
-RIM_SMOOTHING_EDGES = 4.0
-RIM_SMOOTHING_NOISE = 6.0
-
-#: A point is outside the boundary when it lies beyond it by more than a tenth of the mean edge
-#: (:data:`BEYOND_BOUNDARY_TOLERANCE`) plus this many noise levels: the noise moves the boundary
-#: itself by about one.
-RIM_MARGIN_NOISE = 2.0
-
-#: A boundary is noisy, and :meth:`SurfaceDistanceQuery.outside_boundary` judges points beyond
-#: it, where its noise exceeds this share of the mean edge (triangles along it tilted by a
-#: fifth of a radian or more); the clean bunny's holes measure 0.06, noise of 0.2% / 0.5% /
-#: 1% of its diagonal 0.21 / 0.35 / 0.45.
-RIM_NOISY_EDGES = 0.2
-
-#: Surface vertices (at most) the boundary's outward directions are averaged over: a strided
-#: share of a larger surface.
-RIM_POINTS = 250_000
 
 
 class SurfaceDistanceQuery:
@@ -286,104 +262,6 @@ class SurfaceDistanceQuery:
         dist, face, closest = self.closest(points)
         return dist, face, closest, ~self.beyond_boundary(points, face, closest)
 
-    def outside_boundary(self, points: np.ndarray, distances: np.ndarray) -> np.ndarray:
-        """Which points lie outside the open boundary, judged through the surface's noise.
-
-        On a noisy surface the triangles along a cut are tilted by the noise: a point far
-        beyond the cut finds its closest point inside one of them, not on the open edge, and
-        :meth:`beyond_boundary` takes it as having data. Here the boundary's nearest point
-        ``r`` (on the open edges at the point's three nearest boundary vertices) and the
-        outward direction ``o`` at the nearest boundary vertex (from the centroid of the
-        surface vertices within :data:`RIM_SMOOTHING_EDGES` mean edges or
-        :data:`RIM_SMOOTHING_NOISE` noise levels of it, to it) decide: the point is outside
-        when ``(p - r) . o`` exceeds a tenth of the mean edge plus :data:`RIM_MARGIN_NOISE`
-        noise levels (:func:`~o3dreg.mesh.noise.noise_level`, along the boundary). On a clean
-        flat surface that is :meth:`beyond_boundary`'s rule, which holds where the boundary's
-        noise is at most :data:`RIM_NOISY_EDGES` of the mean edge: no point is outside then. Only points at most that radius farther from the
-        boundary than from the surface (``distances``) are asked: a point over the surface far
-        from its boundary is not beyond it, whatever the boundary's direction.
-
-        Returns
-        -------
-        (k,) bool ndarray
-        """
-        pts = np.ascontiguousarray(points, dtype=np.float64)
-        outside = np.zeros(pts.shape[0], dtype=bool)
-        if pts.shape[0] == 0 or not self.has_boundary:
-            return outside
-        if self._boundary_noise <= RIM_NOISY_EDGES * self.mean_edge:
-            return outside  # the closest-point rule holds: beyond_boundary
-        rim = self._rim
-        k = min(3, rim.vertices.size)
-        gap, nearest = rim.tree.query(pts, k=k)
-        gap, nearest = gap.reshape(-1, k), nearest.reshape(-1, k)
-        # The boundary is no nearer than its nearest vertex less the longest open edge.
-        asked = np.flatnonzero(gap[:, 0] - rim.longest <= distances + rim.radius)
-        if asked.size == 0:
-            return outside
-        p = pts[asked]
-        segments = rim.segments[nearest[asked]].reshape(asked.size, -1)
-        valid = segments >= 0
-        s = np.where(valid, segments, 0)
-        a, b = self.vertices[rim.ends[0][s]], self.vertices[rim.ends[1][s]]
-        ab = b - a
-        along = np.einsum("ijk,ijk->ij", p[:, None, :] - a, ab)
-        t = np.clip(along / np.maximum(np.einsum("ijk,ijk->ij", ab, ab), 1e-300), 0.0, 1.0)
-        foot = a + t[..., None] * ab
-        d = np.linalg.norm(p[:, None, :] - foot, axis=2)
-        d[~valid] = np.inf
-        j = np.argmin(d, axis=1)
-        rows = np.arange(asked.size)
-        near = d[rows, j] <= distances[asked] + rim.radius
-        offset = ((p - foot[rows, j]) * rim.outward[nearest[asked, 0]]).sum(axis=1)
-        outside[asked] = near & (offset > rim.margin)
-        return outside
-
-    @cached_property
-    def _boundary_noise(self) -> float:
-        """The noise along the open boundary: measured at the vertices one edge inside it
-        (whose triangles are all among those around them), not over the whole surface."""
-        v, f = self.vertices, self.faces
-        inside = np.zeros(v.shape[0], dtype=bool)
-        inside[f[self._touches_boundary].ravel()] = True
-        inside &= ~self.open_edges[1]
-        return noise_level(v, f[inside[f].any(axis=1)], at=np.flatnonzero(inside))
-
-    @cached_property
-    def _rim(self) -> _Rim:
-        """The open boundary as :meth:`outside_boundary` reads it (computed once)."""
-        open_edge, on_boundary = self.open_edges
-        v, f = self.vertices, self.faces
-        triangle, slot = np.nonzero(open_edge)
-        ends = (f[triangle, (slot + 1) % 3], f[triangle, (slot + 2) % 3])
-        vertices = np.flatnonzero(on_boundary)
-        # Per boundary vertex, the open edges it ends (-1 where it ends fewer than the most).
-        rank = np.full(v.shape[0], -1, dtype=np.int64)
-        rank[vertices] = np.arange(vertices.size)
-        corner = rank[np.concatenate(ends)]
-        edge = np.tile(np.arange(triangle.size), 2)
-        order = np.argsort(corner, kind="stable")
-        corner, edge = corner[order], edge[order]
-        count = np.bincount(corner, minlength=vertices.size)
-        first = np.cumsum(count) - count
-        segments = np.full((vertices.size, max(int(count.max()), 1)), -1, dtype=np.int64)
-        segments[corner, np.arange(corner.size) - first[corner]] = edge
-        noise = self._boundary_noise
-        radius = max(RIM_SMOOTHING_EDGES * self.mean_edge, RIM_SMOOTHING_NOISE * noise)
-        # Outward: from the centroid of the surface near a boundary vertex (which the noise
-        # moves little) to the vertex.
-        share = v[:: max(1, -(-v.shape[0] // RIM_POINTS))]
-        surface, count = _ball_means(cKDTree(share), share, v[vertices], radius)
-        outward = np.where(count[:, None] > 0, v[vertices] - surface, 0.0)
-        length = row_norms(outward)[:, None]
-        outward = outward / np.where(length > 0, length, 1.0)
-        lengths = self._edge_lengths
-        longest = max(float(lengths[k][open_edge[:, k]].max(initial=0.0)) for k in range(3))
-        margin = BEYOND_BOUNDARY_TOLERANCE * self.mean_edge + RIM_MARGIN_NOISE * noise
-        return _Rim(
-            ends, segments, vertices, cKDTree(v[vertices]), outward, radius, margin, longest
-        )
-
     @cached_property
     def _touches_boundary(self) -> np.ndarray:
         """Per triangle: whether an edge or a corner of it lies on the open boundary."""
@@ -410,36 +288,6 @@ class SurfaceDistanceQuery:
             hit[vertex_hit] |= on_boundary[corners[vertex_hit, corner]]
         beyond[off] = hit
         return beyond
-
-
-def _ball_means(
-    tree: Any, points: np.ndarray, centres: np.ndarray, radius: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """The mean of the ``points`` (indexed by ``tree``) within ``radius`` of each centre, and
-    their number (a mean of 0 where there are none)."""
-    balls = tree.query_ball_point(centres, radius, return_sorted=False)
-    sizes = np.array([len(ball) for ball in balls], dtype=np.int64)
-    members = np.concatenate([np.asarray(ball, dtype=np.int64) for ball in balls])
-    owner = np.repeat(np.arange(centres.shape[0]), sizes)
-    sums = np.stack([np.bincount(owner, points[members, c], centres.shape[0]) for c in range(3)])
-    return sums.T / np.maximum(sizes, 1)[:, None], sizes
-
-
-@dataclass(frozen=True)
-class _Rim:
-    """A surface's open boundary for :meth:`SurfaceDistanceQuery.outside_boundary`: the open
-    edges' two ends, per boundary vertex the open edges it ends (``-1`` padded), those vertices,
-    their k-d tree and outward directions, the smoothing radius, the margin beyond the boundary
-    and the longest open edge."""
-
-    ends: tuple[np.ndarray, np.ndarray]
-    segments: np.ndarray
-    vertices: np.ndarray
-    tree: Any
-    outward: np.ndarray
-    radius: float
-    margin: float
-    longest: float
 
 
 class FramedQuery(SurfaceDistanceQuery):

@@ -44,7 +44,7 @@ from .._validation import (
 from ..mesh.distinct import distinct
 from ..mesh.sampling import morton_order, spatial_subsample
 from ._cost import LevelProblem, bound_masks
-from ._robust import BoundaryMask, support
+from ._robust import support
 from ._solvers import SolveInfo, solve
 from ._target import TARGET_VOXELS_PER_CELL, TargetSurface
 from ._terms import BarycentreTerm
@@ -539,12 +539,6 @@ class _Hierarchy:
             normals = self.orientation * vertex_normals(moved, self.faces)
         sigma = None if last is None else last.sigma
         masks = bound_masks(self.checkers, CheckerContext(query, normals=normals, sigma=sigma))
-        supported = support(masks, moved, *found)
-        if query.has_boundary and any(isinstance(m, BoundaryMask) for m in masks):
-            # Judged, not pulled: the levels keep pulling vertices whose closest point lies
-            # inside a noisy boundary's triangles (a far start is pulled back that way), while
-            # the result counts those outside the boundary as without data.
-            supported &= ~query.outside_boundary(moved, found[0])
         return _Fit(
             deformation=deformation,
             moved=moved,
@@ -553,7 +547,7 @@ class _Hierarchy:
             forward=found[0],
             # Whether each template vertex has data: the masks of the last level, on all
             # vertices and the full target at the final positions.
-            supported=supported,
+            supported=support(masks, moved, *found),
             det=float(deformation.jacobian_determinant(points).min())
             if deformation.levels
             else 1.0,
