@@ -16,7 +16,7 @@ import sys
 import threading
 from typing import Any
 
-__all__ = ["guard", "hand_over"]
+__all__ = ["guard", "hand_over", "is_the_command"]
 
 #: Exit status and word of each signal, as the command's own handlers end it.
 _ENDINGS = {signal.SIGINT: (130, "interrupted"), signal.SIGTERM: (143, "terminated")}
