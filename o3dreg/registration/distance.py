@@ -18,6 +18,10 @@ __all__ = ["FramedQuery", "SurfaceDistanceQuery"]
 #: (a fraction of a second).
 CLOSEST_FEW_MIN_FACES = 200_000
 
+#: ... or when it has at least this many triangles per query point (a handful of points on a
+#: template: the tree of the triangles near them costs a third of the whole surface's).
+CLOSEST_FEW_FACES_PER_POINT = 64
+
 #: A point whose closest surface point lies on the open boundary is beyond it when its offset
 #: along the surface exceeds this fraction of the mean edge. A tolerance pulls every template
 #: vertex within it onto the rim, and through the lattice drags its neighbours along the
@@ -120,11 +124,14 @@ class SurfaceDistanceQuery:
         triangles with such a corner gives the same distances and closest points as the full
         tree (the minimum over a set holding the closest triangle, computed the same way); where
         several triangles are exactly as close (a closest point on a shared edge or corner) it may
-        name another of them. Small surfaces, surfaces whose tree is built, and queries that
-        would gather a quarter of the triangles use the full tree.
+        name another of them. Surfaces whose tree is built, small surfaces queried at more than
+        one point per :data:`CLOSEST_FEW_FACES_PER_POINT` triangles, and queries that would
+        gather a quarter of the triangles use the full tree.
         """
         pts = np.ascontiguousarray(points, dtype=np.float64)
-        if self.has_tree or pts.shape[0] == 0 or self.faces.shape[0] < CLOSEST_FEW_MIN_FACES:
+        m = self.faces.shape[0]
+        few = pts.shape[0] * CLOSEST_FEW_FACES_PER_POINT <= m
+        if self.has_tree or pts.shape[0] == 0 or (m < CLOSEST_FEW_MIN_FACES and not few):
             return self.closest(pts)
         _, reach = self.edge_measures
         used = np.flatnonzero(reach > 0)  # the corners of triangles: the others bound nothing

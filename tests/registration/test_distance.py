@@ -69,6 +69,27 @@ def test_few_queries_without_the_tree_find_the_same_points(sphere, monkeypatch):
     assert few_query.has_tree
 
 
+def test_a_handful_of_points_on_a_small_surface_skips_its_tree(sphere):
+    # Below CLOSEST_FEW_MIN_FACES triangles, a query of at most one point per
+    # CLOSEST_FEW_FACES_PER_POINT of them (a fine level's few target points on the template) is
+    # answered by the tree of the triangles near the points; more points build the whole tree.
+    v, f = sphere
+    assert f.shape[0] < distance.CLOSEST_FEW_MIN_FACES
+    rng = np.random.default_rng(4)
+    # 20 points off one cap of the sphere (few, and near few triangles).
+    cap = v[np.argsort(v[:, 2])[-400:]]
+    pts = 1.05 * cap[rng.choice(len(cap), 20)]
+    query = SurfaceDistanceQuery(v, f)
+    few = query.closest_few(pts)
+    assert not query.has_tree
+    full = SurfaceDistanceQuery(v, f).closest(pts)
+    assert_same_closest(few, full, query, pts)
+    # One point more than a CLOSEST_FEW_FACES_PER_POINT-th of the triangles: the whole tree.
+    many = f.shape[0] // distance.CLOSEST_FEW_FACES_PER_POINT + 1
+    query.closest_few(np.repeat(pts, -(-many // len(pts)), axis=0)[:many])
+    assert query.has_tree
+
+
 def test_vertices_of_no_triangle_bound_nothing(sphere, monkeypatch):
     # An unreferenced vertex next to a query point is not on the surface: its distance must not
     # be taken as a bound on the distance to the surface.

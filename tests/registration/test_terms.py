@@ -382,12 +382,15 @@ def brute_force_nearest(points: np.ndarray, sites: np.ndarray) -> tuple[np.ndarr
     return d[np.arange(points.shape[0]), nearest], nearest
 
 
-def test_the_barycentre_assignment_is_exact_along_any_path():
+@pytest.mark.parametrize("cell_size", [np.inf, 30.0, 4.0, 0.5])
+def test_the_barycentre_assignment_is_exact_along_any_path(cell_size):
     # The term re-searches only the target points whose nearest template point may have changed
     # since their last search (and within a radius that held last time): along a path of small
     # steps, large jumps, moves back and a far excursion (which empties that radius for most
     # points), every assignment must be the brute-force one. A radius reset for every point
     # after one of them missed it once let the others keep stale assignments (up to 2 mm off).
+    # With a lattice cell, the moves are also summed near each target point (LocalMoves): cubes
+    # larger than the sites' spread, about their spacing, and far smaller.
     from o3dreg.registration._terms import BarycentreTerm
 
     rng = np.random.default_rng(3)
@@ -397,7 +400,7 @@ def test_the_barycentre_assignment_is_exact_along_any_path():
     targets[:50, 2] = 0.0
     sites[0, 2] = 3.0
     sites[1, 2] = -3.0
-    term = BarycentreTerm(None, targets, 1.0)  # type: ignore[arg-type]  # no linearisation here
+    term = BarycentreTerm(None, targets, 1.0, cell_size=cell_size)  # type: ignore[arg-type]
     y = sites.copy()
     path = []
     for step in range(12):
@@ -412,6 +415,43 @@ def test_the_barycentre_assignment_is_exact_along_any_path():
         expected_distance, expected = brute_force_nearest(targets, y)
         np.testing.assert_array_equal(nearest, expected)
         np.testing.assert_allclose(distance, expected_distance, rtol=1e-12)
+
+
+def test_a_move_of_one_part_searches_the_target_points_near_it_only(monkeypatch):
+    # Steps of the left fifth of a flat template leave the rest where it was: with the moves
+    # summed near each target point (a lattice cell given), the target points far from the left
+    # keep their assignment unsearched; with the largest move anywhere (no cell) they are
+    # searched again too. The assignments are the brute-force ones either way.
+    from o3dreg.registration import _terms
+
+    searched: list[int] = []
+    search = _terms._nearest_two
+
+    def counted(tree, points, k, bound):
+        searched.append(points.shape[0])
+        return search(tree, points, k, bound)
+
+    monkeypatch.setattr(_terms, "_nearest_two", counted)
+    rng = np.random.default_rng(5)
+    grid = np.stack(np.meshgrid(*[np.arange(0.0, 100.0, 4.0)] * 2, indexing="ij"), -1)
+    sites = np.column_stack([grid.reshape(-1, 2), np.zeros(grid[..., 0].size)])
+    targets = np.column_stack([rng.uniform(0, 96, (20000, 2)), rng.normal(0, 0.5, 20000)])
+    moves = [rng.normal(0, 0.3, sites.shape) * (sites[:, :1] < 20.0) for _ in range(4)]
+    total = {}
+    for cell in (np.inf, 20.0):
+        term = _terms.BarycentreTerm(None, targets, 1.0, cell_size=cell)  # type: ignore[arg-type]
+        y = sites.copy()
+        term.measure(y)
+        searched.clear()
+        for move in moves:
+            y = y + move
+            distance, nearest = term.measure(y)
+            expected_distance, expected = brute_force_nearest(targets, y)
+            np.testing.assert_array_equal(nearest, expected)
+            np.testing.assert_allclose(distance, expected_distance, rtol=1e-12)
+        total[cell] = sum(searched)
+    # The moved fifth and the cubes around it: well under half of what the global bound sends.
+    assert total[20.0] < 0.5 * total[np.inf]
 
 
 @pytest.mark.parametrize("robust", [False, True])
