@@ -559,11 +559,11 @@ class BarycentreTerm(PullTerm):
             # The nearest point has come at most its own path nearer or farther, any other at
             # most the largest path nearer (anywhere, or near this target point).
             own = self._path.take(self._nearest) - self._path_mark
-            moved = own + (self._moved - self._mark) >= self._gap
+            may_change = own + (self._moved - self._mark) >= self._gap
             if self._local is not None:
                 self._local.step(y, step)
-                moved &= own + self._local.since(self._local_mark) >= self._local_gap
-            search = np.flatnonzero(moved)
+                may_change &= own + self._local.since(self._local_mark) >= self._local_gap
+            search = np.flatnonzero(may_change)
         self._last = y.copy()
         return search if search.size else None
 
