@@ -852,14 +852,17 @@ class _CandidateSearch:
         method: Any,
         criteria: Any,
     ) -> list[tuple[float, str, Any]]:
-        """The winner refined, and the runner-up refined where it could still win; best first."""
-        winner_job = pool.submit(self.refine, _pose(best), method, criteria)
+        """The winner refined, and the runner-up refined where it could still win; best first.
+        The input pose refined in place is a refinement already, scored as one."""
+        winner_job = None
+        if best[1] != INPUT_POSE_REFINED:
+            winner_job = pool.submit(self.refine, _pose(best), method, criteria)
         # A runner-up likely to need refining (by the search scores) is refined beside the
         # winner; the rule below, on the winner's refined score, decides.
         runner_job = None
         if runner is not None and runner[0] < RUNNER_UP_REFINED * best[0]:
             runner_job = pool.submit(self.refine, _pose(runner), method, criteria)
-        finals = [self._refined(best, winner_job.result())]
+        finals = [best if winner_job is None else self._refined(best, winner_job.result())]
         if runner is not None:
             # A runner-up far behind keeps its search pose and score: no refinement brings it
             # within AMBIGUITY_RATIO of the winner (see RUNNER_UP_REFINED), so it cannot win.

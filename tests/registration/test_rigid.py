@@ -255,9 +255,9 @@ class IcpSpy:
 def test_the_refinement_stops_at_a_fixed_point_of_icp(bunny_template, bunny_target, monkeypatch):
     # The refinement of a pose found by the search stops within a few bursts, where ICP's
     # correspondences alternate and its RMSE test would never fire (Open3D's 50 iterations).
-    # The input pose, 35 degrees off, is also refined in place (on the centred clouds: a start
-    # without rotation); that run starts far away and is left out here.
-    target = moved(bunny_target, known_transform())
+    # The input pose, 120 degrees off (a searched pose wins), is also refined in place (on the
+    # centred clouds: a start without rotation); that run starts far away and is left out here.
+    target = moved(bunny_target, known_transform(120.0))
     spy = IcpSpy(monkeypatch)
     result = registration_rigid(bunny_template, target)
     full = len(target.vertices)
@@ -308,11 +308,24 @@ def test_a_runner_up_far_behind_is_not_refined(bunny_template, bunny_target, mon
     from o3dreg.registration.rigid import RUNNER_UP_REFINED
 
     refinements = count_refinements(monkeypatch)
-    result = registration_rigid(bunny_template, moved(bunny_target, known_transform()))
+    result = registration_rigid(bunny_template, moved(bunny_target, known_transform(120.0)))
     # The bunny's other poses score ~3.6 times the winner: only the winner is refined (and the
     # input pose, in place, beside the search).
     assert result.runner_up_score > RUNNER_UP_REFINED * result.score
     assert len(refinements) == 2
+
+
+def test_the_input_pose_refined_in_place_is_not_refined_again(
+    bunny_template, bunny_target, monkeypatch
+):
+    # 35 degrees off, the input pose refined in place (beside the search) wins: it is a
+    # refinement on all points already, so it is the only one; the pose is the known one.
+    refinements = count_refinements(monkeypatch)
+    truth = known_transform()
+    result = registration_rigid(bunny_template, moved(bunny_target, truth))
+    assert len(refinements) == 1
+    # The bunny's decimated template fits the whole bunny to ~0.02 of a matrix entry (mm).
+    np.testing.assert_allclose(result.transformation, truth, atol=0.05)
 
 
 def test_a_near_tie_refines_both_poses(monkeypatch):
@@ -324,7 +337,9 @@ def test_a_near_tie_refines_both_poses(monkeypatch):
     refinements = count_refinements(monkeypatch)
     result = registration_rigid(cube, moved(synthetic_form("cube", 3000), turn))
     assert result.runner_up_score < RUNNER_UP_REFINED * result.score
-    assert len(refinements) == 3  # both, and the input pose in place
+    # Both: the runner-up, and the input pose in place, which wins here (45 degrees is within
+    # ICP's basin on a cube) and is not refined twice.
+    assert len(refinements) == 2
 
 
 def count_aabb_trees(monkeypatch):
