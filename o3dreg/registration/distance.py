@@ -18,8 +18,9 @@ __all__ = ["FramedQuery", "SurfaceDistanceQuery"]
 #: (a fraction of a second).
 CLOSEST_FEW_MIN_FACES = 200_000
 
-#: ... or when it has at least this many triangles per query point (a handful of points on a
-#: template: the tree of the triangles near them costs a third of the whole surface's).
+#: Unless it has at least this many triangles per query point: a handful of points (a fine
+#: level's cover check on the template) are answered by the tree of the triangles near them,
+#: built in a third of the whole surface's time.
 CLOSEST_FEW_FACES_PER_POINT = 64
 
 #: A point whose closest surface point lies on the open boundary is beyond it when its offset
