@@ -98,6 +98,11 @@ def keep_triangles(mesh: o3d.geometry.TriangleMesh, keep: np.ndarray) -> o3d.geo
     return out
 
 
+def moved_mesh(mesh: o3d.geometry.TriangleMesh, vertices: np.ndarray) -> o3d.geometry.TriangleMesh:
+    """``mesh``'s triangles on the ``vertices`` given."""
+    return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), mesh.triangles)
+
+
 def cut_top(
     mesh: o3d.geometry.TriangleMesh, fraction: float
 ) -> tuple[o3d.geometry.TriangleMesh, float]:
@@ -373,7 +378,7 @@ def noisy_cut(case, fraction: float, noise: float, seed: int):
     v = np.asarray(cut.vertices)
     rng = np.random.default_rng(seed)
     v = v + rng.normal(size=v.shape) * noise * case.diagonal / np.sqrt(3)
-    target = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), cut.triangles)
+    target = moved_mesh(cut, v)
     return target, case.truth[:, 1] <= level
 
 
@@ -425,20 +430,6 @@ def noisy_cuts_table() -> None:
         )
 
 
-def joined(a: o3d.geometry.TriangleMesh, b: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
-    """The two meshes as one (``b``'s vertices numbered after ``a``'s)."""
-    va, vb = np.asarray(a.vertices), np.asarray(b.vertices)
-    fa, fb = np.asarray(a.triangles), np.asarray(b.triangles)
-    return o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(np.vstack([va, vb])),
-        o3d.utility.Vector3iVector(np.vstack([fa, fb + va.shape[0]]).astype(np.int32)),
-    )
-
-
-def moved_mesh(mesh: o3d.geometry.TriangleMesh, vertices: np.ndarray) -> o3d.geometry.TriangleMesh:
-    return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), mesh.triangles)
-
-
 def verdict_scenarios(case) -> list[tuple[str, o3d.geometry.TriangleMesh, np.ndarray]]:
     """(name, target, which template vertices remain) of ``--verdict``."""
     v = np.asarray(case.target.vertices)
@@ -450,14 +441,14 @@ def verdict_scenarios(case) -> list[tuple[str, o3d.geometry.TriangleMesh, np.nda
     centre = v.mean(axis=0)
     along_x = np.array([case.diagonal, 0.0, 0.0])
     island = moved_mesh(case.target, centre + 0.3 * (v - centre) + 0.6 * along_x)
-    out.append(("island 30% at 0.6 diagonals", joined(case.target, island), every))
+    out.append(("island 30% at 0.6 diagonals", case.target + island, every))
     rng = np.random.default_rng(0)
     for noise in (0.0058, 0.029, 0.05):
         noisy = v + rng.normal(size=v.shape) * noise * case.diagonal
         out.append((f"noise {100 * noise:.2g}% per axis", moved_mesh(case.target, noisy), every))
     for shift in (0.01, 0.1, 0.2, 0.3):
         copy = moved_mesh(case.target, v + shift * along_x)
-        out.append((f"two copies {int(100 * shift)}% apart", joined(case.target, copy), every))
+        out.append((f"two copies {int(100 * shift)}% apart", case.target + copy, every))
     return out
 
 
