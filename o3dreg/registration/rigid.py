@@ -87,6 +87,17 @@ INPUT_POSE_REFINED = "input pose, refined in place"
 #: full surfaces, so a few hundred source points pick the same winners as many more.
 SEARCH_POINTS = 1000
 SEARCH_SOURCE_POINTS = 500
+#: The search from many starts pairs points up to 4 times ``max_correspondence_distance`` apart
+#: (a wide basin); with the default point-to-plane estimation it weighs each pair by Tukey's
+#: biweight of width this many times ``max_correspondence_distance`` (pairs beyond it count
+#: nothing), so that the template's parts without data on a partial target, paired with its rim
+#: or another part, do not drag the pose. The bunny's parts under noise of up to 1% of the
+#: diagonal, turned at random (``bench_robust.py --turned-parts``): 1 wrong pose in 128 against
+#: 6 unweighted, whose wrong winners scored 25-41% above the right pose refined (no start had
+#: reached its basin); under 2% noise half of them are lost either way. Whole targets keep their
+#: poses; a partial one's search takes about 25% longer. A width of 1 lost the bottom 30% of the
+#: bunny (its far starts' pairs all weighed nothing).
+SEARCH_KERNEL_WIDTH = 2.0
 #: The runner-up is refined (as the winner is) only when its score from the search is below this
 #: factor times the winner's refined score: the refinement changes a pose's score by a few
 #: percent, far less than a pose twice as far would need to come within AMBIGUITY_RATIO of the
@@ -378,7 +389,8 @@ def registration_rigid(
 
     Without ``init``, every pose of :func:`rigid_candidates` is refined by ICP (at four times
     ``max_correspondence_distance``, a subsample of the source against a coarse copy of the
-    target) and scored by the symmetric surface distance on the whole target; the best pose is
+    target; with the default estimation, each pair weighed by Tukey's biweight,
+    :data:`SEARCH_KERNEL_WIDTH`) and scored by the symmetric surface distance on the whole target; the best pose is
     refined at ``max_correspondence_distance`` with all points and scored again, and so is the
     best distinct other pose unless it scored more than :data:`RUNNER_UP_REFINED` times the
     winner. The input pose is also refined where it lies, on all points, and wins if it scores
@@ -513,12 +525,17 @@ def _registration_rigid(
         max_correspondence_distance = check_positive(
             max_correspondence_distance, "max_correspondence_distance"
         )
+    search_method = None
     if estimation_method is None:
         estimation_method = (
             reg.TransformationEstimationPointToPoint(with_scaling=True)
             if with_scaling
             else reg.TransformationEstimationPointToPlane()
         )
+        if not with_scaling:
+            search_method = reg.TransformationEstimationPointToPlane(
+                reg.TukeyLoss(SEARCH_KERNEL_WIDTH * max_correspondence_distance)
+            )
     elif not isinstance(estimation_method, reg.TransformationEstimation):
         raise TypeError(
             "`estimation_method` must be an open3d.pipelines.registration.TransformationEstimation,"
@@ -533,7 +550,7 @@ def _registration_rigid(
         )
     with _single_thread():
         search = _CandidateSearch(
-            vs, fs, vt, ft, max_correspondence_distance, diagonal, target_query
+            vs, fs, vt, ft, max_correspondence_distance, diagonal, target_query, search_method
         )
         if given:
             final = search.refine(candidates[0][1], estimation_method, criteria)
@@ -631,8 +648,12 @@ class _CandidateSearch:
         max_correspondence_distance: float,
         diagonal: float,
         target_query: SurfaceDistanceQuery | None = None,
+        search_method: Any = None,
     ) -> None:
         self.vs, self.fs = vs, fs
+        # The estimation of the search from many starts (SEARCH_KERNEL_WIDTH); None: the
+        # refinement's.
+        self.search_method = search_method
         # ICP runs on centred copies: Open3D's point-to-plane step linearises the rotation about
         # the origin, which fails far from it (a patient 1e4 mm away diverged to fitness 0).
         self.cs, self.ct = vs.mean(axis=0), vt.mean(axis=0)
@@ -813,7 +834,7 @@ class _CandidateSearch:
                 self.coarse,
                 4.0 * self.distance,
                 guess,
-                method,
+                self.search_method or method,
                 criteria,
                 SEARCH_STILL,
             )
