@@ -390,11 +390,12 @@ def registration_rigid(
     Without ``init``, every pose of :func:`rigid_candidates` is refined by ICP (at four times
     ``max_correspondence_distance``, a subsample of the source against a coarse copy of the
     target; with the default estimation, each pair weighed by Tukey's biweight,
-    :data:`SEARCH_KERNEL_WIDTH`) and scored by the symmetric surface distance on the whole target; the best pose is
-    refined at ``max_correspondence_distance`` with all points and scored again, and so is the
-    best distinct other pose unless it scored more than :data:`RUNNER_UP_REFINED` times the
-    winner. The input pose is also refined where it lies, on all points, and wins if it scores
-    best (:data:`INPUT_POSE_REFINED`). The lower score wins. Each ICP runs on one thread (the
+    :data:`SEARCH_KERNEL_WIDTH`) and scored by the symmetric surface distance on the whole
+    target; the best pose is refined at ``max_correspondence_distance`` with all points and
+    scored again, and so is the best distinct other pose unless it scored more than
+    :data:`RUNNER_UP_REFINED` times the winner. The input pose is also refined where it lies,
+    on all points, and wins if it scores best (:data:`INPUT_POSE_REFINED`). The lower score
+    wins. Each ICP runs on one thread (the
     starts side by side, see :data:`SEARCH_THREADS`), so the same input gives a bit-identical
     pose.
     A target of more than :data:`LARGE_TARGET` vertices is aligned to in a copy simplified by
