@@ -490,10 +490,6 @@ def verdict_table() -> None:
         )
 
 
-#: Parts of ``--turned-parts``: which target triangles each keeps (by their centroids).
-TURNED_PARTS = ("whole", "top 20% cut", "top 40% cut", "front half", "side half")
-
-
 def turned_parts_table(width: float | None) -> None:
     """The rigid step alone on bunny parts under noise, turned at random (see ``--turned-parts``)."""
     from _cases import template_of
@@ -513,6 +509,7 @@ def turned_parts_table(width: float | None) -> None:
     c = v[f].mean(axis=1)
     lo, hi = v.min(axis=0), v.max(axis=0)
     mid = 0.5 * (lo + hi)
+    # The parts: which triangles each keeps (by their centroids).
     keeps = {
         "whole": np.ones(f.shape[0], dtype=bool),
         "top 20% cut": c[:, 1] <= hi[1] - 0.2 * (hi[1] - lo[1]),
@@ -528,12 +525,12 @@ def turned_parts_table(width: float | None) -> None:
           f"{'unflagged wrong':>17}")  # fmt: skip
     totals = np.zeros(5, dtype=int)
     start = time.perf_counter()
-    for name in TURNED_PARTS:
+    for name, keep in keeps.items():
+        part = keep_triangles(bunny, keep)
         for noise in (0.0, 0.005, 0.01, 0.02):
             counts = np.zeros(5, dtype=int)
             for seed in (0, 1):
                 rng = np.random.default_rng(1000 * seed + int(1000 * noise))
-                part = keep_triangles(bunny, keeps[name])
                 pv = np.asarray(part.vertices)
                 pv = pv + rng.normal(size=pv.shape) * noise * diagonal / np.sqrt(3)
                 for _ in range(4):
