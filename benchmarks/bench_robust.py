@@ -506,16 +506,13 @@ def turned_parts_table(width: float | None) -> None:
     vs = np.asarray(template.vertices)
     v, f = np.asarray(bunny.vertices), np.asarray(bunny.triangles)
     diagonal = float(np.linalg.norm(np.ptp(v, axis=0)))
-    c = v[f].mean(axis=1)
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    mid = 0.5 * (lo + hi)
-    # The parts: which triangles each keeps (by their centroids).
-    keeps = {
-        "whole": np.ones(f.shape[0], dtype=bool),
-        "top 20% cut": c[:, 1] <= hi[1] - 0.2 * (hi[1] - lo[1]),
-        "top 40% cut": c[:, 1] <= hi[1] - 0.4 * (hi[1] - lo[1]),
-        "front half": c[:, 0] <= mid[0],
-        "side half": c[:, 2] > mid[2],
+    centroids = v[f].mean(axis=1)
+    parts = {
+        "whole": bunny,
+        "top 20% cut": cut_top(bunny, 0.2)[0],
+        "top 40% cut": cut_top(bunny, 0.4)[0],
+        "front half": front_half(bunny)[0],
+        "side half": keep_triangles(bunny, centroids[:, 2] > 0.5 * (v[:, 2].min() + v[:, 2].max())),
     }
     print(
         f"bunny parts, 3k-vertex template, rigid step only; search kernel width "
@@ -525,8 +522,7 @@ def turned_parts_table(width: float | None) -> None:
           f"{'unflagged wrong':>17}")  # fmt: skip
     totals = np.zeros(5, dtype=int)
     start = time.perf_counter()
-    for name, keep in keeps.items():
-        part = keep_triangles(bunny, keep)
+    for name, part in parts.items():
         for noise in (0.0, 0.005, 0.01, 0.02):
             counts = np.zeros(5, dtype=int)
             for seed in (0, 1):
