@@ -22,6 +22,35 @@ def moved(mesh, t):
     return out
 
 
+def bunny_part(bunny, *, cut, noise, noise_seed, warp_seed=None, turn_seed=None):
+    """The bunny without the top ``cut`` of its height (y), under Gaussian noise of ``noise`` times
+    its diagonal per axis: ``(vertices, faces)`` and the rigid turn applied to it. Optionally
+    warped first (a smooth warp of 5% of the diagonal, ``warp_seed``) and turned at random about
+    its centroid (``turn_seed``) before the noise is added."""
+    from o3dreg.app.synthetic import SmoothWarp
+
+    v, f = np.asarray(bunny.vertices), np.asarray(bunny.triangles)
+    diagonal = float(np.linalg.norm(np.ptp(v, axis=0)))
+    if warp_seed is not None:
+        v = SmoothWarp.random(v, magnitude=0.05, seed=warp_seed)(v)
+    keep = (v[f][:, :, 1] < v[:, 1].max() - cut * np.ptp(v[:, 1])).all(axis=1)
+    used, faces = np.unique(f[keep], return_inverse=True)
+    turn = np.eye(4)
+    if turn_seed is not None:
+        turn[:3, :3] = Rotation.random(random_state=turn_seed).as_matrix()
+        centre = v.mean(axis=0)
+        turn[:3, 3] = centre - turn[:3, :3] @ centre
+    shake = np.random.default_rng(noise_seed).normal(size=(used.size, 3)) * noise * diagonal
+    return (v[used] @ turn[:3, :3].T + turn[:3, 3] + shake, faces.reshape(-1, 3)), turn
+
+
+def benchmark_template(bunny):
+    """The benchmarks' 3k-vertex template decimated from the bunny."""
+    template = bunny.simplify_quadric_decimation(6000)
+    template.remove_unreferenced_vertices()
+    return template
+
+
 def test_surface_moments_of_a_sphere():
     mesh = synthetic_form("sphere", 3000)
     area, centroid, cov = surface_moments(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
@@ -634,18 +663,8 @@ def test_a_noisy_partial_scan_near_its_pose_keeps_that_pose(bunny_target, cut, n
     # coarse copy, left that basin: the winners were 53 (unflagged), 67 and 15 degrees off. The
     # input pose refined in place stays in it (measured 4-10 degrees: the warp, the cut and the
     # noise leave the best rigid fit a few degrees from the identity).
-    from o3dreg.app.synthetic import SmoothWarp
-
-    template = bunny_target.simplify_quadric_decimation(6000)
-    template.remove_unreferenced_vertices()
-    v, f = np.asarray(bunny_target.vertices), np.asarray(bunny_target.triangles)
-    diagonal = float(np.linalg.norm(np.ptp(v, axis=0)))
-    v = SmoothWarp.random(v, magnitude=0.05, seed=1)(v)
-    height = v[:, 1].max() - v[:, 1].min()
-    keep = (v[f][:, :, 1] < v[:, 1].max() - cut * height).all(axis=1)
-    used, faces = np.unique(f[keep], return_inverse=True)
-    noisy = v[used] + np.random.default_rng(seed).normal(size=(used.size, 3)) * noise * diagonal
-    result = registration_rigid(template, (noisy, faces.reshape(-1, 3)))
+    target, _ = bunny_part(bunny_target, cut=cut, noise=noise, noise_seed=seed, warp_seed=1)
+    result = registration_rigid(benchmark_template(bunny_target), target)
     assert rotation_angle(np.asarray(result.transformation)) < 12.0
 
 
@@ -669,22 +688,10 @@ def test_a_turned_noisy_half_is_found_from_sampled_starts(bunny_target):
     # named starts alone the winner was 169 degrees off, without the ambiguity warning; a
     # sampled start finds the right pose (6.6 degrees: the warp and the noise leave the best
     # rigid fit a few degrees from the truth).
-    from o3dreg.app.synthetic import SmoothWarp
-
-    template = bunny_target.simplify_quadric_decimation(6000)
-    template.remove_unreferenced_vertices()
-    v, f = np.asarray(bunny_target.vertices), np.asarray(bunny_target.triangles)
-    diagonal = float(np.linalg.norm(np.ptp(v, axis=0)))
-    v = SmoothWarp.random(v, magnitude=0.05, seed=1)(v)
-    keep = (v[f][:, :, 1] < v[:, 1].min() + 0.5 * np.ptp(v[:, 1])).all(axis=1)
-    used, faces = np.unique(f[keep], return_inverse=True)
-    turn = np.eye(4)
-    turn[:3, :3] = Rotation.random(random_state=103).as_matrix()
-    centre = v.mean(axis=0)
-    turn[:3, 3] = centre - turn[:3, :3] @ centre
-    noise = np.random.default_rng(3).normal(size=(used.size, 3)) * 0.005 * diagonal
-    half = v[used] @ turn[:3, :3].T + turn[:3, 3] + noise
-    result = registration_rigid(template, (half, faces.reshape(-1, 3)))
+    half, turn = bunny_part(
+        bunny_target, cut=0.5, noise=0.005, noise_seed=3, warp_seed=1, turn_seed=103
+    )
+    result = registration_rigid(benchmark_template(bunny_target), half)
     assert rotation_angle(np.asarray(result.transformation) @ np.linalg.inv(turn)) < 15.0
 
 
@@ -700,18 +707,9 @@ def test_the_search_weighs_away_the_pairs_of_a_partial_targets_missing_part(
     # the best rigid fit a little off the truth).
     from o3dreg.registration import rigid
 
-    template = bunny_target.simplify_quadric_decimation(6000)
-    template.remove_unreferenced_vertices()
-    v, f = np.asarray(bunny_target.vertices), np.asarray(bunny_target.triangles)
-    diagonal = float(np.linalg.norm(np.ptp(v, axis=0)))
-    keep = (v[f][:, :, 1] < v[:, 1].max() - 0.4 * np.ptp(v[:, 1])).all(axis=1)
-    used, faces = np.unique(f[keep], return_inverse=True)
-    turn = np.eye(4)
-    turn[:3, :3] = Rotation.random(random_state=turned).as_matrix()
-    centre = v.mean(axis=0)
-    turn[:3, 3] = centre - turn[:3, :3] @ centre
-    noise = np.random.default_rng(turned).normal(size=(used.size, 3)) * 0.01 * diagonal
-    part = (v[used] @ turn[:3, :3].T + turn[:3, 3] + noise / np.sqrt(3), faces.reshape(-1, 3))
+    template = benchmark_template(bunny_target)
+    noise = 0.01 / np.sqrt(3.0)  # 1% of the diagonal in all
+    part, turn = bunny_part(bunny_target, cut=0.4, noise=noise, noise_seed=turned, turn_seed=turned)
 
     def off(result) -> float:
         return rotation_angle(np.asarray(result.transformation) @ np.linalg.inv(turn))
