@@ -103,7 +103,6 @@ def level_problem(
         terms=terms,
         regularization=regularization,
         energy=energy,
-        target_sample=lambda per_point: target[0],
         **options,
     )
 

@@ -50,7 +50,7 @@ from .checkers import CheckerContext, CorrespondenceChecker, bound_masks
 from .distance import SurfaceDistanceQuery
 from .lattice import TrilinearLattice
 from .losses import L2Loss, RobustLoss
-from .terms import DistanceTerm, TermContext
+from .terms import DistanceTerm, TargetSamples, TermContext, WholeTarget
 
 __all__ = ["SCALE_FLOOR", "Evaluation", "LevelProblem", "bound_masks"]
 
@@ -122,12 +122,10 @@ class LevelProblem:
         The regulariser's ``lambda``.
     energy : {'bending', 'membrane'}
         The regulariser's finite differences (see :class:`~o3dreg.ElasticLevel`).
-    target_sample : callable, optional
-        ``target_sample(per_point)``: target vertices for the terms that measure from the
-        target (default all vertices of ``target``).
-    target_areas : callable, optional
-        ``target_areas(per_point)``: the target area each of those points stands for, relative
-        to the mean (default: none given, every point counts alike).
+    target_samples : TargetSamples, optional
+        Target vertices for the terms that measure from the target, and the area each stands
+        for (default :class:`~o3dreg.registration.terms.WholeTarget`: every vertex of
+        ``target``, every point counting alike).
     indices : (n,) int ndarray, optional
         The numbers of ``points`` among the template's vertices (default ``0 .. n-1``).
     symmetric_scale : float
@@ -172,8 +170,7 @@ class LevelProblem:
         regularization: float,
         energy: str = "bending",
         *,
-        target_sample: Callable[[float], np.ndarray] | None = None,
-        target_areas: Callable[[float], np.ndarray] | None = None,
+        target_samples: TargetSamples | None = None,
         indices: np.ndarray | None = None,
         symmetric_scale: float = 1.0,
         barycentre_reach: float | None = None,
@@ -218,14 +215,13 @@ class LevelProblem:
             self.base,
             np.arange(n) if indices is None else indices,
             target,
-            target_sample or (lambda per_point: target.vertices),
+            target_samples or WholeTarget(target.vertices),
             symmetric_scale,
             voronoi_offsets,
             barycentre_reach,
             nearest_known,
             float(lattice.cell_size.min()),
             template_mesh,
-            target_areas,
         )
         bound = (term.bind(offered) for term in terms)
         self.distance_terms: list[DistanceTermAtLevel] = [t for t in bound if t is not None]

@@ -458,8 +458,7 @@ class _Hierarchy:
             self.terms,
             level.regularization,
             level.energy,
-            target_sample=lambda per_point: self.target_sample(per_point, use.size),
-            target_areas=lambda per_point: self.target_areas(per_point, use.size),
+            target_samples=_LevelTargetSamples(self.surface, self.points.shape[0], use.size),
             indices=use,
             symmetric_scale=level.symmetric_scale,
             barycentre_reach=level.barycentre_reach,
@@ -481,19 +480,6 @@ class _Hierarchy:
             template_mesh=lambda: (moved, self.faces),
         )
         return problem, use
-
-    def target_sample(self, per_point: float, count: int) -> np.ndarray:
-        """An even subsample of the target, ``per_point`` vertices for each of ``count``
-        template points."""
-        # The budget of the whole template first, so that every level's subsample nests in it.
-        self.surface.subsample(int(per_point * self.points.shape[0]))
-        return self.surface.subsample(int(per_point * count))
-
-    def target_areas(self, per_point: float, count: int) -> np.ndarray:
-        """The target area each point of :meth:`target_sample` stands for, relative to the
-        mean."""
-        self.target_sample(per_point, count)
-        return self.surface.subsample_areas(int(per_point * count))
 
     def voronoi_offsets(self, used: np.ndarray, deformation: LatticeDeformation) -> np.ndarray:
         """The offsets of :func:`_barycentre_offsets` of the template points ``used`` (moved by
@@ -908,6 +894,25 @@ def _barycentre_offsets(
     offsets = np.zeros_like(used)
     offsets[has] = centroid[has] / total[has, None] - used[has]
     return offsets
+
+
+@dataclass(frozen=True)
+class _LevelTargetSamples:
+    """Even subsamples of the target for a level posed on ``count`` of the template's ``total``
+    points (:class:`~o3dreg.registration.terms.TargetSamples`)."""
+
+    surface: TargetSurface
+    total: int
+    count: int
+
+    def points(self, per_point: float) -> np.ndarray:
+        # The budget of the whole template first, so that every level's subsample nests in it.
+        self.surface.subsample(int(per_point * self.total))
+        return self.surface.subsample(int(per_point * self.count))
+
+    def areas(self, per_point: float) -> np.ndarray:
+        self.points(per_point)
+        return self.surface.subsample_areas(int(per_point * self.count))
 
 
 def _level_sample(

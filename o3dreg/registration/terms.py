@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -31,11 +32,39 @@ __all__ = [
     "Barycentre",
     "DistanceTerm",
     "PointToSurface",
+    "TargetSamples",
     "TermContext",
+    "WholeTarget",
 ]
 
 #: How the barycentre rows are weighted (:attr:`Barycentre.weighting`).
 BARYCENTRE_WEIGHTINGS = ("count", "uniform")
+
+
+class TargetSamples(Protocol):
+    """Even subsamples of a level's target, for the terms that measure from the target."""
+
+    def points(self, per_point: float) -> np.ndarray:
+        """About ``per_point`` target vertices per template point of the level, ``(k, 3)``."""
+        ...
+
+    def areas(self, per_point: float) -> np.ndarray | None:
+        """The target area each of :meth:`points` ``(per_point)`` stands for, relative to
+        their mean, ``(k,)`` (``None``: not known; every point counts alike)."""
+        ...
+
+
+@dataclass(frozen=True)
+class WholeTarget:
+    """:class:`TargetSamples` that are every vertex of the target, without areas."""
+
+    vertices: np.ndarray
+
+    def points(self, per_point: float) -> np.ndarray:
+        return self.vertices
+
+    def areas(self, per_point: float) -> np.ndarray | None:
+        return None
 
 
 @dataclass(frozen=True)
@@ -57,9 +86,10 @@ class TermContext:
         (``points_per_node=None`` poses a level on every vertex).
     target : SurfaceDistanceQuery
         The surface the level measures distances to (the target or its level of detail).
-    target_sample : callable
-        ``target_sample(per_point)``: an even subsample of the target's vertices, about
-        ``per_point`` of them per point of ``points``.
+    target_samples : TargetSamples
+        Even subsamples of the target's vertices, about ``per_point`` of them per point of
+        ``points`` (:meth:`~TargetSamples.points`), and the target area each stands for
+        (:meth:`~TargetSamples.areas`).
     symmetric_scale : float
         The level's :attr:`~o3dreg.ElasticLevel.symmetric_scale`.
     voronoi_offsets : callable or None
@@ -75,23 +105,19 @@ class TermContext:
     template_mesh : callable or None
         ``template_mesh()``: every template vertex moved by the coarser levels, and the
         template's faces (``None``: not offered).
-    target_areas : callable or None
-        ``target_areas(per_point)``: the target area each point of ``target_sample(per_point)``
-        stands for, relative to their mean (``None``: not offered; every point counts alike).
     """
 
     assembly: NormalAssembly
     points: np.ndarray
     indices: np.ndarray
     target: SurfaceDistanceQuery
-    target_sample: Callable[[float], np.ndarray]
+    target_samples: TargetSamples
     symmetric_scale: float = 1.0
     voronoi_offsets: Callable[[], np.ndarray] | None = None
     barycentre_reach: float | None = None
     nearest_known: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray] | None] | None = None
     cell_size: float = np.inf
     template_mesh: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None
-    target_areas: Callable[[float], np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
@@ -182,12 +208,11 @@ class Barycentre(DistanceTerm):
                     "(TermContext.voronoi_offsets)"
                 )
             offsets = context.voronoi_offsets()
-        sample = context.target_sample(self.target_points_per_source_point)
+        per_point = self.target_points_per_source_point
+        sample = context.target_samples.points(per_point)
         counted = self.weighting == "count"
         # Counted rows weigh the target area each point stands for (see `weighting`).
-        areas = None
-        if counted and context.target_areas is not None:
-            areas = context.target_areas(self.target_points_per_source_point)
+        areas = context.target_samples.areas(per_point) if counted else None
         # Target points over the template's large triangles are left out (see skip_covered).
         template_mesh = context.template_mesh if self.skip_covered else None
         if context.barycentre_reach is None:
