@@ -253,6 +253,8 @@ def main() -> int:
     if not (folder / "masks").is_dir() or not (folder / "landmarks").is_dir():
         print(f"skip: no mandible masks and landmarks in {folder} (research data, not shipped)")
         return 0
+    import igl
+
     import o3dreg
     from o3dreg import TemplateLandmarks, build_shape_model, predict_landmarks
 
@@ -433,7 +435,11 @@ def main() -> int:
                 )
                 patient = without_top(data[held]["surface"], args.cut)
                 pred = predict_landmarks(model, attached, patient)
-                closest = predict_landmarks(model, attached, patient, onto="closest")
+                # onto='closest' from the same fit (predict_landmarks would fit the model again):
+                # every vertex of the fitted instance moved to its closest patient point.
+                _, _, on_patient = igl.point_mesh_squared_distance(
+                    np.asarray(pred.fit.vertices, dtype=np.float64), *patient
+                )
                 statuses.append(pred.status)
                 truth = data[held]["landmarks"]
                 # The landmarks from the annotations of all the model's patients and the template.
@@ -443,7 +449,7 @@ def main() -> int:
                 # instance itself (on_target=False): the same fit.
                 readings = (
                     ("registered", pred.vertices),
-                    ("closest", closest.vertices),
+                    ("closest", on_patient),
                     ("instance", pred.fit.vertices),
                 )
                 for where, mesh in readings:
