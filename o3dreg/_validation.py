@@ -20,6 +20,7 @@ from ._geometry import face_doubled_areas
 __all__ = [
     "as_faces",
     "as_mesh_arrays",
+    "as_numbers",
     "as_points",
     "as_transformation",
     "check_output_path",
@@ -334,8 +335,27 @@ def check_probability(value: Any, name: str) -> float:
     return float(value)
 
 
+def as_numbers(value: Any, name: str) -> list[float]:
+    """Check that ``value`` is a sequence of finite numbers (a 1-D array too) and return them as
+    floats."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple, np.ndarray)):
+        raise TypeError(f"`{name}` must be a sequence of numbers, got {_describe(value)}")
+    out = []
+    for item in value:
+        if isinstance(item, (bool, np.bool_)) or not isinstance(
+            item, (int, float, np.integer, np.floating)
+        ):
+            raise TypeError(f"`{name}` must hold numbers, got {_describe(item)}")
+        if not np.isfinite(item):
+            raise ValueError(f"`{name}` must hold finite numbers, got {item!r}")
+        out.append(float(item))
+    return out
+
+
 def check_output_path(path: Any, name: str, *, overwrite: bool) -> str:
     """Check an output path: a string or path-like whose folder exists."""
+    # "no" or "False" must not read as true: a refusing writer would replace the file.
+    overwrite = check_bool(overwrite, "overwrite")
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`{name}` must be a path, got {_describe(path)}")
     path = os.fspath(path)

@@ -643,6 +643,81 @@ def test_obj_faces_past_the_vertices_are_refused(tmp_path):
         read_triangle_mesh(path)
 
 
+def test_ply_faces_past_the_vertices_are_refused(tmp_path):
+    # Open3D keeps such a face; computing normals or writing the mesh then reads outside the
+    # vertex array (a segmentation fault).
+    path = tmp_path / "m.ply"
+    header = "ply\nformat ascii 1.0\nelement vertex 3\n" + "".join(
+        f"property float {c}\n" for c in "xyz"
+    )
+    body = "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+    path.write_text(header + body + "0 0 0\n1 0 0\n0 1 0\n3 0 1 900000\n")
+    with pytest.raises(OSError, match="face 0 refers to vertex 900000, the file holds 3"):
+        read_triangle_mesh(path)
+
+
+def test_an_open3d_mesh_with_faces_past_its_vertices_is_not_written(tmp_path):
+    mesh = sphere(8)
+    faces = np.asarray(mesh.triangles).copy()
+    faces[5, 2] = 100_000
+    bad = o3d.geometry.TriangleMesh(mesh.vertices, o3d.utility.Vector3iVector(faces))
+    for suffix in (".ply", ".obj", ".stl"):
+        with pytest.raises(ValueError, match="got face 5 with vertex 100000; nothing written"):
+            write_triangle_mesh(tmp_path / f"m{suffix}", bad)
+    empty = o3d.geometry.TriangleMesh(mesh.vertices, o3d.utility.Vector3iVector())
+    with pytest.raises(ValueError, match="must have triangles"):
+        write_triangle_mesh(tmp_path / "m.ply", empty)
+    assert list(tmp_path.iterdir()) == []
+
+
+def small_model():
+    """A model of 4 shapes of the template's triangles."""
+    from o3dreg import build_shape_model
+
+    (_, faces), _, truths, _, _ = population(4)
+    return build_shape_model(truths, faces)
+
+
+def test_an_overwrite_that_is_not_a_bool_never_replaces_a_file(tmp_path):
+    # "no" is truthy: read as a bool it would replace the file it was meant to keep.
+    from o3dreg import write_landmarks
+
+    path = tmp_path / "m.ply"
+    write_triangle_mesh(path, sphere(8))
+    marks = tmp_path / "p.mrk.json"
+    write_landmarks(marks, ["a"], [[0.0, 0.0, 0.0]])
+    model = small_model()
+    saved = model.save(tmp_path / "model.npz")
+    before = {p: p.read_bytes() for p in tmp_path.iterdir()}
+    for write in (
+        lambda flag: write_triangle_mesh(path, sphere(12), overwrite=flag),
+        lambda flag: write_landmarks(marks, ["b"], [[1.0, 2.0, 3.0]], overwrite=flag),
+        lambda flag: model.save(saved, overwrite=flag),
+        lambda flag: model.write_meshes(tmp_path / "modes", overwrite=flag),
+    ):
+        for flag in ("no", "False", 0, None):
+            with pytest.raises(TypeError, match="`overwrite` must be True or False"):
+                write(flag)
+    assert {p: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_a_refused_write_meshes_leaves_the_folder_as_it_was(tmp_path):
+    model = small_model()
+    folder = tmp_path / "modes"
+    with pytest.raises(ValueError, match="`mode` must be in"):
+        model.write_meshes(folder, modes=[99])
+    with pytest.raises(TypeError, match="`standard_deviations` must be a sequence"):
+        model.write_meshes(folder, standard_deviations=3)
+    with pytest.raises(TypeError, match="`mode` must be an integer"):
+        model.write_meshes(folder, modes=[1.7])
+    assert not folder.exists()
+    written = model.write_meshes(folder, modes=[0])
+    os.remove(written[0])  # mean.ply gone, the mode meshes still there
+    with pytest.raises(OSError, match="already holds mode1_-3sd.ply, mode1_"):
+        model.write_meshes(folder, modes=[0])
+    assert sorted(os.listdir(folder)) == ["mode1_+3sd.ply", "mode1_-3sd.ply"]
+
+
 # -- 5/6. tracebacks, exit statuses, signals ---------------------------------------------------
 
 

@@ -160,3 +160,37 @@ def test_million_vertex_target():
     assert len(dense.vertices) > 900_000
     result = registration_elastic(sphere, dense, init=np.eye(4), levels=LEVELS)
     assert result.distances.source_to_target_mean < 0.5
+
+
+def _boolean_options():
+    """Every public switch, called with the value to check (other arguments valid)."""
+    from o3dreg import build_shape_model, isosurface, write_triangle_mesh
+    from o3dreg.app import register_batch
+    from o3dreg.volume.volume import Volume
+
+    sphere = synthetic_form("sphere", 200)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    shapes = np.stack([v, 1.1 * v, v + 0.1])
+    model = build_shape_model(shapes, f)
+    grid = np.zeros((6, 6, 6))
+    grid[2:4, 2:4, 2:4] = 1.0
+    volume = Volume(grid, spacing=(1.0, 1.0, 1.0))
+    return {
+        "write_ascii": lambda x: write_triangle_mesh("unused.ply", sphere, write_ascii=x),
+        "align": lambda x: build_shape_model(shapes, f, align=x),
+        "standardized": lambda x: model.synthesize([1.0], standardized=x),
+        "crop": lambda x: isosurface(volume, 0.5, crop=x),
+        "close_boundary": lambda x: isosurface(volume, 0.5, close_boundary=x),
+        "force": lambda x: register_batch(sphere, [sphere], "unused", force=x),
+        "progress": lambda x: register_batch(sphere, [sphere], "unused", progress=x),
+    }
+
+
+@pytest.mark.parametrize("value", ["no", "False", 0, None])
+def test_switches_take_true_or_false_only(value, tmp_path, monkeypatch):
+    # A truthy string read as a bool turns a switch on that the caller meant off.
+    monkeypatch.chdir(tmp_path)
+    for name, call in _boolean_options().items():
+        with pytest.raises(TypeError, match=f"`{name}` must be True or False"):
+            call(value)
+    assert list(tmp_path.iterdir()) == []

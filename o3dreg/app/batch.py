@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from .._validation import as_mesh_arrays, as_transformation, check_referenced
+from .._validation import as_mesh_arrays, as_transformation, check_bool, check_referenced
 from ..io import json_text
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 from ..registration.options import DistanceEstimation, ElasticCriteria, default_levels
@@ -563,6 +563,8 @@ def register_batch(
         )
     if callback is not None and not callable(callback):
         raise TypeError(f"`callback` must be callable, got {type(callback).__name__}")
+    force = check_bool(force, "force")
+    progress = check_bool(progress, "progress")
     settings_ = resolve_settings(settings, {k: v for k, v in options.items() if k != "init"})
     if names is None:
         names_ = _default_names(targets)

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
+from .._validation import check_bool
 from ..io import json_text
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 from ..registration.options import ElasticLevel
@@ -297,6 +298,15 @@ def build_model_folder(
         one mesh under several names: a model of no variance); after the registrations (kept,
         no model file written), when the registered shapes do not differ.
     """
+    for flag, label in (
+        (force, "force"),
+        (overwrite, "overwrite"),
+        (progress, "progress"),
+        (keep_flagged, "keep_flagged"),
+        (scaling, "scaling"),
+        (slide, "slide"),
+    ):
+        check_bool(flag, label)
     if levels is not None:
         if settings is not None:
             raise TypeError("pass `levels` inside `settings`, not both")

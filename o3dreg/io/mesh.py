@@ -136,7 +136,27 @@ def read_triangle_mesh(
             f"`{name}`: {path!r} holds {int(bad.sum())} vertices with NaN or infinite "
             f"coordinates (the first: vertex {int(np.flatnonzero(bad)[0])})"
         )
+    # Open3D keeps a face that names a vertex the file does not hold; using it reads memory
+    # outside the vertex array (normals, writing: a crash).
+    outside = _faces_outside(mesh)
+    if outside is not None:
+        face, corner = outside
+        raise OSError(
+            f"`{name}`: {path!r} is malformed: face {face} refers to vertex {corner}, the file "
+            f"holds {len(mesh.vertices)} vertices"
+        )
     return mesh
+
+
+def _faces_outside(mesh: o3d.geometry.TriangleMesh) -> tuple[int, int] | None:
+    """The first face of ``mesh`` with a corner outside its vertices, and that corner."""
+    faces = np.asarray(mesh.triangles)
+    bad = ((faces < 0) | (faces >= len(mesh.vertices))).any(axis=1)
+    if not bad.any():
+        return None
+    face = int(np.flatnonzero(bad)[0])
+    row = faces[face]
+    return face, int(row[(row < 0) | (row >= len(mesh.vertices))][0])
 
 
 def atomic_write(
@@ -318,9 +338,21 @@ def write_triangle_mesh(
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`{name}` must be a path, got {type(path).__name__}")
     semilandmarks = check_bool(semilandmarks, "semilandmarks")
+    write_ascii = check_bool(write_ascii, "write_ascii")
     check = check_semilandmark_suffix if semilandmarks else check_mesh_suffix
     suffix = check(os.fspath(path), name)
     if isinstance(mesh, o3d.geometry.TriangleMesh):
+        if len(mesh.triangles) == 0:
+            raise ValueError(
+                f"`mesh` must have triangles, got {len(mesh.vertices)} vertices and none; "
+                "nothing written"
+            )
+        outside = _faces_outside(mesh)
+        if outside is not None:
+            raise ValueError(
+                f"`mesh` faces must index its {len(mesh.vertices)} vertices, got face "
+                f"{outside[0]} with vertex {outside[1]}; nothing written"
+            )
         out = o3d.geometry.TriangleMesh(mesh)
     else:
         out = to_open3d(*as_mesh_arrays(mesh, "mesh"))

@@ -102,6 +102,7 @@ def build_shape_model(
     x = as_shape_array(shapes)
     f = template_faces(faces, x.shape[1])
     scaling = check_bool(scaling, "scaling")
+    align = check_bool(align, "align")
     s = x.shape[0]
     if number_of_modes is not None:
         number_of_modes = check_positive(number_of_modes, "number_of_modes", integer=True)

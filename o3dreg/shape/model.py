@@ -20,7 +20,14 @@ import numpy as np
 import open3d as o3d
 
 from .._geometry import apply_transformation
-from .._validation import as_faces, as_mesh_arrays, as_points, check_positive
+from .._validation import (
+    as_faces,
+    as_mesh_arrays,
+    as_numbers,
+    as_points,
+    check_bool,
+    check_positive,
+)
 from ..io.mesh import to_open3d
 from .model_io import read_model_archive, write_model_archive, write_model_meshes
 from .procrustes import fit_transformation
@@ -252,7 +259,7 @@ class ShapeModel:
             )
         if not np.all(np.isfinite(a)):
             raise ValueError("`coefficients` must be finite")
-        if standardized:
+        if check_bool(standardized, "standardized"):
             a = a * self.standard_deviations[: a.size]
         return a
 
@@ -314,12 +321,19 @@ class ShapeModel:
     ) -> dict[tuple[int, float], o3d.geometry.TriangleMesh]:
         """Meshes of :meth:`mode_shape` for each mode and multiple: ``{(mode, c): mesh}``."""
         modes_ = range(min(2, self.number_of_modes)) if modes is None else modes
+        multiples = as_numbers(standard_deviations, "standard_deviations")
+        if isinstance(modes_, (str, bytes)) or not isinstance(
+            modes_, (range, list, tuple, np.ndarray)
+        ):
+            raise TypeError(
+                f"`modes` must be a sequence of mode indices, got {type(modes_).__name__}"
+            )
         out = {}
         for m in modes_:
-            for c in standard_deviations:
-                mesh = to_open3d(self.mode_shape(int(m), float(c)), np.array(self.faces))
+            for c in multiples:
+                mesh = to_open3d(self.mode_shape(m, c), np.array(self.faces))
                 mesh.compute_vertex_normals()
-                out[(int(m), float(c))] = mesh
+                out[(int(m), c)] = mesh
         return out
 
     def project(
@@ -347,7 +361,7 @@ class ShapeModel:
             )
         k = self.check_number_of_modes(number_of_modes)
         t = np.eye(4)
-        if align:
+        if check_bool(align, "align"):
             # Align, project, and re-align onto the reconstruction (a few passes: the pose that
             # best fits the model instance is not exactly the pose that best fits the mean).
             t = fit_transformation(x, self.mean, self.scaling)

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from .._validation import check_bool
 from ..io.archive import read_archive, write_archive
 from ..io.mesh import write_triangle_mesh
 
@@ -73,15 +74,24 @@ def write_model_meshes(
     overwrite: bool = False,
 ) -> list[str]:
     """Write ``mean.ply`` and ``mode{i}_{c:+g}sd.ply`` (1-based ``i``) into ``folder`` (made
-    when missing)."""
+    when missing). The arguments and the files already there are checked before anything is
+    written: a refused call leaves the folder as it was."""
+    overwrite = check_bool(overwrite, "overwrite")
     folder = os.fspath(folder)
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise OSError(f"`folder`: {folder!r} exists and is not a folder")
-    os.makedirs(folder, exist_ok=True)  # as the docs' examples write into a new "modes" folder
-    written = [
-        write_triangle_mesh(os.path.join(folder, "mean.ply"), model.mesh(), overwrite=overwrite)
-    ]
+    meshes = {"mean.ply": model.mesh()}
     for (m, c), mesh in model.mode_meshes(modes, standard_deviations).items():
-        name = f"mode{m + 1}_{c:+g}sd.ply"
-        written.append(write_triangle_mesh(os.path.join(folder, name), mesh, overwrite=overwrite))
-    return written
+        meshes[f"mode{m + 1}_{c:+g}sd.ply"] = mesh
+    paths = {name: os.path.join(folder, name) for name in meshes}
+    if not overwrite:
+        present = [name for name, path in paths.items() if os.path.exists(path)]
+        if present:
+            raise OSError(
+                f"`folder`: {folder!r} already holds {', '.join(present)}; pass overwrite=True "
+                "(--overwrite) to replace them; nothing written"
+            )
+    os.makedirs(folder, exist_ok=True)  # as the docs' examples write into a new "modes" folder
+    return [
+        write_triangle_mesh(paths[name], mesh, overwrite=overwrite) for name, mesh in meshes.items()
+    ]

@@ -9,7 +9,7 @@ import numpy as np
 import open3d as o3d
 from skimage.measure import marching_cubes
 
-from .._validation import check_positive
+from .._validation import check_bool, check_positive
 from ..io.mesh import to_open3d
 from .volume import Volume
 
@@ -98,7 +98,9 @@ def isosurface(
             f"`volume` must have at least 2 voxels along every axis, got shape {volume.shape}: "
             "a 2D image has no surface"
         )
-    return _isosurface(volume, float(level), step, bool(crop), bool(close_boundary))
+    crop = check_bool(crop, "crop")
+    close_boundary = check_bool(close_boundary, "close_boundary")
+    return _isosurface(volume, float(level), step, crop, close_boundary)
 
 
 def _isosurface(
