@@ -126,6 +126,13 @@ def read_landmarks(
         labels, points, declared = _read_markups(path)
     if not points.shape[0]:
         raise ValueError(f"`path`: {path!r} holds no landmarks")
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        which = ", ".join(repr(labels[i]) for i in np.flatnonzero(bad)[:5])
+        raise ValueError(
+            f"`path`: {path!r} holds NaN or infinite coordinates (landmarks {which}"
+            f"{' ...' if bad.sum() > 5 else ''})"
+        )
     if declared is not None and assumed and declared != assumed:
         raise ValueError(
             f"`file_coordinate_system` is {assumed!r} but {path!r} says its points are in "

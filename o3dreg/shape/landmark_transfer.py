@@ -26,7 +26,14 @@ from typing import Any
 import numpy as np
 
 from .._geometry import barycentric
-from .._validation import as_mesh_arrays, as_points, check_bool, check_positive, check_referenced
+from .._validation import (
+    as_faces,
+    as_mesh_arrays,
+    as_points,
+    check_bool,
+    check_positive,
+    check_referenced,
+)
 from ..io.landmark_files import check_landmark_suffix, read_landmarks, write_landmarks
 from ..registration.distance import SurfaceDistanceQuery
 from ..registration.elastic import registration_elastic
@@ -82,6 +89,48 @@ class TemplateLandmarks:
     offsets: np.ndarray | None = field(default=None, repr=False)
     size: float = 1.0
 
+    def __post_init__(self) -> None:
+        # The constructor is public: a landmark that names no triangle, or a point outside its
+        # triangle, would surface as an IndexError or NaN far from here.
+        count = self.number_of_vertices
+        if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 3:
+            raise ValueError(f"`number_of_vertices` must be an integer >= 3, got {count!r}")
+        faces = as_faces(self.faces, int(count), "faces")
+        if isinstance(self.labels, str):
+            raise TypeError("`labels` must be a sequence of labels, got a str")
+        labels = _labels(self.labels, len(self.labels))
+        n = len(labels)
+        tri = np.asarray(self.triangles)
+        if tri.shape != (n,) or not (tri.size == 0 or np.issubdtype(tri.dtype, np.integer)):
+            raise ValueError(
+                f"`triangles` must be {n} integers (one per label), got {tri.dtype} {tri.shape}"
+            )
+        outside = (tri < 0) | (tri >= faces.shape[0])
+        if outside.any():
+            raise ValueError(
+                f"`triangles` must be template triangles in [0, {faces.shape[0] - 1}], got "
+                f"{tri[outside].tolist()} (landmarks outside the template)"
+            )
+        bary = _barycentric_rows(self.barycentric, n)
+        offsets = self.offsets
+        if offsets is not None:
+            offsets = np.array(offsets, dtype=np.float64)
+            if offsets.shape != (n, 3) or not np.isfinite(offsets).all():
+                raise ValueError(
+                    f"`offsets` must be None or {n} finite rows of 3, got shape {offsets.shape}"
+                )
+        size = check_positive(self.size, "size")
+        for name, value in (
+            ("labels", labels),
+            ("triangles", tri.astype(np.int64)),
+            ("barycentric", bary),
+            ("faces", faces),
+            ("number_of_vertices", int(count)),
+            ("offsets", offsets),
+            ("size", size),
+        ):
+            object.__setattr__(self, name, value)
+
     def __repr__(self) -> str:
         return f"TemplateLandmarks({len(self.labels)} landmarks: {', '.join(self.labels[:6])})"
 
@@ -134,21 +183,7 @@ class TemplateLandmarks:
             raise TypeError(
                 f"`triangles` must be a 1-D array of integers, got {tri.dtype} {tri.shape}"
             )
-        bary = np.array(barycentric, dtype=np.float64)
-        if bary.shape != (tri.size, 3):
-            raise ValueError(f"`barycentric` must have shape ({tri.size}, 3), got {bary.shape}")
-        bad = (tri < 0) | (tri >= f.shape[0])
-        if bad.any():
-            raise ValueError(
-                f"`triangles` must be template triangles in [0, {f.shape[0] - 1}], got "
-                f"{tri[bad].tolist()} (landmarks outside the template)"
-            )
-        off = (bary.min(axis=1) < -1e-6) | (np.abs(bary.sum(axis=1) - 1.0) > 1e-6)
-        if off.any():
-            raise ValueError(
-                "`barycentric` rows must be >= 0 and sum to 1 (a point inside its triangle), "
-                f"got {bary[off].tolist()} (landmarks outside the template)"
-            )
+        bary = _barycentric_rows(barycentric, tri.size)
         return cls(
             _labels(labels, tri.size), tri.astype(np.int64), bary, f, v.shape[0], None, mesh_size(v)
         )
@@ -378,6 +413,24 @@ def _labels(labels: Any, count: int) -> tuple[str, ...]:
     if repeated:
         raise ValueError(f"`labels` repeats landmark labels {repeated}")
     return out
+
+
+def _barycentric_rows(barycentric: Any, count: int) -> np.ndarray:
+    """``count`` rows of barycentric coordinates of points inside their triangles, checked."""
+    bary = np.array(barycentric, dtype=np.float64)
+    if bary.shape != (count, 3):
+        raise ValueError(f"`barycentric` must have shape ({count}, 3), got {bary.shape}")
+    off = (
+        ~np.isfinite(bary).all(axis=1)
+        | (bary.min(axis=1, initial=0.0) < -1e-6)
+        | (np.abs(bary.sum(axis=1) - 1.0) > 1e-6)
+    )
+    if off.any():
+        raise ValueError(
+            "`barycentric` rows must be finite, >= 0 and sum to 1 (a point inside its "
+            f"triangle), got {bary[off].tolist()} (landmarks outside the template)"
+        )
+    return bary
 
 
 def _repeated(labels: tuple[str, ...]) -> list[str]:

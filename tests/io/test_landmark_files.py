@@ -185,3 +185,32 @@ def test_bad_landmark_files(tmp_path):
         read_landmarks(text)
     with pytest.raises(ValueError, match="`labels` must hold 3 labels"):
         write_landmarks(tmp_path / "w.fcsv", ["a"], LPS)
+
+
+def test_nan_or_infinite_coordinates_are_refused_naming_the_file_and_landmarks(tmp_path):
+    markup = {
+        "markups": [
+            {
+                "type": "Fiducial",
+                "coordinateSystem": "LPS",
+                "controlPoints": [
+                    {"label": "a", "position": [1.0, 2.0, 3.0]},
+                    {"label": "b", "position": [float("nan"), 2.0, 3.0]},
+                ],
+            }
+        ]
+    }
+    files = {
+        "lm.csv": "label,x,y,z\na,1,2,3\nb,nan,2,3\n",
+        "lm.mrk.json": json.dumps(markup),  # json writes NaN, which Python reads back
+        "lm.fcsv": "# CoordinateSystem = LPS\n"
+        "# columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID\n"
+        "1,1,2,3,0,0,0,1,1,1,0,a,,\n2,inf,2,3,0,0,0,1,1,1,0,b,,\n",
+    }
+    for name, text in files.items():
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(
+            ValueError, match=r"holds NaN or infinite coordinates \(landmarks 'b'\)"
+        ):
+            read_landmarks(path)

@@ -37,6 +37,30 @@ def test_vertex_and_barycentric_landmarks(pop):
     np.testing.assert_allclose(bary.positions(tv)[0], expected)
 
 
+def test_the_constructor_checks_what_it_is_given(pop):
+    # TemplateLandmarks is public: each field is checked where it is made, not where an
+    # IndexError or NaN would come out of positions().
+    (tv, tf), _, _, _, _ = pop
+    n = tv.shape[0]
+    good = TemplateLandmarks(("a",), np.array([3]), np.array([[1.0, 0.0, 0.0]]), tf, n)
+    np.testing.assert_allclose(good.positions(tv), tv[tf[3, 0]][None])
+    one = np.array([[1.0, 0.0, 0.0]])
+    cases = [
+        ((("a", "b"), [3], one, tf, n), "`triangles` must be 2 integers"),
+        ((("a",), [10**6], one, tf, n), "`triangles` must be template triangles"),
+        ((("a",), [3], [1.0, 0.0, 0.0], tf, n), r"`barycentric` must have shape \(1, 3\)"),
+        ((("a",), [3], [[5.0, -4.0, 0.0]], tf, n), "`barycentric` rows must be finite, >= 0"),
+        ((("a",), [3], [[np.nan, 0.5, 0.5]], tf, n), "`barycentric` rows must be finite"),
+        ((("a", "a"), [3, 4], np.eye(3)[:2], tf, n), "repeats landmark labels"),
+        ((("a",), [3], one, tf, 10), "`faces` must index vertices in"),
+    ]
+    for args, message in cases:
+        with pytest.raises(ValueError, match=message):
+            TemplateLandmarks(*args)
+    with pytest.raises(ValueError, match="`barycentric` rows must be finite"):
+        TemplateLandmarks.from_barycentric((tv, tf), [0], [[np.nan, 0.5, 0.5]])
+
+
 def test_points_keep_their_place_and_snap_only_when_asked(pop):
     (tv, tf), _, _, _, _ = pop
     centre = tv[tf[10]].mean(axis=0)
