@@ -271,13 +271,21 @@ def _degenerate_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return repeated | (doubled_area <= (1e-12 * max(scale, 1e-300)) ** 2)
 
 
-def as_transformation(value: Any, name: str = "init") -> np.ndarray:
+#: How far the singular values of a start's 3x3 block may differ (relative) and still be one
+#: scale: far above the rounding of a rotation written in float32 or with 6 decimals.
+SIMILARITY_TOLERANCE = 1e-4
+
+
+def as_transformation(value: Any, name: str = "init", *, similarity: bool = False) -> np.ndarray:
     """Return a ``(4, 4) float64`` affine transformation with last row ``[0, 0, 0, 1]`` that does
-    not mirror (its 3x3 block has a positive determinant).
+    not mirror (its 3x3 block has a positive determinant); with ``similarity``, a rotation, one
+    scale and a translation (no shear, no unequal scales).
 
     A mirroring start turns the registered template inside out (its triangles face inwards) and
     swaps left and right, which no later step undoes and no distance measure sees on a symmetric
-    bone; it is refused, with how to register a mirrored shape instead.
+    bone; it is refused, with how to register a mirrored shape instead. A start of the
+    registrations is refined as a rigid (or similarity) transformation, which keeps a shear as it
+    is, unseen by the verdict.
     """
     if not isinstance(value, (np.ndarray, list, tuple)):
         raise TypeError(f"`{name}` must be a (4, 4) array, got {_describe(value)}")
@@ -298,6 +306,15 @@ def as_transformation(value: Any, name: str = "init") -> np.ndarray:
             "To register a mirror image (a left bone onto a right template), mirror the target "
             "mesh itself first: negate one coordinate and reverse its triangles' orientation"
         )
+    if similarity:
+        scales = np.linalg.svd(arr[:3, :3], compute_uv=False)
+        if scales[0] > scales[-1] * (1.0 + SIMILARITY_TOLERANCE):
+            shown = ", ".join(f"{s:.4g}" for s in scales)
+            raise ValueError(
+                f"`{name}` must be a rotation, one scale and a translation, got a 3x3 block "
+                f"with scales {shown} along its principal axes (a shear or unequal scales); "
+                "apply such a map to the template mesh itself first"
+            )
     return arr
 
 
@@ -305,17 +322,17 @@ def check_positive(
     value: Any, name: str, *, integer: bool = False, allow_zero: bool = False
 ) -> Any:
     """Check that ``value`` is a finite positive number (or integer) and return it."""
-    kind = "integer" if integer else "number"
+    kind = "an integer" if integer else "a number"
     ok_type = (
         isinstance(value, (int, np.integer))
         if integer
         else isinstance(value, (int, float, np.integer, np.floating))
     )
     if isinstance(value, bool) or not ok_type:
-        raise TypeError(f"`{name}` must be a {kind}, got {_describe(value)}")
+        raise TypeError(f"`{name}` must be {kind}, got {_describe(value)}")
     if not np.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
         bound = ">= 0" if allow_zero else "> 0"
-        raise ValueError(f"`{name}` must be a finite {kind} {bound}, got {value!r}")
+        raise ValueError(f"`{name}` must be a finite {kind.split()[-1]} {bound}, got {value!r}")
     return int(value) if integer else float(value)
 
 
@@ -362,6 +379,8 @@ def check_output_path(path: Any, name: str, *, overwrite: bool) -> str:
     folder = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(folder):
         raise OSError(f"`{name}`: folder {folder!r} does not exist")
+    if os.path.isdir(path):
+        raise OSError(f"`{name}`: {path!r} is a folder; give a file name")
     if os.path.exists(path) and not overwrite:
         raise OSError(f"`{name}`: {path!r} exists; pass overwrite=True (--overwrite) to replace it")
     return path

@@ -194,3 +194,47 @@ def test_switches_take_true_or_false_only(value, tmp_path, monkeypatch):
         with pytest.raises(TypeError, match=f"`{name}` must be True or False"):
             call(value)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_refusals_name_the_parameter_and_what_was_received(tmp_path):
+    # Found by an audit: each of these raised a bare Python error naming no parameter, named a
+    # parameter of another function, or failed only after seconds of work.
+    from _helpers import population
+
+    from o3dreg import (
+        TemplateLandmarks,
+        build_shape_model,
+        fit_shape_model,
+        predict_landmarks,
+        read_landmarks,
+        write_landmarks,
+        write_triangle_mesh,
+    )
+    from o3dreg.app import register_batch
+
+    (tv, tf), targets, truths, _, _ = population(4)
+    model = build_shape_model(truths, tf)
+    marks = TemplateLandmarks.from_vertices((tv, tf), [0, 5])
+    in_metres = (targets[0][0] / 1000.0, targets[0][1])
+    with pytest.raises(ValueError, match="times the size of the model's mean shape"):
+        fit_shape_model(model, in_metres, check_reflection=False)
+    with pytest.raises(TypeError, match=r"`registration_options` .* got 'foo'"):
+        predict_landmarks(model, marks, targets[0], registration_options={"foo": 1})
+    with pytest.raises(TypeError, match="`labels` must be a sequence of 2 labels, got int"):
+        write_landmarks(tmp_path / "a.csv", 5, [[0.0, 0, 0], [1.0, 0, 0]])
+    with pytest.raises(TypeError, match="`labels` must be a sequence of 2 labels, got str"):
+        write_landmarks(tmp_path / "a.csv", "ab", [[0.0, 0, 0], [1.0, 0, 0]])
+    latin = tmp_path / "latin.csv"
+    latin.write_bytes("label,x,y,z\nmenton é,1,2,3\n".encode("latin-1"))
+    with pytest.raises(ValueError, match=r"latin.csv' is not UTF-8 text \(byte 0xe9"):
+        read_landmarks(latin, file_coordinate_system="LPS")
+    with pytest.raises(TypeError, match="`path` must be a path, got int"):
+        model.save(5)
+    (tmp_path / "folder.ply").mkdir()
+    with pytest.raises(OSError, match="folder.ply' is a folder; give a file name"):
+        write_triangle_mesh(tmp_path / "folder.ply", targets[0], overwrite=True)
+    (tmp_path / "a_file").write_text("")
+    with pytest.raises(OSError, match="`output_dir`: .*a_file' is a file, not a folder"):
+        register_batch((tv, tf), [targets[0]], tmp_path / "a_file")
+    with pytest.raises(ValueError, match="`levels` must be a non-empty list .* an empty one"):
+        registration_elastic((tv, tf), targets[0], levels=[])

@@ -315,7 +315,7 @@ def resume_key(
     else:
         target = as_mesh_arrays(target, "target", drop_degenerate=True)
     if init is not None:
-        init = as_transformation(init, "init")
+        init = as_transformation(init, "init", similarity=True)
     return _key(_digest(tv, tf), target, init, _options_key(resolve_settings(settings, options)))
 
 
@@ -575,9 +575,11 @@ def register_batch(
     if options.get("init") is not None:
         init = np.asarray(options["init"], dtype=np.float64)
         if init.shape == (len(targets), 4, 4):
-            inits: list[Any] = [as_transformation(t, f"init[{i}]") for i, t in enumerate(init)]
+            inits: list[Any] = [
+                as_transformation(t, f"init[{i}]", similarity=True) for i, t in enumerate(init)
+            ]
         elif init.shape == (4, 4):
-            inits = [as_transformation(init, "init")] * len(targets)
+            inits = [as_transformation(init, "init", similarity=True)] * len(targets)
         else:
             raise ValueError(
                 f"`init` must have shape (4, 4) or ({len(targets)}, 4, 4), got {init.shape}"
@@ -596,6 +598,8 @@ def register_batch(
             prepared.append(os.fspath(t))
         else:
             prepared.append(as_mesh_arrays(t, f"targets[{i}]", drop_degenerate=True))
+    if os.path.exists(output_dir) and not os.path.isdir(output_dir):
+        raise OSError(f"`output_dir`: {os.fspath(output_dir)!r} is a file, not a folder")
     os.makedirs(output_dir, exist_ok=True)
     return _run_batch(
         (tv, tf),

@@ -21,6 +21,8 @@ def write_archive(
     overwrite: bool,
 ) -> str:
     """Write ``arrays`` with a ``format`` tag and ``version`` to a compressed ``.npz``, atomically."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"`path` must be a path, got {type(path).__name__}")
     path = os.fspath(path)
     if not path.endswith(".npz"):
         raise ValueError(f"`path` must end with .npz, got {path!r}")

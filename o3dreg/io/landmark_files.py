@@ -116,14 +116,20 @@ def read_landmarks(
     assumed = _system(file_coordinate_system, "file_coordinate_system", allow_none=True)
     if not os.path.isfile(path):
         raise OSError(f"`path`: no such file {path!r}")
-    if suffix == ".csv":
-        labels, points, declared = _read_csv(path)
-    elif suffix == ".fcsv":
-        labels, points, declared = _read_fcsv(path)
-    elif suffix == ".pp":
-        labels, points, declared = _read_pp(path)
-    else:
-        labels, points, declared = _read_markups(path)
+    try:
+        if suffix == ".csv":
+            labels, points, declared = _read_csv(path)
+        elif suffix == ".fcsv":
+            labels, points, declared = _read_fcsv(path)
+        elif suffix == ".pp":
+            labels, points, declared = _read_pp(path)
+        else:
+            labels, points, declared = _read_markups(path)
+    except UnicodeDecodeError as exc:
+        raise ValueError(
+            f"`path`: {path!r} is not UTF-8 text (byte {exc.object[exc.start]:#04x} at "
+            f"{exc.start}): save it as UTF-8"
+        ) from None
     if not points.shape[0]:
         raise ValueError(f"`path`: {path!r} holds no landmarks")
     bad = ~np.isfinite(points).all(axis=1)
@@ -401,6 +407,10 @@ def write_landmarks(
     if labels is None:
         labels_ = tuple(f"L{i + 1}" for i in range(pts.shape[0]))
     else:
+        if isinstance(labels, (str, bytes)) or not isinstance(labels, (list, tuple, np.ndarray)):
+            raise TypeError(
+                f"`labels` must be a sequence of {pts.shape[0]} labels, got {type(labels).__name__}"
+            )
         labels_ = tuple(str(x) for x in labels)
         if len(labels_) != pts.shape[0]:
             raise ValueError(f"`labels` must hold {pts.shape[0]} labels, got {len(labels_)}")

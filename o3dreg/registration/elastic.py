@@ -106,10 +106,12 @@ def _check_levels(levels: Any, source: np.ndarray) -> list[ElasticLevel]:
         return default_levels(source)
     if isinstance(levels, ElasticLevel):
         levels = [levels]
-    if not isinstance(levels, (list, tuple)) or not levels:
+    if not isinstance(levels, (list, tuple)):
         raise TypeError(
             f"`levels` must be a non-empty list of ElasticLevel, got {type(levels).__name__}"
         )
+    if not levels:
+        raise ValueError("`levels` must be a non-empty list of ElasticLevel, got an empty one")
     for k, lev in enumerate(levels):
         if not isinstance(lev, ElasticLevel):
             raise TypeError(f"`levels[{k}]` must be an ElasticLevel, got {type(lev).__name__}")
@@ -260,7 +262,7 @@ def registration_elastic(
         rigid_start = default_start(vs, fs, surface.query, with_scaling=with_scaling)
         rigid = np.array(rigid_start.transformation)
     else:
-        rigid = as_transformation(init, "init")
+        rigid = as_transformation(init, "init", similarity=True)
 
     points = apply_transformation(rigid, vs)
     # The levels work along the template's own axes (the start's rotation): the lattices, the

@@ -33,6 +33,7 @@ from .distance import SurfaceDistanceQuery
 
 __all__ = [
     "RigidRegistrationResult",
+    "SizeMismatch",
     "moment_alignments",
     "registration_rigid",
     "rigid_candidates",
@@ -502,7 +503,7 @@ def _registration_rigid(
     with_scaling = check_bool(with_scaling, "with_scaling")
     given = init is not None
     if given:
-        candidates = [("init", as_transformation(init, "init"))]
+        candidates = [("init", as_transformation(init, "init", similarity=True))]
     else:
         _check_target(ft)
         if fs.shape[0] < MIN_TARGET_TRIANGLES:
@@ -541,6 +542,12 @@ def _registration_rigid(
         raise TypeError(
             "`estimation_method` must be an open3d.pipelines.registration.TransformationEstimation,"
             f" got {type(estimation_method).__name__}"
+        )
+    elif isinstance(estimation_method, reg.TransformationEstimationForColoredICP):
+        # It needs the colours of point clouds; o3dreg aligns surfaces by their geometry.
+        raise ValueError(
+            "`estimation_method` must estimate from geometry (point-to-point, point-to-plane or "
+            "generalized ICP), got TransformationEstimationForColoredICP, which needs colours"
         )
     if criteria is None:
         criteria = reg.ICPConvergenceCriteria(1e-6, 1e-6, 50)
@@ -595,15 +602,22 @@ def _check_target(ft: np.ndarray) -> None:
         )
 
 
+class SizeMismatch(ValueError):
+    """Source and target differ in size beyond :data:`MAX_SIZE_RATIO` (other units?)."""
+
+    def __init__(self, ratio: float, size_source: float, size_target: float) -> None:
+        self.ratio, self.size_source, self.size_target = ratio, size_source, size_target
+        super().__init__(
+            f"`target` is {ratio:.3g} times the size of `source` (RMS radius {size_target:.4g} "
+            f"vs {size_source:.4g}): are they in the same units? Convert one of them, or start "
+            "from a similarity: `with_scaling=True` (o3dreg register --with-scaling)"
+        )
+
+
 def _check_sizes(covs: np.ndarray, covt: np.ndarray) -> None:
     ratio = _size_ratio(covs, covt)
     if ratio > MAX_SIZE_RATIO or ratio < 1.0 / MAX_SIZE_RATIO:
-        size_s, size_t = np.sqrt(np.trace(covs)), np.sqrt(np.trace(covt))
-        raise ValueError(
-            f"`target` is {ratio:.3g} times the size of `source` (RMS radius {size_t:.4g} vs "
-            f"{size_s:.4g}): are they in the same units? Convert one of them, or start from a "
-            "similarity: `with_scaling=True` (o3dreg register --with-scaling)"
-        )
+        raise SizeMismatch(ratio, float(np.sqrt(np.trace(covs))), float(np.sqrt(np.trace(covt))))
 
 
 class _SingleThreadHold:

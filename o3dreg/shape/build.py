@@ -121,6 +121,28 @@ def build_shape_model(
     return pca_model(x, f, scaling, number_of_modes, names_, align)
 
 
+#: A shape is taken for mirrored when its best reflection onto the mean leaves less than this
+#: share of the residual of its best rotation (a shape of the population fits best turned).
+MIRRORED_RESIDUAL = 0.5
+
+
+def mirrored_shapes(aligned: np.ndarray, mean: np.ndarray) -> list[int]:
+    """The shapes among ``aligned`` (rotated onto ``mean`` already) whose best orthogonal map
+    onto the mean is a reflection leaving under :data:`MIRRORED_RESIDUAL` of the residual."""
+    out = []
+    target = mean - mean.mean(axis=0)
+    for k, shape in enumerate(aligned):
+        centred = shape - shape.mean(axis=0)
+        u, _, vt = np.linalg.svd(centred.T @ target)
+        if np.linalg.det(u @ vt) >= 0:
+            continue  # the best orthogonal map is a rotation: the shape is not mirrored
+        turned = float(((centred - target) ** 2).sum())  # already at its best rotation
+        mirrored = float(((centred @ (u @ vt) - target) ** 2).sum())
+        if mirrored < MIRRORED_RESIDUAL * turned:
+            out.append(k)
+    return out
+
+
 def pca_model(
     x: np.ndarray,
     faces: np.ndarray,
@@ -137,6 +159,14 @@ def pca_model(
     if align:
         gpa = generalized_procrustes(x, scaling=scaling)
         aligned, mean = gpa.shapes, gpa.shapes.mean(axis=0)
+        for k in mirrored_shapes(aligned, mean):
+            logger.warning(
+                "shape model: shape %d (%s) fits the mean shape far better mirrored than turned: "
+                "are its left and right swapped? Mirror it back (negate one coordinate) or "
+                "leave it out; its mirror image becomes a mode of the model",
+                k,
+                names[k],
+            )
     else:
         aligned, mean = x, x.mean(axis=0)
     data = (aligned - mean).reshape(s, -1)

@@ -15,7 +15,7 @@ from .._geometry import apply_transformation, barycentric
 from .._validation import as_mesh_arrays, as_transformation, check_bool, check_positive
 from ..io.mesh import to_open3d
 from ..registration.distance import SurfaceDistanceQuery
-from ..registration.rigid import default_start
+from ..registration.rigid import SizeMismatch, default_start
 from .fit_verdict import assess_model_fit
 from .model import ShapeModel
 from .procrustes import fit_transformation
@@ -158,10 +158,17 @@ def fit_shape_model(
     # One distance query (its AABB tree) per surface, shared by every start fitted to it.
     surface = SurfaceDistanceQuery(vt, ft)
     if init is not None:
-        pose = as_transformation(init, "init")
+        pose = as_transformation(init, "init", similarity=True)
         fit = _fit_model(model, surface, pose, k, reg, max_iteration, tolerance)
     else:
-        fit = _best_fit(model, surface, k, reg, max_iteration, tolerance)
+        try:
+            fit = _best_fit(model, surface, k, reg, max_iteration, tolerance)
+        except SizeMismatch as exc:
+            raise ValueError(
+                f"`target` is {exc.ratio:.3g} times the size of the model's mean shape (RMS "
+                f"radius {exc.size_target:.4g} vs {exc.size_source:.4g}): are they in the same "
+                "units? Convert the patient surface, or give the pose as `init`"
+            ) from None
     mirrored = None
     if check_reflection:
         # The patient reflected through its centroid (any one plane: the fit's rotation

@@ -18,6 +18,7 @@ carries the landmark exactly, and the identity leaves it where it was given.
 from __future__ import annotations
 
 import csv
+import inspect
 import logging
 import os
 from dataclasses import dataclass, field
@@ -463,12 +464,18 @@ def load_template_landmarks(
     if suffix == ".csv":
         if not os.path.isfile(path):
             raise OSError(f"`path`: no such file {path!r}")
-        with open(path, newline="", encoding="utf-8") as fh:
-            # Column names as written by people: any case, spaces around them.
-            rows = [
-                {k.strip().lower(): v for k, v in r.items() if isinstance(k, str)}
-                for r in csv.DictReader(fh)
-            ]
+        try:
+            with open(path, newline="", encoding="utf-8-sig") as fh:
+                # Column names as written by people: any case, spaces around them.
+                rows = [
+                    {k.strip().lower(): v for k, v in r.items() if isinstance(k, str)}
+                    for r in csv.DictReader(fh)
+                ]
+        except UnicodeDecodeError as exc:
+            raise ValueError(
+                f"`path`: {path!r} is not UTF-8 text (byte {exc.object[exc.start]:#04x} at "
+                f"{exc.start}): save it as UTF-8"
+            ) from None
         if rows:
             keys = set(rows[0])
             lab = [str(r.get("label") or f"L{k + 1}").strip() for k, r in enumerate(rows)]
@@ -633,6 +640,13 @@ def predict_landmarks(
             f"got {type(registration_options).__name__}"
         )
     options = dict(registration_options or {})
+    # Checked before the fit: a misspelt option would otherwise surface only after it.
+    unknown = sorted(set(options) - _REGISTRATION_KEYWORDS)
+    if unknown:
+        raise TypeError(
+            f"`registration_options` must be keyword arguments of registration_elastic, got "
+            f"{', '.join(map(repr, unknown))}"
+        )
     if on_target and onto == "registration":
         # The instance has the model's triangles: a mesh the registration refuses is refused
         # here, before the fit.
@@ -656,6 +670,14 @@ def predict_landmarks(
     return LandmarkPrediction(
         landmarks.labels, landmarks.positions(vertices), fit, vertices, registration
     )
+
+
+#: The keyword arguments :func:`predict_landmarks` passes on to the registration.
+_REGISTRATION_KEYWORDS = frozenset(
+    name
+    for name, p in inspect.signature(registration_elastic).parameters.items()
+    if p.kind is inspect.Parameter.KEYWORD_ONLY
+)
 
 
 def _check_registrable(vertices: np.ndarray, faces: np.ndarray) -> None:

@@ -79,7 +79,7 @@ def test_remove_small_components(three_parts):
     assert_untouched(three_parts, before)
     with pytest.raises(ValueError, match=r"must not exceed the largest component \(1742"):
         remove_small_components(three_parts, 2000)
-    with pytest.raises(TypeError, match="`min_vertices` must be a integer"):
+    with pytest.raises(TypeError, match="`min_vertices` must be an integer"):
         remove_small_components(three_parts, 2.5)
 
 

@@ -348,6 +348,8 @@ def test_bad_input():
     degenerate = np.vstack([f, [[0, 0, 1]]])
     with pytest.raises(ValueError, match="degenerate"):
         registration_elastic((v, degenerate), sphere)
+    with pytest.raises(ValueError, match="`init` must be a rotation, one scale and a transl"):
+        registration_elastic(sphere, sphere, init=np.diag([1.0, 1.0, 0.5, 1.0]))
     with pytest.raises(ValueError, match=r"`source.faces` must have shape \(m, 3\)"):
         registration_elastic((v, f[:, :2]), sphere)
     with pytest.raises(TypeError, match="`source.vertices` must hold real numbers"):

@@ -98,9 +98,8 @@ def test_a_landmark_file_with_nan_names_the_file(tmp_path):
     path = tmp_path / "bad.csv"
     path.write_text("label,x,y,z\nA,nan,0,0\nB,1,0,0\nC,0,1,0\n")
     good = (["A", "B", "C"], POINTS[:3])
-    with pytest.warns(UserWarning, match="coordinate system not stated"):
-        with pytest.raises(ValueError, match=r"`source landmarks '.*bad.csv'` must hold finite"):
-            registration_landmarks(str(path), good)
+    with pytest.raises(ValueError, match=r"bad.csv' holds NaN or infinite coordinates"):
+        registration_landmarks(str(path), good)
 
 
 @pytest.fixture(scope="module")

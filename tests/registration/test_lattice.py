@@ -178,5 +178,5 @@ def test_deformation_parameters_are_checked():
         deformation.refined((6.9, 8, 4))
     with pytest.raises(ValueError, match="`samples_per_cell` must be at least 2"):
         deformation.min_jacobian_determinant(1)
-    with pytest.raises(TypeError, match="`samples_per_cell` must be a integer"):
+    with pytest.raises(TypeError, match="`samples_per_cell` must be an integer"):
         deformation.min_jacobian_determinant("a")

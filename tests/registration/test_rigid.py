@@ -115,6 +115,18 @@ def test_bad_input(bunny_template):
         registration_rigid(bunny_template, bunny_template, max_correspondence_distance=-1.0)
     with pytest.raises(TypeError, match="criteria"):
         registration_rigid(bunny_template, bunny_template, criteria=30)
+    # ICP refines a rigid motion of the start and keeps its shear, which nothing would report.
+    sheared = np.eye(4)
+    sheared[0, 1] = 0.3
+    for init in (sheared, np.diag([1.0, 1.2, 1.0, 1.0])):
+        with pytest.raises(ValueError, match="`init` must be a rotation, one scale and a transl"):
+            registration_rigid(bunny_template, bunny_template, init=init)
+    # A rotation written with 6 decimals is one.
+    turn = np.round(similarity_transform(35.0, (1.0, 2.0, 0.5), (1.0, 2.0, 3.0), 1.5), 6)
+    registration_rigid(bunny_template, bunny_template, init=turn)
+    colored = o3d.pipelines.registration.TransformationEstimationForColoredICP()
+    with pytest.raises(ValueError, match="`estimation_method` must estimate from geometry"):
+        registration_rigid(bunny_template, bunny_template, estimation_method=colored)
 
 
 def test_same_input_gives_a_bit_identical_pose(bunny_template, bunny_target):

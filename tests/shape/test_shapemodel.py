@@ -6,6 +6,7 @@ standard deviations 4, 2 and 1 mm, each subject in a random pose and remeshed in
 
 from __future__ import annotations
 
+import logging
 import os
 
 import numpy as np
@@ -312,7 +313,7 @@ def test_model_arguments_are_checked_where_given(pop):
     model = build_shape_model(pop[2], tf)
     with pytest.raises(ValueError, match="`number_of_modes` must be a finite integer >= 0"):
         model.variance_table(number_of_modes=-1)
-    with pytest.raises(TypeError, match="`number_of_modes` must be a integer"):
+    with pytest.raises(TypeError, match="`number_of_modes` must be an integer"):
         model.variance_table(number_of_modes=2.5)
     # More modes than the model holds: all of them.
     assert model.variance_table(number_of_modes=99) == model.variance_table()
@@ -335,3 +336,17 @@ def test_the_docs_pipeline_takes_open3d_triangles_and_a_new_modes_folder(pop, tm
     (tmp_path / "file").write_text("")
     with pytest.raises(OSError, match="exists and is not a folder"):
         model.write_meshes(tmp_path / "file")
+
+
+def test_a_mirrored_shape_is_named_in_a_warning(caplog):
+    # No rotation aligns a mirror image: it stays apart and becomes the first mode.
+    (_, tf), _, truths, _, _ = population(6, seed=2)
+    with caplog.at_level(logging.WARNING, logger="o3dreg"):
+        build_shape_model(truths, tf)
+    assert not caplog.records
+    swapped = truths.copy()
+    swapped[3] = swapped[3] * [-1.0, 1.0, 1.0]
+    with caplog.at_level(logging.WARNING, logger="o3dreg"):
+        build_shape_model(swapped, tf, names=[f"p{i}" for i in range(6)])
+    (record,) = caplog.records
+    assert "shape 3 (p3) fits the mean shape far better mirrored" in record.getMessage()
