@@ -375,6 +375,47 @@ def test_build_model_folder_refuses_to_replace_a_model_and_still_resumes(tmp_pat
     assert _same_arrays(_arrays(out / "model.npz"), before[1])
 
 
+def test_a_failed_rebuild_keeps_the_earlier_model(tmp_path, monkeypatch):
+    # A rebuild with overwrite=True that fails half-way (a full disk, Ctrl-C) leaves the earlier
+    # model as it was: the new files are written aside and moved in only once all are written.
+    from o3dreg.app import model_folder
+
+    (tv, tf), targets, *_ = population(3, seed=5)
+    paths = [str(write_triangle_mesh(tmp_path / f"p{i}.ply", t)) for i, t in enumerate(targets)]
+    template = read_triangle_mesh(write_triangle_mesh(tmp_path / "t.ply", (tv, tf)))
+    settings = RegistrationSettings(
+        levels=(ElasticLevel(2),), criteria=ElasticCriteria(max_iteration=3)
+    )
+    out = tmp_path / "model"
+    build = functools.partial(build_model_folder, template, paths, str(out), settings=settings)
+    build()
+
+    def contents() -> dict:
+        return {
+            p.relative_to(out): p.read_bytes()
+            for p in sorted(out.rglob("*"))
+            if p.is_file() and "registrations" not in p.parts
+        }
+
+    before = contents()
+    assert {"model.npz", "model.h5", "explorer.html", "report.json"} <= {str(p) for p in before}
+
+    def full_disk(*args, **kwargs):
+        raise OSError("`path`: writing 'model.h5' failed: No space left on device")
+
+    for stage in ("write_statismo", "write_model_explorer"):
+        with monkeypatch.context() as patch:
+            patch.setattr(model_folder, stage, full_disk)
+            with pytest.raises(OSError, match="No space left"):
+                build(overwrite=True, force=True)
+        assert contents() == before
+        assert not [p for p in out.iterdir() if p.name.startswith(".o3dreg-model.")]
+    rebuilt = build(overwrite=True, force=True)
+    assert rebuilt.model is not None and not [
+        p for p in out.iterdir() if p.name.startswith(".o3dreg-model.")
+    ]
+
+
 def _arrays(path) -> dict:
     with np.load(path, allow_pickle=False) as archive:
         return {key: archive[key] for key in archive.files}
@@ -1041,6 +1082,26 @@ def test_a_failing_later_output_removes_the_earlier_ones(meshes, capsys, monkeyp
                          "--report", str(meshes / "r.json"), "--levels", "2")  # fmt: skip
     assert code == 2 and "No space left" in err
     assert sorted(p.name for p in meshes.iterdir()) == ["p.ply", "t.ply"]
+
+
+def test_a_failed_overwrite_puts_the_earlier_outputs_back(meshes, capsys, monkeypatch):
+    # With --overwrite, the outputs written before the failing one had replaced the earlier
+    # run's: the command ended with a mix of new and old files.
+    from o3dreg.cli import _register
+
+    args = ["register", str(meshes / "t.ply"), str(meshes / "p.ply"), "-o", str(meshes / "r.ply"),
+            "--deformation", str(meshes / "d.npz"), "--report", str(meshes / "r.json"),
+            "--levels", "2"]  # fmt: skip
+    assert run_main(capsys, *args)[0] in (0, 1)
+    before = {p.name: p.read_bytes() for p in meshes.iterdir()}
+
+    def disk_full(path, data, *, overwrite):
+        raise OSError(f"--report: writing {path!r} failed: No space left on device")
+
+    monkeypatch.setattr(_register, "write_json", disk_full)
+    code, err = run_main(capsys, *args, "--levels", "2,4", "--overwrite")
+    assert code == 2 and "No space left" in err
+    assert {p.name: p.read_bytes() for p in meshes.iterdir()} == before  # no hidden file either
 
 
 def test_model_modes_on_a_full_disk_writes_no_mesh(model_dir, tmp_path):

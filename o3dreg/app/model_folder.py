@@ -15,6 +15,7 @@ import hashlib
 import logging
 import os
 import shutil
+import tempfile
 from collections.abc import Iterator, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -143,15 +144,37 @@ def _refuse_a_model(output: str | os.PathLike[str], overwrite: bool) -> None:
         )
 
 
-def _remove_model_files(folder: str | os.PathLike[str]) -> None:
-    """Remove the :data:`MODEL_FILES` of ``folder`` (not its registrations or template)."""
-    for name in MODEL_FILES:
-        path = os.path.join(folder, name)
-        if os.path.isdir(path):
-            shutil.rmtree(path, ignore_errors=True)
-        elif os.path.lexists(path):
+#: The hidden folders a model build writes its files into before moving them into place, and
+#: moves the files they replace into before removing them.
+STAGING_PREFIX = ".o3dreg-model."
+
+
+def _replace_model_files(folder: str, staging: str) -> None:
+    """Move the :data:`MODEL_FILES` written in ``staging`` into ``folder``, in place of those
+    there: the old ones are first moved aside (renames within one folder), and moved back if
+    the swap is interrupted, so the folder holds one model or the other."""
+    old = tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=folder)
+    moved_aside: list[str] = []
+    placed: list[str] = []
+    try:
+        for name in MODEL_FILES:
+            if os.path.lexists(os.path.join(folder, name)):
+                os.replace(os.path.join(folder, name), os.path.join(old, name))
+                moved_aside.append(name)
+        for name in MODEL_FILES:
+            if os.path.lexists(os.path.join(staging, name)):
+                os.replace(os.path.join(staging, name), os.path.join(folder, name))
+                placed.append(name)
+    except BaseException:
+        for name in placed:
             with contextlib.suppress(OSError):
-                os.remove(path)
+                os.replace(os.path.join(folder, name), os.path.join(staging, name))
+        for name in moved_aside:
+            with contextlib.suppress(OSError):
+                os.replace(os.path.join(old, name), os.path.join(folder, name))
+        raise
+    finally:
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def check_inputs_outside(
@@ -328,6 +351,11 @@ def build_model_folder(
     os.makedirs(out, exist_ok=True)
     with _folder_lock(out):
         _refuse_a_model(output, overwrite)  # again: a build may have ended since
+        # Staging folders of a build killed outright (SIGKILL, power loss): this build holds
+        # the folder's lock, so no other build is writing them.
+        for entry in os.listdir(out):
+            if entry.startswith(STAGING_PREFIX):
+                shutil.rmtree(os.path.join(out, entry), ignore_errors=True)
         template_path = os.path.join(out, "template.ply")
         if os.path.exists(template_path):
             previous = read_triangle_mesh(template_path)
@@ -365,19 +393,20 @@ def build_model_folder(
                 f"{exc}; no model written, the registrations in "
                 f"{os.path.join(out, 'registrations')!r} are kept"
             ) from exc
-        # The model's files are written together or not at all: an interrupted run (Ctrl-C, an
-        # error) removes those it wrote, so the folder never holds a half-built model that a rerun
-        # would refuse and `model info` would read. The registrations stay for the rerun.
+        # The model's files are written together or not at all: they are written into a hidden
+        # folder beside the model's and moved into place once all are written, so a failed or
+        # interrupted run (a full disk, Ctrl-C) leaves the folder's earlier model as it was and
+        # never a half-built one. The registrations stay for the rerun.
+        staging = tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=out)
         try:
-            model.save(os.path.join(out, "model.npz"), overwrite=True)
-            write_statismo(os.path.join(out, "model.h5"), model, overwrite=True)
-            os.makedirs(os.path.join(out, "modes"), exist_ok=True)
-            model.write_meshes(os.path.join(out, "modes"), overwrite=True)
-            write_triangle_mesh(os.path.join(out, "mean.ply"), model.mesh(), overwrite=True)
+            model.save(os.path.join(staging, "model.npz"), overwrite=True)
+            write_statismo(os.path.join(staging, "model.h5"), model, overwrite=True)
+            model.write_meshes(os.path.join(staging, "modes"), overwrite=True)
+            write_triangle_mesh(os.path.join(staging, "mean.ply"), model.mesh(), overwrite=True)
             atomic_write_text(
-                os.path.join(out, "variance.txt"), model.variance_table() + "\n", overwrite=True
+                os.path.join(staging, "variance.txt"), model.variance_table() + "\n", overwrite=True
             )
-            quality_dir = os.path.join(out, "quality")
+            quality_dir = os.path.join(staging, "quality")
             os.makedirs(quality_dir, exist_ok=True)
             curves = [compactness(model), specificity(model, shapes, number_of_samples=100, seed=0)]
             if len(names) >= 3:
@@ -408,12 +437,12 @@ def build_model_folder(
                 else {"iterations": slid.iterations, "message": slid.message},
             }
             atomic_write_text(
-                os.path.join(out, "report.json"),
+                os.path.join(staging, "report.json"),
                 json_text.dumps(report, indent=2) + "\n",
                 overwrite=True,
             )
-            write_model_explorer(os.path.join(out, "explorer.html"), model, registrations=batch)
-        except BaseException:
-            _remove_model_files(out)
-            raise
+            write_model_explorer(os.path.join(staging, "explorer.html"), model, registrations=batch)
+            _replace_model_files(out, staging)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
         return ModelFolder(out, batch, model, curves, slid, report)

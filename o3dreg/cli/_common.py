@@ -8,6 +8,7 @@ import contextlib
 import math
 import multiprocessing
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -16,6 +17,7 @@ from collections.abc import Iterator, Sequence
 from typing import Any
 
 from ..io import json_text
+from ..io.mesh import _HOST as HOST
 from ..io.mesh import atomic_write_text
 
 
@@ -208,16 +210,44 @@ def process_pool(jobs: int) -> Iterator[cf.ProcessPoolExecutor | None]:
 
 @contextlib.contextmanager
 def all_or_nothing(paths: Sequence[str | None]) -> Iterator[None]:
-    """On an exception, remove the ``paths`` the block created (not those that existed before).
+    """On an exception, remove the ``paths`` the block created and put back those it replaced.
 
-    One command's outputs are then all written or none is (exit status 2 means nothing written);
-    a file replaced with ``--overwrite`` is gone either way.
+    One command's outputs are then all written or none is (exit status 2 means nothing written),
+    and a failed or interrupted ``--overwrite`` run leaves the earlier outputs as they were: each
+    existing output is kept under a hidden name (a hard link: no copy) until the block ends.
     """
-    new = [p for p in paths if p is not None and not os.path.exists(p)]
+    chosen = [os.fspath(p) for p in paths if p is not None]
+    new = [p for p in chosen if not os.path.lexists(p)]
+    kept: dict[str, str] = {}
     try:
+        for path in chosen:
+            if path not in new and os.path.isfile(path) and path not in kept:
+                kept[path] = _keep(path)
         yield
     except BaseException:
         for path in new:
             with contextlib.suppress(OSError):
                 os.unlink(path)
+        for path, backup in kept.items():
+            with contextlib.suppress(OSError):
+                os.replace(backup, path)
         raise
+    finally:
+        for backup in kept.values():
+            with contextlib.suppress(OSError):
+                os.unlink(backup)
+
+
+def _keep(path: str) -> str:
+    """A hidden hard link (a copy where links are refused) to ``path``, named as the atomic
+    writer's temporary files, which a later write removes if this process is killed."""
+    folder, name = os.path.split(os.path.abspath(path))
+    base, suffix = os.path.splitext(name)
+    backup = os.path.join(folder, f".{base}.{HOST}-{os.getpid()}.kept.part{suffix}")
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(backup)
+    try:
+        os.link(path, backup)
+    except OSError:
+        shutil.copy2(path, backup)
+    return backup
