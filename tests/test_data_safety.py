@@ -622,6 +622,38 @@ def test_nrrd_with_unusable_geometry_is_refused(tmp_path, header, message):
         read_volume(path)
 
 
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        # pynrrd raised a bare KeyError on a type it does not know.
+        ((b"type: float", b"type: quaternion"), "unsupported NRRD type 'quaternion'"),
+        # SimpleITK 2.5 crashed (SIGSEGV) reading raw bytes under a text encoding.
+        ((b"encoding: raw", b"encoding: ascii"), "could not read NRRD data"),
+    ],
+)
+def test_nrrd_whose_header_lies_is_refused(tmp_path, edit, message):
+    # Run in a child process: a crash of a reader must fail this test, not end the session.
+    import nrrd
+
+    path = tmp_path / "cube.nrrd"
+    cube = np.zeros((6, 6, 6), np.float32)
+    cube[2:4, 2:4, 2:4] = 1.0
+    nrrd.write(str(path), cube, {"encoding": "raw"})
+    path.write_bytes(path.read_bytes().replace(*edit))
+    done = python(
+        """
+        import sys
+        from o3dreg import read_volume
+        try:
+            read_volume(sys.argv[1])
+        except (OSError, ValueError) as exc:
+            print(exc)
+        """,
+        str(path),
+    )
+    assert done.returncode == 0 and message in done.stdout, (done.returncode, done.stderr)
+
+
 def test_dicom_series_with_a_truncated_slice_is_refused(tmp_path):
     from _helpers import write_dicom_series
 

@@ -29,10 +29,22 @@ _NRRD_SPACE_TO_LPS = {
 }
 
 
+#: NRRD encodings of text data: read by pynrrd, which checks the numbers (SimpleITK 2.5 crashed
+#: on a header saying ascii over raw bytes).
+_TEXT_ENCODINGS = ("ascii", "text", "txt")
+
+
 def read_nrrd(path: str) -> Volume:
     import SimpleITK as sitk
 
-    _check_geometry_fields(path)
+    header = _check_geometry_fields(path)
+    if header is not None:
+        if "type" in header:
+            _nrrd_dtype(header, path)  # an unknown type is refused before any reader sees it
+        if str(header.get("encoding", "")).lower() in _TEXT_ENCODINGS:
+            volume = _read_nrrd_pynrrd(path)
+            logger.info("read %s with pynrrd: %r", path, volume)
+            return volume
     try:
         image = sitk.ReadImage(path)
     except RuntimeError as exc:
@@ -46,14 +58,15 @@ def read_nrrd(path: str) -> Volume:
     return volume
 
 
-def _check_geometry_fields(path: str) -> None:
-    """Refuse zero or NaN spacings and a NaN origin (SimpleITK reads them as 1 mm and 0)."""
+def _check_geometry_fields(path: str) -> dict[str, Any] | None:
+    """Refuse zero or NaN spacings and a NaN origin (SimpleITK reads them as 1 mm and 0); the
+    header, where pynrrd reads it."""
     import nrrd
 
     try:
         header = nrrd.read_header(path)
     except Exception:  # unreadable header: SimpleITK, then pynrrd, say why
-        return
+        return None
     spacings = header.get("spacings")
     if spacings is not None:
         values = np.asarray(spacings, dtype=np.float64)
@@ -62,10 +75,13 @@ def _check_geometry_fields(path: str) -> None:
                 f"`path`: {path!r} has spacings {values.tolist()}; each must be a non-zero number"
             )
     origin = header.get("space origin")
-    if origin is not None and not np.all(np.isfinite(np.asarray(origin, dtype=np.float64))):
-        raise ValueError(
-            f"`path`: {path!r} has space origin {np.asarray(origin).tolist()}; it must be finite"
-        )
+    if origin is not None:
+        values = np.asarray(origin, dtype=np.float64).ravel()
+        if values.size != 3 or not np.all(np.isfinite(values)):
+            raise ValueError(
+                f"`path`: {path!r} has space origin {values.tolist()}; it must be 3 finite numbers"
+            )
+    return dict(header)
 
 
 def _read_nrrd_pynrrd(path: str) -> Volume:
@@ -103,7 +119,7 @@ def _read_nrrd_pynrrd(path: str) -> Volume:
         )
     try:
         data, _ = nrrd.read(path, index_order="C")
-    except (nrrd.NRRDError, OSError, ValueError) as exc:
+    except (nrrd.NRRDError, OSError, ValueError, KeyError, TypeError) as exc:
         raise OSError(f"`path`: could not read NRRD data of {path!r}: {exc}") from exc
     if data.ndim == 2:
         data = data[np.newaxis]
@@ -139,7 +155,8 @@ def _nrrd_geometry(header: dict[str, Any], path: str) -> tuple[np.ndarray, np.nd
         if len(rows) == 2 and len(header.get("sizes", [])) == 2:
             rows.append(np.cross(rows[0], rows[1]) / np.linalg.norm(np.cross(rows[0], rows[1])))
         if len(rows) != 3:
-            raise ValueError(f"`path`: {path!r} has unusable space directions {directions!r}")
+            shown = np.asarray(directions, dtype=object).tolist()
+            raise ValueError(f"`path`: {path!r} has unusable space directions {shown}")
         matrix = np.stack(rows, axis=1) * flips[:, None]  # columns: i, j, k axes in world
         spacing = np.linalg.norm(matrix, axis=0)
         if np.any(spacing == 0):
