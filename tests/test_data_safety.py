@@ -1045,7 +1045,7 @@ def test_workers_end_with_a_killed_parent(tmp_path):
 
 
 def test_demo_deletes_only_what_it_wrote(tmp_path):
-    from o3dreg.cli._demo import MARKER, _write_marker, prepare_output
+    from o3dreg.cli._demo import _write_marker, prepare_output
 
     folder = tmp_path / "demo"
     (folder / "images").mkdir(parents=True)
@@ -1057,8 +1057,32 @@ def test_demo_deletes_only_what_it_wrote(tmp_path):
         prepare_output(str(folder))
     assert (folder / "report.md").exists() and (folder / "notes.txt").read_text() == "mine"
     (folder / "notes.txt").unlink()
-    prepare_output(str(folder))
-    assert sorted(p.name for p in folder.iterdir()) == [MARKER]
+    # The earlier demo's files stay until a new run has finished and replaces them.
+    assert prepare_output(str(folder)) == (
+        str(folder),
+        {"report.md", os.path.join("images", "a.png")},
+    )
+    assert (folder / "report.md").read_text() == "old report"
+
+
+def test_an_interrupted_demo_leaves_the_earlier_one(tmp_path, monkeypatch, capsys):
+    # Ctrl-C (or a full disk) in a second run deleted the first run's report and meshes.
+    from o3dreg.cli import _demo
+
+    folder = tmp_path / "demo"
+    folder.mkdir()
+    (folder / "report.md").write_text("old report")
+    _demo._write_marker(str(folder), {"report.md"})
+
+    def interrupted(output, **kwargs):
+        (Path(output) / "report.md").write_text("half a new report")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(_demo, "run_demo", interrupted)
+    code, _ = run_main(capsys, "demo", "-o", str(folder))
+    assert code == 130
+    assert sorted(p.name for p in folder.iterdir()) == [_demo.MARKER, "report.md"]
+    assert (folder / "report.md").read_text() == "old report"
 
 
 def test_build_model_quiet_prints_nothing(meshes, capsys):

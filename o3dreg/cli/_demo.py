@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import shutil
 import sys
+import tempfile
 
 from ..app.demo import run_demo
+from ..io.mesh import _process_alive as process_alive
 from ..io.mesh import atomic_write_text
 from ._common import add_jobs_option, add_json_option, emit, emit_json, process_pool
 
@@ -48,16 +52,23 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 _MARKER_HEADER = "made by o3dreg demo; the files it wrote (removed by the next demo run):"
 
 
+#: The hidden folder inside the output where a demo run writes, moved into place when it ends.
+STAGING_PREFIX = ".o3dreg-demo-run."
+
+
 def _files_under(folder: str) -> set[str]:
     found = set()
-    for root, _, files in os.walk(folder):
+    for root, dirs, files in os.walk(folder):
+        if root == folder:
+            dirs[:] = [d for d in dirs if not d.startswith(STAGING_PREFIX)]
         for name in files:
             found.add(os.path.relpath(os.path.join(root, name), folder))
     return found - {MARKER}
 
 
-def prepare_output(folder: str) -> str:
-    """Create ``folder``; in a folder of an earlier demo remove only the files that demo wrote.
+def prepare_output(folder: str) -> tuple[str, set[str]]:
+    """Create ``folder`` and return it with the files an earlier demo wrote there (which the new
+    run replaces when it has finished: an interrupted or failed run leaves them).
 
     Refused: a non-empty folder without the demo's marker, and a demo folder holding any file
     the marker does not list (added since, or left by a demo that was killed).
@@ -82,14 +93,31 @@ def prepare_output(folder: str) -> str:
                 f"did not write ({', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}); "
                 "move them or choose another folder"
             )
-        for name in present:
-            os.unlink(os.path.join(folder, name))
-        for root, _, _ in sorted(os.walk(folder), key=lambda w: -len(w[0])):
-            if root != folder and not os.listdir(root):
-                os.rmdir(root)
     os.makedirs(folder, exist_ok=True)
-    _write_marker(folder, set())
-    return folder
+    if not present:
+        _write_marker(folder, set())
+    # Staging folders of runs killed outright (SIGKILL, power loss).
+    for entry in os.listdir(folder):
+        if entry.startswith(STAGING_PREFIX):
+            pid = entry[len(STAGING_PREFIX) :].split(".")[0]
+            if not pid.isdigit() or not process_alive(int(pid)):
+                shutil.rmtree(os.path.join(folder, entry), ignore_errors=True)
+    return folder, present
+
+
+def _replace_demo(folder: str, staging: str, earlier: set[str]) -> None:
+    """Remove the ``earlier`` demo's files from ``folder`` and move the new run's in."""
+    # The marker lists both while they are swapped: a swap cut short leaves no file unlisted.
+    _write_marker(folder, earlier | _files_under(staging))
+    for name in earlier:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(os.path.join(folder, name))
+    for root, _, _ in sorted(os.walk(folder), key=lambda w: -len(w[0])):
+        if root != folder and not root.startswith(staging) and not os.listdir(root):
+            os.rmdir(root)
+    for entry in os.listdir(staging):
+        os.replace(os.path.join(staging, entry), os.path.join(folder, entry))
+    _write_marker(folder, _files_under(folder))
 
 
 def _write_marker(folder: str, files: set[str]) -> None:
@@ -105,21 +133,25 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--patients must be >= 3, got {args.patients}")
     if args.jobs < 1:
         raise ValueError(f"--jobs must be >= 1, got {args.jobs}")
-    folder = prepare_output(args.output)
+    folder, earlier = prepare_output(args.output)
     show = not args.quiet and not args.json
     emit(f"o3dreg demo: CT -> bone -> template -> {args.patients} patients -> shape model", args)
+    # The run writes into a hidden folder and replaces the earlier demo's files only once it
+    # has finished: Ctrl-C or an error leaves them as they were.
+    staging = tempfile.mkdtemp(prefix=f"{STAGING_PREFIX}{os.getpid()}.", dir=folder)
     try:
         with process_pool(args.jobs) as pool:
             result = run_demo(
-                folder,
+                staging,
                 number_of_patients=args.patients,
                 seed=args.seed,
                 progress=show,
                 executor=pool,
             )
+        _replace_demo(folder, staging, earlier)
     finally:
-        # Everything in the folder now was written by this run (it started empty).
-        _write_marker(folder, _files_under(folder))
+        shutil.rmtree(staging, ignore_errors=True)
+    report = os.path.join(folder, os.path.relpath(result.report, staging))
     emit(result.batch.table(), args)
     emit("", args)
     emit(result.model.variance_table(), args)
@@ -129,12 +161,12 @@ def run(args: argparse.Namespace) -> int:
         f"{result.landmark_error_mean:.2f} mm",
         args,
     )
-    emit(f"report: {result.report}  ({result.seconds:.0f} s)", args)
+    emit(f"report: {report}  ({result.seconds:.0f} s)", args)
     if args.json:
         emit_json(
             {
-                "output": str(result.output),
-                "report": str(result.report),
+                "output": folder,
+                "report": report,
                 "patients": [r.name for r in result.batch.records],
                 "failed": [r.name for r in result.batch.failed],
                 "flagged": {
