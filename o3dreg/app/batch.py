@@ -214,6 +214,11 @@ class BatchResult:
         return [r.as_dict() for r in self.records]
 
 
+#: Names a patient cannot have: the batch's own files in its folder (compared ignoring case, as
+#: some file systems do).
+RESERVED_NAMES = ("summary",)
+
+
 def _safe_name(name: str) -> str:
     cleaned = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")
     return cleaned or "patient"
@@ -337,20 +342,32 @@ def _default_names(targets: Sequence[Any]) -> list[str]:
     names = [_safe_name(_default_name(t, i)) for i, t in enumerate(targets)]
     groups: dict[str, list[int]] = {}
     for i, name in enumerate(names):
-        groups.setdefault(name, []).append(i)
-    for name, members in groups.items():
+        groups.setdefault(name.lower(), []).append(i)  # one file where case is ignored
+    for members in groups.values():
         if len(members) == 1:
             continue
-        renamed = [f"{name}_{k}" for k in range(1, len(members) + 1)]
+        renamed = [f"{names[i]}_{k}" for k, i in enumerate(members, start=1)]
         if all(isinstance(targets[i], (str, os.PathLike)) for i in members):
             parts = [os.path.abspath(os.fspath(targets[i])).split(os.sep)[:-1] for i in members]
             for depth in range(1, min(len(p) for p in parts) + 1):
-                candidate = [_safe_name("_".join([*p[-depth:], name])) for p in parts]
-                if len(set(candidate)) == len(candidate):
+                candidate = [
+                    _safe_name("_".join([*p[-depth:], names[i]])) for p, i in zip(parts, members)
+                ]
+                if len({c.lower() for c in candidate}) == len(candidate):
                     renamed = candidate
                     break
         for i, new in zip(members, renamed):
             names[i] = new
+    # A folder-made name may still meet another file's stem (a/p.ply and a_p.ply), and the
+    # batch's own summary.json takes one name: number what would collide.
+    seen = {n.lower() for n in RESERVED_NAMES}
+    for i, name in enumerate(names):
+        candidate, k = name, 1
+        while candidate.lower() in seen:
+            k += 1
+            candidate = f"{name}_{k}"
+        names[i] = candidate
+        seen.add(candidate.lower())
     return names
 
 
@@ -508,9 +525,11 @@ def register_batch(
         Created if missing. Holds ``NAME.ply``, ``NAME.npz``, ``NAME.json`` per patient and
         ``summary.json``.
     names : sequence of str, optional
-        Patient names (file stems). Default: the target file stems, or ``patient000``, ...;
-        where stems repeat (``case01/bone.ply``, ``case02/bone.ply``), the fewest folders
-        that tell the files apart lead (``case01_bone``, ``case02_bone``), else a number.
+        Patient names (file stems), distinct ignoring case, not ``summary``. Default: the
+        target file stems, or ``patient000``, ...; where stems repeat ignoring case
+        (``case01/bone.ply``, ``case02/bone.ply``), the fewest folders that tell the files apart
+        lead (``case01_bone``, ``case02_bone``), else a number; a name that would still meet
+        another, or the batch's ``summary``, gets a number (``summary_2``).
     executor : concurrent.futures.Executor, optional
         Runs the registrations, e.g. ``ProcessPoolExecutor(2)`` or a Dask client's
         ``client.get_executor()``. Workers receive arrays and paths and return the result; all
@@ -589,9 +608,17 @@ def register_batch(
     names_ = [_safe_name(n) for n in names_]
     seen: dict[str, int] = {}
     for i, n in enumerate(names_):
-        if n in seen:
-            raise ValueError(f"`names` must be unique, got {n!r} for targets {seen[n]} and {i}")
-        seen[n] = i
+        if n.lower() in RESERVED_NAMES:
+            raise ValueError(
+                f"`names`: {n!r} (target {i}) names the batch's own {n.lower()}.json; choose "
+                "another name"
+            )
+        if n.lower() in seen:
+            raise ValueError(
+                f"`names` must be unique (ignoring case), got {n!r} for targets "
+                f"{seen[n.lower()]} and {i}"
+            )
+        seen[n.lower()] = i
     prepared: list[Any] = []
     for i, t in enumerate(targets):
         if isinstance(t, (str, os.PathLike)):

@@ -171,6 +171,29 @@ def test_patients_of_one_file_name_in_several_folders_get_distinct_names(small, 
     assert (tmp_path / "out" / "case02_bone.ply").is_file()
 
 
+def test_default_names_never_meet_each_other_or_the_summary():
+    # a/p.ply and b/p.ply are told apart as a_p and b_p, which met the stem of a_p.ply ("`names`
+    # must be unique" after the template was written); a patient file summary.ply wrote its
+    # record over the batch's summary.json.
+    from o3dreg.app.batch import _default_names
+
+    assert _default_names(["a/p.ply", "b/p.ply", "a_p.ply"]) == ["a_p", "b_p", "a_p_2"]
+    assert _default_names(["x/summary.ply", "y/Summary.ply"]) == ["x_summary", "y_Summary"]
+    assert _default_names(["summary.ply", "q.ply"]) == ["summary_2", "q"]
+    assert _default_names(["A.ply", "a.ply"]) == ["A_1", "a_2"]  # one file on some systems
+
+
+def test_given_names_are_refused_where_they_would_meet(small, tmp_path):
+    template, targets, _ = small
+    for names, message in (
+        (["summary", "q"], "names the batch's own summary.json"),
+        (["P", "p"], r"must be unique \(ignoring case\), got 'p' for targets 0 and 1"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            register_batch(template, targets[:2], tmp_path / "out", names=names, levels=FAST)
+    assert not (tmp_path / "out").exists()
+
+
 def test_resume_keys_leave_out_the_extra_terms_until_there_are_some(small):
     # A batch folder made before DistanceEstimation had `more_terms` keeps its keys (no patient
     # registered again for nothing); an extra term, when there is one, changes the key.
