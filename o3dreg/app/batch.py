@@ -362,12 +362,12 @@ def _default_names(targets: Sequence[Any]) -> list[str]:
     # batch's own summary.json takes one name: number what would collide.
     seen = {n.lower() for n in RESERVED_NAMES}
     for i, name in enumerate(names):
-        candidate, k = name, 1
-        while candidate.lower() in seen:
+        unique, k = name, 1
+        while unique.lower() in seen:
             k += 1
-            candidate = f"{name}_{k}"
-        names[i] = candidate
-        seen.add(candidate.lower())
+            unique = f"{name}_{k}"
+        names[i] = unique
+        seen.add(unique.lower())
     return names
 
 
@@ -667,6 +667,14 @@ def _run_batch(
             and record.verdict in STATUSES
             and os.path.isfile(os.path.join(output_dir, f"{name}.ply"))
         ):
+            current = targets[i]
+            if isinstance(current, str) and os.path.abspath(record.source) != os.path.abspath(
+                current
+            ):
+                # The same patient (its content is in the key) read from elsewhere: a folder
+                # moved with its patients, or patients moved. The record names where it is now.
+                record = dataclasses.replace(record, source=os.path.abspath(current))
+                _write_json(path, {**record.as_dict(), "resume_key": keys[i]})
             records[name] = record
             logger.info("batch: %s already registered, skipped", name)
             if callback is not None:

@@ -76,3 +76,26 @@ def test_a_missing_patient_is_named(built, tmp_path, monkeypatch, caplog):
         hidden.rename(moved)
     assert "p1: patient surface not shown" in caplog.text
     assert "p0" not in caplog.text
+
+
+def test_a_rebuild_after_the_patients_moved_names_where_they_are(tmp_path):
+    # The records reused by a rebuild kept the old paths: the explorer then showed no patient
+    # surface ("no such file") although every patient was given where it now lies.
+    (tv, tf), targets, *_ = population(3, seed=7)
+    (tmp_path / "old").mkdir()
+    paths = [str(write_triangle_mesh(tmp_path / "old" / f"p{i}.ply", t)) for i, t in
+             enumerate(targets)]  # fmt: skip
+    template = read_triangle_mesh(write_triangle_mesh(tmp_path / "template.ply", (tv, tf)))
+    level = ElasticLevel(2, criteria=ElasticCriteria(max_iteration=50))
+    build_model_folder(template, paths, str(tmp_path / "model"), levels=[level])
+    (tmp_path / "old").rename(tmp_path / "new")
+    moved = [str(tmp_path / "new" / f"p{i}.ply") for i in range(3)]
+    again = build_model_folder(
+        template, moved, str(tmp_path / "model"), levels=[level], overwrite=True
+    )
+    assert all(r.skipped for r in again.batch.records)  # the same patients: not registered again
+    assert [r.source for r in again.batch.records] == moved
+    record = json.loads((tmp_path / "model" / "registrations" / "p0.json").read_text())
+    assert record["source"] == os.path.join("..", "..", "new", "p0.ply")
+    cases = _cases(tmp_path / "model" / "explorer.html")
+    assert all(case["patient"]["note"] == "" for case in cases)
