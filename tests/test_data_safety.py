@@ -972,6 +972,23 @@ def test_importing_o3dreg_keeps_the_programs_signal_handlers():
     )
 
 
+def test_closed_standard_streams_keep_the_exit_status(model_dir, tmp_path):
+    # With stdout closed (`>&-`) the command ended in a traceback and status 1; with stderr
+    # closed its error line went to stdout, status 1 instead of 2.
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    command = f'"{sys.executable}" -m o3dreg model info'
+
+    def shell(line: str) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            ["sh", "-c", line], capture_output=True, text=True, env=env, timeout=300
+        )
+
+    done = shell(f'{command} "{model_dir}" >&-')
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+    done = shell(f'{command} "{tmp_path / "missing"}" 2>&-')
+    assert done.returncode == 2 and done.stdout == "", done.stdout
+
+
 def test_native_output_stays_off_stdout_so_json_is_valid(tmp_path):
     # Open3D and RPly print on file descriptor 1; inside the CLI that goes to stderr.
     done = python(

@@ -203,6 +203,12 @@ def console() -> NoReturn:
     first gives the signals their default actions back, then frees the libraries' objects for
     tens of milliseconds, during which a signal would end it by the signal. Every file of the
     command is closed by then; the logs and standard streams are flushed here."""
+    # A stream closed by the caller (`>&-`) is None in Python: print() would write the other
+    # stream's lines there (errors on stdout) and flushing it would raise.
+    if sys.stdout is None:
+        sys.stdout = open(os.devnull, "w")  # lives as long as the process
+    if sys.stderr is None:
+        sys.stderr = open(os.devnull, "w")
     try:
         status = main(ending=True)
     except SystemExit as done:  # argparse's --help, --version and usage errors
