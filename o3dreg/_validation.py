@@ -377,8 +377,10 @@ def check_output_path(path: Any, name: str, *, overwrite: bool) -> str:
         raise TypeError(f"`{name}` must be a path, got {_describe(path)}")
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise OSError(f"`{name}`: folder {folder!r} does not exist")
+    # Asked of the path as given: the system resolves "x/../out.ply" through x, which
+    # abspath would drop.
+    if not os.path.isdir(folder) or not os.path.isdir(os.path.dirname(path) or "."):
+        raise OSError(f"`{name}`: folder {os.path.dirname(path) or folder!r} does not exist")
     if os.path.isdir(path):
         raise OSError(f"`{name}`: {path!r} is a folder; give a file name")
     if os.path.exists(path) and not overwrite:

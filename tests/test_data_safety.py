@@ -241,6 +241,10 @@ def test_register_outputs_checked_before_any_work(meshes, capsys):
     assert code == 2 and "pass --overwrite" in err
     code, err = run_main(capsys, "register", missing, p, "-o", out, "--report", str(meshes))
     assert code == 2 and "must end with .json" in err
+    # A folder that exists only once ".." is dropped: the system resolves the path through it.
+    through = str(meshes / "absent" / ".." / "r.ply")
+    code, err = run_main(capsys, "register", missing, p, "-o", through)
+    assert code == 2 and "absent/..' does not exist" in err
     # With --overwrite an output equal to an input is still refused; the input is untouched.
     before = (meshes / "p.ply").read_bytes()
     code, err = run_main(capsys, "register", str(meshes / "t.ply"), p, "-o", p, "--overwrite")

@@ -119,8 +119,9 @@ def check_outputs(
             expected = allowed[0] if len(allowed) == 1 else f"one of {', '.join(allowed)}"
             raise ValueError(f"{option} must end with {expected}, got {path!r}")
         folder = os.path.dirname(os.path.abspath(path))
-        if not os.path.isdir(folder):
-            raise OSError(f"{option}: folder {folder!r} does not exist")
+        # Asked of the path as given too: the system resolves "x/../out.ply" through x.
+        if not os.path.isdir(folder) or not os.path.isdir(os.path.dirname(path) or "."):
+            raise OSError(f"{option}: folder {os.path.dirname(path) or folder!r} does not exist")
         if not os.access(folder, os.W_OK | os.X_OK):
             raise OSError(f"{option}: cannot write {path!r}: folder {folder!r} is not writable")
         if os.path.isdir(path):
