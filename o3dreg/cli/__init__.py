@@ -188,7 +188,22 @@ def _with_flags(message: str, parser: argparse.ArgumentParser, args: argparse.Na
         current = chosen
     for dest, flag in flags.items():
         message = message.replace(f"`{dest}`", f"`{dest}` ({flag})")
+    for name, dest in API_NAMES.items():
+        if dest in flags and f"`{name}`" in message and f"`{name}` (" not in message:
+            message = message.replace(f"`{name}`", f"`{name}` ({flags[dest]})")
     return message
+
+
+#: API parameters whose command-line option has another name (its argparse dest): an error of
+#: the library that names them names the option too.
+API_NAMES = {
+    "number_of_vertices": "decimate",
+    "min_vertices": "min_component_vertices",
+    "box": "crop_box",
+    "plane": "crop_plane",
+    "resolution": "levels",
+    "number_of_modes": "modes",
+}
 
 
 #: Exit status of each outcome (documented in docs/cli.md).

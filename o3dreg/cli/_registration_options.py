@@ -9,6 +9,7 @@ never carries a second copy of a default.
 from __future__ import annotations
 
 import argparse
+import itertools
 from dataclasses import replace
 from typing import Any
 
@@ -130,6 +131,11 @@ def build_levels(args: argparse.Namespace, template: Any = None) -> list[Elastic
     if args.levels is None and args.regularization is None:
         return hierarchy if args.paper else None
     resolutions = args.levels or [lev.resolution for lev in hierarchy]
+    if any(b < a for a, b in itertools.pairwise(resolutions)):
+        raise ValueError(
+            "--levels must go from coarse to fine (cells per axis not decreasing), got "
+            + ",".join(map(str, resolutions))
+        )
     weights = args.regularization or [hierarchy[0].regularization]
     if len(weights) == 1:
         weights = weights * len(resolutions)
@@ -158,6 +164,13 @@ def _estimation_changes(args: argparse.Namespace) -> dict[str, Any]:
         if getattr(args, dest) is not None
     }
     if args.no_symmetric:
+        # The barycentre term's options say how a term is weighed that --no-symmetric removes.
+        for flag, given in (
+            ("--symmetric-weight", args.symmetric_weight is not None),
+            ("--barycentre-correction", args.barycentre_correction),
+        ):
+            if given:
+                raise ValueError(f"{flag} sets the barycentre term, which --no-symmetric drops")
         changes["symmetric"] = False
     if args.barycentre_correction:
         changes["barycentre_correction"] = True

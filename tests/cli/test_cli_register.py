@@ -76,6 +76,13 @@ def test_refusals_leave_nothing(pair, tmp_path, capsys):
     assert "no such file" in capsys.readouterr().err
     assert register(pair, tmp_path / "y.ply", "--levels", "2,4", "--regularization", "1,2,3") == 2
     assert "--regularization must give 1 or 2 values" in capsys.readouterr().err
+    assert register(pair, tmp_path / "z.ply", "--levels", "4,2") == 2
+    assert "--levels must go from coarse to fine" in capsys.readouterr().err
+    for option in (["--symmetric-weight", "2"], ["--barycentre-correction"]):
+        assert register(pair, tmp_path / "w.ply", "--no-symmetric", *option) == 2
+        assert "which --no-symmetric drops" in capsys.readouterr().err
+    assert register(pair, tmp_path / "v.ply", "--levels", "1000") == 2
+    assert "`resolution` (--levels) must be at most 128" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exists.ply"]
 
 
