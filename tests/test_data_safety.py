@@ -170,9 +170,9 @@ def test_stale_part_files_of_dead_writers_are_removed(tmp_path):
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
-    stale = tmp_path / f".r.{meshio._HOST}-{dead.pid}.abcd1234.part.ply"
-    live = tmp_path / f".r.{meshio._HOST}-{os.getpid()}.abcd1234.part.ply"
-    other = tmp_path / f".s.{meshio._HOST}-{dead.pid}.abcd1234.part.ply"
+    stale = tmp_path / f".r.{meshio.HOST}-{dead.pid}.abcd1234.part.ply"
+    live = tmp_path / f".r.{meshio.HOST}-{os.getpid()}.abcd1234.part.ply"
+    other = tmp_path / f".s.{meshio.HOST}-{dead.pid}.abcd1234.part.ply"
     for p in (stale, live, other):
         p.write_bytes(b"ply\nformat binary_little_endian 1.0\n")
     write_triangle_mesh(tmp_path / "r.ply", sphere())

@@ -17,8 +17,7 @@ from collections.abc import Iterator, Sequence
 from typing import Any
 
 from ..io import json_text
-from ..io.mesh import _HOST as HOST
-from ..io.mesh import atomic_write_text
+from ..io.mesh import HOST, atomic_write_text
 
 
 def _number_list(text: str, convert: type, kind: str, minimum: float) -> list:

@@ -10,8 +10,7 @@ import sys
 import tempfile
 
 from ..app.demo import run_demo
-from ..io.mesh import _process_alive as process_alive
-from ..io.mesh import atomic_write_text
+from ..io.mesh import atomic_write_text, process_alive
 from ._common import add_jobs_option, add_json_option, emit, emit_json, process_pool
 
 MARKER = ".o3dreg-demo"

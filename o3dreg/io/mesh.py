@@ -183,7 +183,7 @@ def atomic_write(
     _remove_stale_parts(folder, base, suffix)
     try:
         fd, tmp = tempfile.mkstemp(
-            prefix=f".{base}.{_HOST}-{os.getpid()}.", suffix=f".part{suffix}", dir=folder
+            prefix=f".{base}.{HOST}-{os.getpid()}.", suffix=f".part{suffix}", dir=folder
         )
     except OSError as exc:
         raise OSError(
@@ -236,7 +236,7 @@ def _place_new(tmp: str, path: str, name: str) -> None:
 
 
 # Host name as it appears in temporary names (no dots: they separate the name's fields).
-_HOST = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())[:32] or "host"
+HOST = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())[:32] or "host"
 
 
 def _flush_to_disk(tmp: str, path: str, name: str) -> None:
@@ -254,7 +254,7 @@ def _flush_to_disk(tmp: str, path: str, name: str) -> None:
 def _remove_stale_parts(folder: str, base: str, suffix: str) -> None:
     """Remove temporary files of ``base + suffix`` whose writer on this host has died."""
     pattern = re.compile(
-        rf"^\.{re.escape(base)}\.{re.escape(_HOST)}-(\d+)\.[^.]+\.part{re.escape(suffix)}$"
+        rf"^\.{re.escape(base)}\.{re.escape(HOST)}-(\d+)\.[^.]+\.part{re.escape(suffix)}$"
     )
     try:
         names = os.listdir(folder)
@@ -262,7 +262,7 @@ def _remove_stale_parts(folder: str, base: str, suffix: str) -> None:
         return
     for entry in names:
         match = pattern.match(entry)
-        if match is None or _process_alive(int(match.group(1))):
+        if match is None or process_alive(int(match.group(1))):
             continue
         try:
             os.unlink(os.path.join(folder, entry))
@@ -271,7 +271,7 @@ def _remove_stale_parts(folder: str, base: str, suffix: str) -> None:
             pass  # another writer removed it, or the folder is read-only: harmless either way
 
 
-def _process_alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
