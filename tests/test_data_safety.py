@@ -325,11 +325,25 @@ def test_model_modes_overwrite_rules_and_finite_sd(model_dir, tmp_path, capsys):
                              "-o", str(tmp_path / "m2"))  # fmt: skip
         assert code == 2 and "finite" in err
     # 1e308 standard deviations wrote meshes of inf coordinates; --modes -1 only the mean.
-    for option, bad, expected in (("--sd", "1e308", "[-100, 100]"), ("--modes", "-1", ">= 1")):
+    # More modes than the model has wrote fewer files, silently (`model fit --modes` refused).
+    for option, bad, expected in (
+        ("--sd", "1e308", "[-100, 100]"),
+        ("--modes", "-1", ">= 1"),
+        ("--modes", "100", "--modes must be at most 3 (the model's modes), got 100"),
+    ):
         code, err = run_main(capsys, "model", "modes", str(model_dir), option, bad,
                              "-o", str(tmp_path / "m2"))  # fmt: skip
         assert code == 2 and expected in err
     assert not (tmp_path / "m2").exists()
+
+
+def test_build_model_refuses_one_patient_file_given_twice(model_dir, tmp_path, capsys):
+    # It warned "counted twice" and built the model with the patient twice (exit 0).
+    template = str(model_dir / "template.ply")
+    patients = [template, str(model_dir / ".." / model_dir.name / "template.ply")]
+    code, err = run_main(capsys, "build-model", template, *patients, "-o", str(tmp_path / "m"))
+    assert code == 2 and "must name each patient file once" in err
+    assert not (tmp_path / "m").exists()
 
 
 def test_build_model_refuses_to_replace_a_model_before_any_work(model_dir, capsys):

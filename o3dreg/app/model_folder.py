@@ -228,6 +228,15 @@ def _check_distinct_patients(targets: Sequence[str]) -> None:
     """Before any work: the patient files hold at least 2 distinct meshes. Identical meshes give
     identical registrations, so a model of no variance. Files that cannot be read here are
     counted as distinct (the batch reports them, or reads them where it runs)."""
+    given: dict[str, str] = {}
+    for path in targets:
+        real = os.path.realpath(path)
+        if real in given:
+            raise ValueError(
+                f"`targets` must name each patient file once, got {given[real]!r} and "
+                f"{os.fspath(path)!r}: one file"
+            )
+        given[real] = os.fspath(path)
     groups: dict[str, list[str]] = {}
     unread = 0
     for path in targets:
@@ -344,9 +353,14 @@ def build_model_folder(
     _check_distinct_patients(targets)
     inits = None
     if landmarks is not None:
-        inits = np.stack(
-            [settings.landmark_start(landmarks, patient_landmark_file(t)) for t in targets]
-        )
+        starts = []
+        for t in targets:
+            marks = patient_landmark_file(t)
+            try:
+                starts.append(settings.landmark_start(landmarks, marks))
+            except ValueError as exc:  # name the patient: the message names only the roles
+                raise ValueError(f"patient {os.fspath(t)!r} ({marks!r}): {exc}") from exc
+        inits = np.stack(starts)
     out = output
     os.makedirs(out, exist_ok=True)
     with _folder_lock(out):

@@ -136,7 +136,9 @@ def add_parser(subparsers: Any) -> None:
         metavar="MODEL",
         help="model folder (o3dreg build-model) or statismo / scalismo .h5 file",
     )
-    modes.add_argument("--modes", type=positive_int, default=2, help="number of modes (default 2)")
+    modes.add_argument(
+        "--modes", type=positive_int, default=None, help="number of modes (default 2, or fewer)"
+    )
     modes.add_argument(
         "--sd",
         type=standard_deviations,
@@ -363,7 +365,14 @@ def run_modes(args: argparse.Namespace) -> int:
     folder = args.output or _beside(args.model_dir, "modes")
     if os.path.exists(folder) and not os.path.isdir(folder):
         raise OSError(f"--output: {folder!r} exists and is not a folder")
-    count = min(max(args.modes, 0), model.number_of_modes)
+    if args.modes is None:
+        count = min(2, model.number_of_modes)
+    elif args.modes > model.number_of_modes:
+        raise ValueError(
+            f"--modes must be at most {model.number_of_modes} (the model's modes), got {args.modes}"
+        )
+    else:
+        count = args.modes
     sds = list(dict.fromkeys(args.sd))  # --sd 1 1 writes one file
     names = ["mean.ply"] + [f"mode{m + 1}_{c:+g}sd.ply" for m in range(count) for c in sds]
     if os.path.isdir(folder):
