@@ -40,11 +40,15 @@ never share a path; an output never names one of the command's inputs (even with
 `--overwrite`); every output's suffix, folder and write permission are checked before any work.
 Files are written atomically (a hidden temporary file beside the output, flushed to disk and,
 for meshes, read back before it is renamed), so an output name holds a complete file or nothing.
-When one output of `register` fails (a full disk), the outputs it already wrote are removed:
-exit status 2 means no new file.
+When one output of `register` fails (a full disk) or the command is interrupted while writing
+them, the outputs it already wrote are removed and those it replaced with `--overwrite` are put
+back: exit status 2 means no new file, and the earlier run's files stay as they were.
 `build-model` refuses a folder that already holds a model unless `--overwrite` (finished
 registrations are reused either way; a patient is registered again when the template, its file
-or the options changed). Worker processes (`--jobs`) end with the command. Messages of the C++
+or the options changed, and its record names where its file is now). The model's files are
+written into a hidden folder and moved into place together once all are written, so a failed or
+interrupted rebuild leaves the earlier model; `demo` likewise replaces an earlier demo's files
+only when it has finished. Worker processes (`--jobs`) end with the command. Messages of the C++
 libraries (Open3D, RPly) go to standard error, so `--json` output is always valid JSON. A
 mistyped option or value is one line on standard error, with the command's `--help` to see.
 Progress bars are drawn on a terminal only (`register`, `build-model`); in a log file,
