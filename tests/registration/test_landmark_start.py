@@ -155,7 +155,6 @@ SHARED = [
     "2,4",
     "--regularization",
     "0.2",
-    "--no-symmetric",
     "--max-iteration",
     "7",
     "--with-scaling",
@@ -191,7 +190,7 @@ def test_register_and_build_model_share_one_option_set():
     assert a.criteria.max_iteration == 7
     m = a.estimation_method
     assert (m.symmetric, m.loss, m.max_normal_angle, m.reject_boundary) == (
-        False,
+        True,
         "cauchy",
         60.0,
         False,
