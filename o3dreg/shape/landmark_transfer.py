@@ -101,17 +101,9 @@ class TemplateLandmarks:
             raise TypeError("`labels` must be a sequence of labels, got a str")
         labels = _labels(self.labels, len(self.labels))
         n = len(labels)
-        tri = np.asarray(self.triangles)
-        if tri.shape != (n,) or not (tri.size == 0 or np.issubdtype(tri.dtype, np.integer)):
-            raise ValueError(
-                f"`triangles` must be {n} integers (one per label), got {tri.dtype} {tri.shape}"
-            )
-        outside = (tri < 0) | (tri >= faces.shape[0])
-        if outside.any():
-            raise ValueError(
-                f"`triangles` must be template triangles in [0, {faces.shape[0] - 1}], got "
-                f"{tri[outside].tolist()} (landmarks outside the template)"
-            )
+        tri = _template_indices(self.triangles, faces.shape[0], "triangles")
+        if tri.size != n:
+            raise ValueError(f"`triangles` must hold one triangle per label ({n}), got {tri.size}")
         bary = _barycentric_rows(self.barycentric, n)
         offsets = self.offsets
         if offsets is not None:
@@ -151,17 +143,7 @@ class TemplateLandmarks:
             Default ``L1, L2, ...``.
         """
         v, f = as_mesh_arrays(template, "template")
-        idx = np.asarray(indices)
-        if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer):
-            raise TypeError(
-                f"`indices` must be a 1-D array of integers, got {idx.dtype} {idx.shape}"
-            )
-        bad = (idx < 0) | (idx >= v.shape[0])
-        if bad.any():
-            raise ValueError(
-                f"`indices` must be template vertices in [0, {v.shape[0] - 1}], got "
-                f"{idx[bad].tolist()} (landmarks outside the template)"
-            )
+        idx = _template_indices(indices, v.shape[0], "indices")
         labels_ = _labels(labels, idx.size)
         tri = np.empty(idx.size, dtype=np.int64)
         bary = np.zeros((idx.size, 3))
@@ -179,15 +161,9 @@ class TemplateLandmarks:
     ) -> TemplateLandmarks:
         """Landmarks given by triangle index and barycentric coordinates (checked)."""
         v, f = as_mesh_arrays(template, "template")
-        tri = np.asarray(triangles)
-        if tri.ndim != 1 or not np.issubdtype(tri.dtype, np.integer):
-            raise TypeError(
-                f"`triangles` must be a 1-D array of integers, got {tri.dtype} {tri.shape}"
-            )
+        tri = _template_indices(triangles, f.shape[0], "triangles")
         bary = _barycentric_rows(barycentric, tri.size)
-        return cls(
-            _labels(labels, tri.size), tri.astype(np.int64), bary, f, v.shape[0], None, mesh_size(v)
-        )
+        return cls(_labels(labels, tri.size), tri, bary, f, v.shape[0], None, mesh_size(v))
 
     @classmethod
     def from_points(
@@ -414,6 +390,22 @@ def _labels(labels: Any, count: int) -> tuple[str, ...]:
     if repeated:
         raise ValueError(f"`labels` repeats landmark labels {repeated}")
     return out
+
+
+def _template_indices(values: Any, count: int, name: str) -> np.ndarray:
+    """``values`` checked as a 1-D array of indices of the template's ``count`` vertices or
+    triangles (``name``: which, as the parameter is called), as int64."""
+    idx = np.asarray(values)
+    if idx.ndim != 1 or not (idx.size == 0 or np.issubdtype(idx.dtype, np.integer)):
+        raise TypeError(f"`{name}` must be a 1-D array of integers, got {idx.dtype} {idx.shape}")
+    bad = (idx < 0) | (idx >= count)
+    if bad.any():
+        what = "vertices" if name == "indices" else name
+        raise ValueError(
+            f"`{name}` must be template {what} in [0, {count - 1}], got {idx[bad].tolist()} "
+            "(landmarks outside the template)"
+        )
+    return idx.astype(np.int64)
 
 
 def _barycentric_rows(barycentric: Any, count: int) -> np.ndarray:

@@ -46,7 +46,7 @@ def test_the_constructor_checks_what_it_is_given(pop):
     np.testing.assert_allclose(good.positions(tv), tv[tf[3, 0]][None])
     one = np.array([[1.0, 0.0, 0.0]])
     cases = [
-        ((("a", "b"), [3], one, tf, n), "`triangles` must be 2 integers"),
+        ((("a", "b"), [3], one, tf, n), r"one triangle per label \(2\), got 1"),
         ((("a",), [10**6], one, tf, n), "`triangles` must be template triangles"),
         ((("a",), [3], [1.0, 0.0, 0.0], tf, n), r"`barycentric` must have shape \(1, 3\)"),
         ((("a",), [3], [[5.0, -4.0, 0.0]], tf, n), "`barycentric` rows must be finite, >= 0"),
