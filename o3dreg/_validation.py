@@ -288,7 +288,12 @@ def as_transformation(value: Any, name: str = "init", *, similarity: bool = Fals
     is, unseen by the verdict.
     """
     if not isinstance(value, (np.ndarray, list, tuple)):
-        raise TypeError(f"`{name}` must be a (4, 4) array, got {_describe(value)}")
+        hint = (
+            " (its .transformation is one)"
+            if isinstance(getattr(value, "transformation", None), np.ndarray)
+            else ""
+        )
+        raise TypeError(f"`{name}` must be a (4, 4) array, got {_describe(value)}{hint}")
     arr = np.array(value, dtype=np.float64, copy=True)
     if arr.shape != (4, 4):
         raise ValueError(f"`{name}` must have shape (4, 4), got {arr.shape}")

@@ -19,6 +19,7 @@ from o3dreg import (
     evaluate_elastic,
     paper_levels,
     registration_elastic,
+    registration_rigid,
 )
 from o3dreg.app.synthetic import SmoothWarp, synthetic_form
 from o3dreg.registration.lattice import TrilinearLattice
@@ -350,6 +351,9 @@ def test_bad_input():
         registration_elastic((v, degenerate), sphere)
     with pytest.raises(ValueError, match="`init` must be a rotation, one scale and a transl"):
         registration_elastic(sphere, sphere, init=np.diag([1.0, 1.0, 0.5, 1.0]))
+    rigid = registration_rigid(sphere, sphere)
+    with pytest.raises(TypeError, match=r"got RigidRegistrationResult \(its .transformation is"):
+        registration_elastic(sphere, sphere, init=rigid)
     with pytest.raises(ValueError, match=r"`source.faces` must have shape \(m, 3\)"):
         registration_elastic((v, f[:, :2]), sphere)
     with pytest.raises(TypeError, match="`source.vertices` must hold real numbers"):

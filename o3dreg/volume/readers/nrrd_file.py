@@ -147,7 +147,8 @@ def _nrrd_geometry(header: dict[str, Any], path: str) -> tuple[np.ndarray, np.nd
     space = str(header.get("space", "")).lower()
     flips = np.asarray(_NRRD_SPACE_TO_LPS.get(space, (1.0, 1.0, 1.0)))
     if space and space not in _NRRD_SPACE_TO_LPS:
-        logger.info("NRRD %s: space %r is not LPS, RAS or LAS; taken as LPS", path, space)
+        # A guess that can swap left and right: said where it is seen.
+        logger.warning("NRRD %s: space %r is not LPS, RAS or LAS; taken as LPS", path, space)
     directions = header.get("space directions")
     if directions is not None:
         rows = [np.asarray(d, dtype=np.float64) for d in directions]
