@@ -35,7 +35,12 @@ def check_ply_complete(path: str, name: str = "path") -> dict[str, int]:
     with open(path, "rb") as fh:
         head = fh.read(_MAX_PLY_HEADER)
     end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0:
+    # Refused here, in one line: Open3D's reader would print its own line first.
+    if not head:
+        raise OSError(f"`{name}`: {path!r} is empty")
+    if not head.startswith(b"ply"):
+        raise OSError(f"`{name}`: {path!r} is not a PLY file (it does not start with 'ply')")
+    if end < 0:
         return {}  # not a PLY header we understand: the reader reports it
     body_start = head.find(b"\n", end)
     body_start = len(head) if body_start < 0 else body_start + 1

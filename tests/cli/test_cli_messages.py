@@ -43,8 +43,11 @@ def files(tmp_path_factory):
 def test_open3d_messages_never_reach_standard_output(files, capfd):
     # Open3D prints its warnings ("[Open3D WARNING] Read PLY failed ...") on standard output:
     # the library reads quietly and says what is wrong in its exception.
-    for name in ("garbage.ply", "cut.stl"):
-        with pytest.raises(OSError, match="could not be read as a triangle mesh"):
+    for name, message in (
+        ("garbage.ply", "is not a PLY file"),
+        ("cut.stl", "could not be read as a triangle mesh"),
+    ):
+        with pytest.raises(OSError, match=message):
             read_triangle_mesh(files / name)
     assert capfd.readouterr().out == ""
     done = _o3dreg("register", "garbage.ply", "sphere.ply", "-o", "r.ply", cwd=files)

@@ -59,6 +59,14 @@ def test_read_errors(tmp_path):
         read_triangle_mesh(tmp_path / "folder.ply")
     with pytest.raises(ValueError, match="must end with one of"):
         read_triangle_mesh(tmp_path / "mesh.xyz")
+    # Refused before Open3D's reader, which would print a line of its own on standard error.
+    nothing = tmp_path / "nothing.ply"
+    nothing.write_bytes(b"")
+    with pytest.raises(OSError, match="nothing.ply' is empty"):
+        read_triangle_mesh(nothing)
+    nothing.write_bytes(b"solid x\n")
+    with pytest.raises(OSError, match="is not a PLY file"):
+        read_triangle_mesh(nothing)
     empty = tmp_path / "empty.ply"
     empty.write_text("ply\nformat ascii 1.0\nend_header\n")
     with pytest.raises(OSError, match="could not be read as a triangle mesh"):
