@@ -230,6 +230,8 @@ def test_refusals_name_the_parameter_and_what_was_received(tmp_path):
         read_landmarks(latin, file_coordinate_system="LPS")
     with pytest.raises(TypeError, match="`path` must be a path, got int"):
         model.save(5)
+    with pytest.raises(ValueError, match=r"one value per mode \(1-D\), got shape \(2, 1\)"):
+        model.synthesize([[1.0], [0.5]])
     (tmp_path / "folder.ply").mkdir()
     with pytest.raises(OSError, match="folder.ply' is a folder; give a file name"):
         write_triangle_mesh(tmp_path / "folder.ply", targets[0], overwrite=True)

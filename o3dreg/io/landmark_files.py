@@ -412,6 +412,9 @@ def write_landmarks(
                 f"`labels` must be a sequence of {pts.shape[0]} labels, got {type(labels).__name__}"
             )
         labels_ = tuple(str(x) for x in labels)
+        broken = [lab for lab in labels_ if "\n" in lab or "\r" in lab]
+        if broken and suffix == ".fcsv":  # Slicer's reader takes a line per point
+            raise ValueError(f"`labels` must be single lines in an .fcsv, got {broken[0]!r}")
         if len(labels_) != pts.shape[0]:
             raise ValueError(f"`labels` must hold {pts.shape[0]} labels, got {len(labels_)}")
     lps = pts if system == "LPS" else pts * _FLIP

@@ -251,7 +251,12 @@ class ShapeModel:
             raise TypeError(
                 f"`coefficients` must be an array of numbers, got {type(coefficients).__name__}"
             )
-        a = np.asarray(coefficients, dtype=np.float64).reshape(-1)
+        a = np.asarray(coefficients, dtype=np.float64)
+        if a.ndim > 1:
+            raise ValueError(
+                f"`coefficients` must be one value per mode (1-D), got shape {a.shape}"
+            )
+        a = a.reshape(-1)
         if a.size > self.number_of_modes:
             raise ValueError(
                 f"`coefficients` must hold at most {self.number_of_modes} values (the model's "

@@ -214,3 +214,16 @@ def test_nan_or_infinite_coordinates_are_refused_naming_the_file_and_landmarks(t
             ValueError, match=r"holds NaN or infinite coordinates \(landmarks 'b'\)"
         ):
             read_landmarks(path)
+
+
+def test_a_label_of_several_lines_is_kept_or_refused(tmp_path):
+    # The .fcsv writer dropped the line break ("a\nb" read back as "ab").
+    for suffix in LANDMARK_SUFFIXES:
+        path = tmp_path / f"lm{suffix}"
+        if suffix == ".fcsv":
+            with pytest.raises(ValueError, match="single lines in an .fcsv"):
+                write_landmarks(path, ["a\nb", "c"], LPS[:2])
+            assert not path.exists()
+        else:
+            write_landmarks(path, ["a\nb", "c"], LPS[:2])
+            assert read_landmarks(path, file_coordinate_system="LPS")[0] == ("a\nb", "c")
