@@ -33,7 +33,7 @@ def test_batch_writes_each_patient_and_reports_failures(small, tmp_path):
     )
     assert [r.name for r in result.records] == ["good", "broken", "patient002"]
     assert [r.status for r in result.records] == ["registered", "failed", "registered"]
-    assert "could not be read" in result.records[1].message
+    assert "broken.ply' is not a PLY file" in result.records[1].message
     assert len(seen) == 3
     for name in ("good", "patient002"):
         for suffix in (".ply", ".npz", ".json"):
