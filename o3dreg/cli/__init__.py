@@ -257,6 +257,8 @@ def main(argv: Sequence[str] | None = None, *, ending: bool = False) -> int:
     (``ending``: the process ends with it, see :func:`console`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.quiet and args.verbose:  # one before the command, one after it: argparse lets both
+        parser.error("-q/--quiet and -v/--verbose ask for opposite things: give one")
     level = (
         logging.ERROR
         if args.quiet

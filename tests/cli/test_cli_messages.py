@@ -90,3 +90,11 @@ def test_register_writes_no_progress_bar_into_a_log_file(files):
     # Standard error is a file, not a terminal: no bar, no carriage returns.
     assert "\r" not in done.stderr and "level/s" not in done.stderr
     assert "verdict:" in done.stdout
+
+
+def test_quiet_and_verbose_together_are_refused(capsys):
+    # One before the command and one after it: quiet won, silently.
+    with pytest.raises(SystemExit) as exc:
+        main(["-q", "model", "info", "m", "-v"])
+    assert exc.value.code == 2
+    assert "-q/--quiet and -v/--verbose ask for opposite things" in capsys.readouterr().err
