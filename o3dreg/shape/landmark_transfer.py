@@ -144,6 +144,8 @@ class TemplateLandmarks:
         """
         v, f = as_mesh_arrays(template, "template")
         idx = _template_indices(indices, v.shape[0], "indices")
+        if idx.size == 0:  # as from_points: landmarks are asked for, none is an error
+            raise ValueError("`indices` must hold at least one vertex, got none")
         labels_ = _labels(labels, idx.size)
         tri = np.empty(idx.size, dtype=np.int64)
         bary = np.zeros((idx.size, 3))
@@ -162,6 +164,8 @@ class TemplateLandmarks:
         """Landmarks given by triangle index and barycentric coordinates (checked)."""
         v, f = as_mesh_arrays(template, "template")
         tri = _template_indices(triangles, f.shape[0], "triangles")
+        if tri.size == 0:
+            raise ValueError("`triangles` must hold at least one triangle, got none")
         bary = _barycentric_rows(barycentric, tri.size)
         return cls(_labels(labels, tri.size), tri, bary, f, v.shape[0], None, mesh_size(v))
 

@@ -59,6 +59,11 @@ def test_the_constructor_checks_what_it_is_given(pop):
             TemplateLandmarks(*args)
     with pytest.raises(ValueError, match="`barycentric` rows must be finite"):
         TemplateLandmarks.from_barycentric((tv, tf), [0], [[np.nan, 0.5, 0.5]])
+    # None asked for is an error, as for from_points (it gave an empty set).
+    with pytest.raises(ValueError, match="`indices` must hold at least one vertex"):
+        TemplateLandmarks.from_vertices((tv, tf), [])
+    with pytest.raises(ValueError, match="`triangles` must hold at least one triangle"):
+        TemplateLandmarks.from_barycentric((tv, tf), [], np.zeros((0, 3)))
 
 
 def test_points_keep_their_place_and_snap_only_when_asked(pop):
