@@ -327,12 +327,17 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
     variances = np.clip(variances, 0.0, None)
     k = variances.size
     if basis.shape != (mean.size, k):
-        raise ValueError(f"`path`: pcaBasis has shape {basis.shape}, expected {(mean.size, k)}")
+        raise ValueError(
+            f"`path`: {path!r} has model/pcaBasis of shape {basis.shape}, expected "
+            f"{(mean.size, k)} (model/mean of {mean.size} values, {k} variances)"
+        )
     sd = np.sqrt(np.clip(variances, 0, None))
     if (major, minor) == (0, 8):
         basis = basis / np.where(sd > 0, sd, 1.0)
     if cells.ndim != 2 or 3 not in cells.shape:
-        raise ValueError(f"`path`: representer/cells has shape {cells.shape}; triangles expected")
+        raise ValueError(
+            f"`path`: {path!r} has representer/cells of shape {cells.shape}; triangles expected"
+        )
     faces = cells.T if cells.shape[0] == 3 else cells
     standardised = np.zeros((0, k))
     # statismo writes a 1 x 1 zero matrix when a model has no scores.

@@ -219,6 +219,10 @@ def test_damaged_statismo_files_are_value_errors(model, tmp_path):
     short = damaged("short.h5", "model/mean", lambda m: m.reshape(-1)[:-1])
     with pytest.raises(ValueError, match="not 3 per point"):
         read_statismo(short)
+    # The basis not matching the mean: named with the file.
+    narrow = damaged("narrow.h5", "model/pcaBasis", lambda b: b[:-3])
+    with pytest.raises(ValueError, match=r"narrow.h5' has model/pcaBasis of shape \("):
+        read_statismo(narrow)
     rounding = damaged(
         "rounding.h5", "model/pcaVariance", lambda v: np.append(v[:-1], -1e-12 * v.max())
     )
