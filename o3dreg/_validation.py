@@ -272,8 +272,9 @@ def _degenerate_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 #: How far the singular values of a start's 3x3 block may differ (relative) and still be one
-#: scale: far above the rounding of a rotation written in float32 or with 6 decimals.
-SIMILARITY_TOLERANCE = 1e-4
+#: scale: above the rounding of a rotation copied with 3 decimals (~1e-3), below any shear or
+#: unequal scaling worth a warning (the elastic levels absorb a percent).
+SIMILARITY_TOLERANCE = 0.01
 
 
 def as_transformation(value: Any, name: str = "init", *, similarity: bool = False) -> np.ndarray:
