@@ -461,3 +461,24 @@ def test_a_nifti_whose_qform_and_sform_disagree_is_read_by_the_qform_with_a_warn
         scanner = read_volume(tmp_path / "scanner.nii.gz")
     assert "read by the sform" in caplog.text
     np.testing.assert_allclose(scanner.origin, [-50.0, 60.0, 70.0])
+
+
+def test_an_nrrd_space_taken_as_lps_by_guess_is_a_warning(tmp_path, caplog):
+    # An anatomical space o3dreg does not know can swap left and right: a warning. The
+    # format's generic frames (the bundled CT's "3D-left-handed") have no left or right.
+    import logging
+
+    import nrrd
+
+    from o3dreg.app.datasets import headsq_path
+
+    path = tmp_path / "v.nrrd"
+    header = {"space": "left-posterior-superior", "space directions": np.eye(3)}
+    nrrd.write(str(path), np.zeros((4, 5, 6), np.uint8), header)
+    path.write_bytes(path.read_bytes().replace(b"left-posterior-superior", b"up-down-sideways"))
+    with caplog.at_level(logging.INFO, logger="o3dreg"):
+        read_volume(path)
+        read_volume(headsq_path())
+    warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warned) == 1 and "space 'up-down-sideways' is not LPS" in warned[0]
+    assert any("'3d-left-handed' has no anatomical axes" in r.getMessage() for r in caplog.records)

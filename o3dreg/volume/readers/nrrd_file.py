@@ -143,11 +143,25 @@ def _nrrd_dtype(header: dict[str, Any], path: str) -> np.dtype:
     return np.dtype(_NRRD_TYPES[name])
 
 
+#: The NRRD spaces without anatomical meaning (the format's world frames).
+_NRRD_GENERIC_SPACES = (
+    "3d-right-handed",
+    "3d-left-handed",
+    "scanner-xyz",
+    "3d-right-handed-time",
+    "3d-left-handed-time",
+    "scanner-xyz-time",
+)
+
+
 def _nrrd_geometry(header: dict[str, Any], path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     space = str(header.get("space", "")).lower()
     flips = np.asarray(_NRRD_SPACE_TO_LPS.get(space, (1.0, 1.0, 1.0)))
-    if space and space not in _NRRD_SPACE_TO_LPS:
-        # A guess that can swap left and right: said where it is seen.
+    if space in _NRRD_GENERIC_SPACES:
+        # No anatomical axes to keep: the coordinates are used as they are.
+        logger.info("NRRD %s: space %r has no anatomical axes; taken as LPS", path, space)
+    elif space and space not in _NRRD_SPACE_TO_LPS:
+        # An anatomical guess that can swap left and right: said where it is seen.
         logger.warning("NRRD %s: space %r is not LPS, RAS or LAS; taken as LPS", path, space)
     directions = header.get("space directions")
     if directions is not None:
