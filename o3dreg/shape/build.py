@@ -152,14 +152,17 @@ def pca_model(
     align: bool,
     *,
     distinct: bool = True,
+    warn_mirrored: bool = True,
 ) -> ShapeModel:
     """The model of validated shapes; with ``distinct``, shapes that do not differ raise (the
-    leave-one-out models of :func:`~o3dreg.generalization` may be the mean alone)."""
+    leave-one-out models of :func:`~o3dreg.generalization` may be the mean alone); with
+    ``warn_mirrored``, a mirrored shape is named in a warning (once, by the model of all of
+    them: not again by each leave-one-out model)."""
     s, n, _ = x.shape
     if align:
         gpa = generalized_procrustes(x, scaling=scaling)
         aligned, mean = gpa.shapes, gpa.shapes.mean(axis=0)
-        for k in mirrored_shapes(aligned, mean):
+        for k in mirrored_shapes(aligned, mean) if warn_mirrored else []:
             logger.warning(
                 "shape model: shape %d (%s) fits the mean shape far better mirrored than turned: "
                 "are its left and right swapped? Mirror it back (negate one coordinate) or "

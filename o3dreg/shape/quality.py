@@ -172,7 +172,7 @@ def generalization(
         # The others may all be one shape (a population with a repeated patient): the model is
         # then the mean alone.
         names = tuple(f"s{j}" for j in range(s - 1))
-        model = pca_model(rest, f, scaling, None, names, True, distinct=False)
+        model = pca_model(rest, f, scaling, None, names, True, distinct=False, warn_mirrored=False)
         for m in range(top + 1):
             kk = min(m, model.number_of_modes)
             errors[i, m] = model.project(x[i], number_of_modes=kk).mean_error

@@ -350,3 +350,10 @@ def test_a_mirrored_shape_is_named_in_a_warning(caplog):
         build_shape_model(swapped, tf, names=[f"p{i}" for i in range(6)])
     (record,) = caplog.records
     assert "shape 3 (p3) fits the mean shape far better mirrored" in record.getMessage()
+    # Named once: the leave-one-out models of the generalisation curve do not say it again.
+    from o3dreg import generalization
+
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="o3dreg"):
+        generalization(swapped, tf)
+    assert not caplog.records
