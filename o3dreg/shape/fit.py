@@ -22,6 +22,14 @@ from .procrustes import fit_transformation
 
 __all__ = ["ModelFit", "assess_model_fit", "fit_shape_model"]
 
+#: Without ``init``, each start is fitted to this relative change (at most
+#: :data:`COARSE_ITERATIONS` iterations) and only the better one is carried on to the asked
+#: tolerance: the choice between starts needs no finer fit, and the loser's last iterations
+#: would be wasted. The winner's fit is the one an uninterrupted run gives (the iteration
+#: depends on the pose and coefficients alone).
+COARSE_TOLERANCE = 1e-3
+COARSE_ITERATIONS = 30
+
 
 @dataclass(frozen=True, eq=False)
 class ModelFit:
@@ -159,7 +167,7 @@ def fit_shape_model(
     surface = SurfaceDistanceQuery(vt, ft)
     if init is not None:
         pose = as_transformation(init, "init", similarity=True)
-        fit = _fit_model(model, surface, pose, k, reg, max_iteration, tolerance)
+        fit, _ = _fit_model(model, surface, pose, np.zeros(k), reg, max_iteration, tolerance)
     else:
         try:
             fit = _best_fit(model, surface, k, reg, max_iteration, tolerance)
@@ -205,13 +213,28 @@ def _best_fit(
     # registration_rigid on the validated patient, scored with its tree (built once here).
     rigid = default_start(model.mean, model.faces, surface, with_scaling=model.scaling)
     starts = [np.array(rigid.transformation), shift]
-    best, best_cost = None, np.inf
+    coarse_tolerance = max(tolerance, COARSE_TOLERANCE)
+    coarse_iterations = min(max_iteration, COARSE_ITERATIONS)
+    best, best_cost, change = None, np.inf, np.inf
     for pose in starts:
-        fit = _fit_model(model, surface, pose, k, reg, max_iteration, tolerance)
+        fit, last = _fit_model(
+            model, surface, pose, np.zeros(k), reg, coarse_iterations, coarse_tolerance
+        )
         cost = _symmetric_distance(fit, vt)
         if cost < best_cost:
-            best, best_cost = fit, cost
+            best, best_cost, change = fit, cost, last
     assert best is not None
+    if best.iterations < max_iteration and change >= tolerance:
+        best, _ = _fit_model(
+            model,
+            surface,
+            best.transformation,
+            best.coefficients,
+            reg,
+            max_iteration,
+            tolerance,
+            done=best.iterations,
+        )
     return best
 
 
@@ -226,26 +249,30 @@ def _fit_model(
     model: ShapeModel,
     query: SurfaceDistanceQuery,
     pose: np.ndarray,
-    k: int,
+    a: np.ndarray,
     reg: float | None,
     max_iteration: int,
     tolerance: float,
-) -> ModelFit:
+    done: int = 0,
+) -> tuple[ModelFit, float]:
+    """The fit from pose ``pose`` and coefficients ``a`` (``k`` of them), continuing a fit that
+    took ``done`` of the ``max_iteration`` iterations, and the relative change of its last
+    iteration."""
     vt = query.vertices
+    k = a.size
     modes = model.modes[:k]
     variances = model.variances[:k]
-    a = np.zeros(k)
     size = float(np.sqrt(((model.mean - model.mean.mean(axis=0)) ** 2).sum(axis=1).mean()))
     current = apply_transformation(pose, _instance(model, a))
     success = False
     change = np.inf
-    iterations = 0
+    iterations = done
     faces = np.asarray(model.faces)
     n = model.number_of_points
     # Target samples for the target -> instance correspondences (eq. 3's second term).
     stride = max(1, vt.shape[0] // (4 * n))
     samples = vt[::stride]
-    for iterations in range(1, max_iteration + 1):  # noqa: B007
+    for iterations in range(done + 1, max_iteration + 1):  # noqa: B007
         # Forward: instance vertices -> closest target points, but for those beyond the open
         # boundary of a partial target (a part the patient's surface lacks), which would be
         # pulled onto its rim.
@@ -290,7 +317,7 @@ def _fit_model(
         if success
         else f"did not converge in {max_iteration} iterations (relative change {change:.3g})"
     )
-    return ModelFit(
+    fit = ModelFit(
         coefficients=a,
         transformation=pose,
         vertices=current,
@@ -300,6 +327,7 @@ def _fit_model(
         success=success,
         message=message,
     )
+    return fit, change
 
 
 def _instance(model: ShapeModel, a: np.ndarray) -> np.ndarray:

@@ -216,6 +216,35 @@ def test_fit_recovers_pose_and_shape(pop):
         fit_shape_model("model", target)
 
 
+def test_the_fit_from_two_starts_is_the_uninterrupted_fit_of_the_better(pop, monkeypatch):
+    # Both starts are fitted coarsely and only the better one is carried on: the result must be
+    # exactly what fitting that start alone to the full tolerance gives (same iterations).
+    from o3dreg.registration.distance import SurfaceDistanceQuery
+    from o3dreg.shape import fit as fit_module
+
+    (_tv, tf), targets, truths, _, _ = pop
+    model = build_shape_model(truths[:9], tf)
+    calls = []
+    real = fit_module._fit_model
+
+    def spy(model, query, pose, a, reg, max_iteration, tolerance, done=0):
+        calls.append((pose.copy(), reg, tolerance, done))
+        return real(model, query, pose, a, reg, max_iteration, tolerance, done)
+
+    monkeypatch.setattr(fit_module, "_fit_model", spy)
+    fit = fit_shape_model(model, targets[9], check_reflection=False)
+    assert [c[2] for c in calls] == [fit_module.COARSE_TOLERANCE] * 2 + [1e-4]
+    assert [c[3] > 0 for c in calls] == [False, False, True]  # the winner, carried on
+    query = SurfaceDistanceQuery(*targets[9])
+    k = model.number_of_modes
+    alone = [
+        real(model, query, pose, np.zeros(k), reg, 300, 1e-4)[0] for pose, reg, _, _ in calls[:2]
+    ]
+    same = [np.array_equal(a.vertices, fit.vertices) for a in alone]
+    assert any(same), [np.abs(a.vertices - fit.vertices).max() for a in alone]
+    assert alone[same.index(True)].iterations == fit.iterations
+
+
 @pytest.mark.parametrize("cut", [0.2, 0.4])
 def test_fit_to_a_partial_patient_infers_the_missing_part(pop, cut):
     # The patient's surface without its top ``cut`` of its height (a field of view that misses
