@@ -143,7 +143,10 @@ class RigidStart:
     fitness, inlier_rmse : float
         Open3D's ICP figures for the winner.
     warnings : tuple of str
-        The ambiguity, when the runner-up came too close (also among the verdict's warnings).
+        The rigid step's warnings (an ambiguity, when the runner-up came too close; a scale
+        found on a partial target), also among the verdict's warnings.
+    ambiguous : bool
+        Whether the runner-up came too close (:attr:`RigidRegistrationResult.ambiguous`).
     """
 
     score: float
@@ -152,6 +155,7 @@ class RigidStart:
     fitness: float
     inlier_rmse: float
     warnings: tuple[str, ...] = ()
+    ambiguous: bool = False
 
     @classmethod
     def from_rigid(cls, rigid: Any) -> RigidStart:
@@ -164,13 +168,14 @@ class RigidStart:
             fitness=float(rigid.fitness),
             inlier_rmse=float(rigid.inlier_rmse),
             warnings=tuple(rigid.warnings),
+            ambiguous=bool(rigid.ambiguous),
         )
 
     def __repr__(self) -> str:
         runner = "none" if self.runner_up_score is None else f"{self.runner_up_score:.4g}"
         return (
             f"RigidStart(score={self.score:.4g}, runner_up_score={runner}, "
-            f"candidates={self.candidates}, ambiguous={bool(self.warnings)})"
+            f"candidates={self.candidates}, ambiguous={self.ambiguous})"
         )
 
     def as_dict(self) -> dict[str, Any]:

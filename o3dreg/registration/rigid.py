@@ -336,7 +336,8 @@ class RigidRegistrationResult(reg.RegistrationResult):  # type: ignore[misc]
     candidates : int
         Starting poses tried.
     warnings : tuple of str
-        Plain sentences: an ambiguity (:attr:`ambiguous`).
+        Plain sentences: an ambiguity (:attr:`ambiguous`), a scale found on a partial target,
+        an ``init`` from which ICP found no correspondence.
     """
 
     def __init__(
@@ -348,6 +349,7 @@ class RigidRegistrationResult(reg.RegistrationResult):  # type: ignore[misc]
         runner_up_transformation: np.ndarray | None = None,
         candidates: int = 0,
         warnings: tuple[str, ...] = (),
+        ambiguous: bool = False,
     ) -> None:
         super().__init__()
         if icp is not None:
@@ -360,12 +362,13 @@ class RigidRegistrationResult(reg.RegistrationResult):  # type: ignore[misc]
         self.runner_up_transformation = runner_up_transformation
         self.candidates = int(candidates)
         self.warnings = tuple(warnings)
+        self._ambiguous = bool(ambiguous)
 
     @property
     def ambiguous(self) -> bool:
         """Whether a distinct pose scored within :data:`AMBIGUITY_RATIO` of the winner and the
         input pose did not tell them apart (:data:`INPUT_POSE_NEAR`, :data:`INPUT_POSE_FAR`)."""
-        return bool(self.warnings)
+        return self._ambiguous
 
     def __repr__(self) -> str:
         runner = "none" if self.runner_up_score is None else f"{self.runner_up_score:.4g}"
@@ -562,8 +565,20 @@ def _registration_rigid(
         )
         if given:
             final = search.refine(candidates[0][1], estimation_method, criteria)
+            warnings = ()
+            if final.fitness == 0:
+                warnings = (
+                    "no target point lies within max_correspondence_distance "
+                    f"({search.distance:.3g}) of the source moved by `init`: ICP left `init` "
+                    "unrefined; check `init` (and the units of both surfaces) or raise "
+                    "max_correspondence_distance",
+                )
+                logger.warning("registration_rigid: %s", warnings[0])
             return RigidRegistrationResult(
-                final, score=search.score(np.asarray(final.transformation)), candidates=1
+                final,
+                score=search.score(np.asarray(final.transformation)),
+                candidates=1,
+                warnings=warnings,
             )
         result = search.run(candidates, estimation_method, criteria)
     if with_scaling and cut > PARTIAL_BOUNDARY:
@@ -1000,6 +1015,7 @@ class _CandidateSearch:
             runner_up_transformation=runner_t,
             candidates=candidates,
             warnings=tuple(warnings),
+            ambiguous=near_tie,
         )
 
 

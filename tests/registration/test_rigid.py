@@ -591,7 +591,24 @@ def test_a_scale_found_on_a_partial_target_is_flagged(bunny_template, bunny_targ
     assert whole.warnings == ()
     part = registration_rigid(bunny_template, (v / 1000.0, cut), with_scaling=True)
     assert any("a partial scan?" in w for w in part.warnings)
+    assert not part.ambiguous  # a warning, not a near tie
     assert registration_rigid(bunny_template, (v, cut)).warnings == ()  # no scale: no flag
+
+
+def test_an_init_with_no_correspondence_is_kept_and_said(bunny_template, bunny_target):
+    # An init that leaves the source beyond the correspondence distance everywhere (here 10
+    # target diagonals away): ICP finds no pair (fitness 0) and returns the init unchanged.
+    # That must not pass silently as a refined pose.
+    v = np.asarray(bunny_target.vertices)
+    far = np.eye(4)
+    far[:3, 3] = 10 * np.linalg.norm(np.ptp(v, axis=0))
+    result = registration_rigid(bunny_template, bunny_target, init=far)
+    assert result.fitness == 0
+    np.testing.assert_array_equal(result.transformation, far)
+    assert len(result.warnings) == 1 and "no target point lies within" in result.warnings[0]
+    assert not result.ambiguous
+    near = registration_rigid(bunny_template, bunny_target, init=np.eye(4))
+    assert near.fitness > 0.9 and near.warnings == ()
 
 
 def noisy(mesh, fraction, seed):
