@@ -345,6 +345,28 @@ def test_dicom_slice_in_a_folder(tmp_path):
     v = read_volume(folder)
     assert v.shape == (1, 128, 128)
     assert np.isclose(v.spacing[0], 5.0)  # the slice thickness
+    # The same file read directly: the same plane spacing.
+    assert np.isclose(read_volume(DATA / "dicom_slice" / "CT_small.dcm").spacing[0], 5.0)
+
+
+def test_a_multi_frame_dicom_file_in_a_folder_keeps_its_plane_spacing(tmp_path):
+    # One file holding 6 frames 2.5 mm apart (SimpleITK's DICOM writer, rotated): in a folder
+    # it was taken for one slice and given the 1 mm default thickness, the volume squashed 2.5
+    # times along its slices without a word.
+    array = np.zeros((6, 7, 8), np.uint16)
+    array[4, 2, 5] = 1000
+    image = sitk.GetImageFromArray(array)
+    image.SetSpacing((0.7, 1.1, 2.5))
+    image.SetOrigin((-10.5, 20.25, 33.0))
+    image.SetDirection(ROTATION.ravel().tolist())
+    (tmp_path / "folder").mkdir()
+    sitk.WriteImage(image, str(tmp_path / "folder" / "frames.dcm"))
+    truth = np.array(image.TransformIndexToPhysicalPoint((5, 2, 4)))
+    for path in (tmp_path / "folder" / "frames.dcm", tmp_path / "folder"):
+        v = read_volume(path)
+        assert v.shape == (6, 7, 8)
+        np.testing.assert_allclose(v.spacing, [2.5, 1.1, 0.7], rtol=1e-6)
+        np.testing.assert_allclose(v.index_to_world([[4, 2, 5]])[0], truth, atol=1e-4)
 
 
 def test_pitched_nifti_affine_is_honoured():

@@ -63,9 +63,10 @@ def read_dicom_series(folder: str, series_uid: str | None) -> Volume:
         raise OSError(
             f"`path`: could not read DICOM series in {folder!r}: {sitk_error(exc)}"
         ) from exc
-    if len(files) == 1:
+    if len(files) == 1 and image.GetSize()[2] == 1:
         volume = from_sitk(image, folder)
-        # One slice: keep the slice thickness as plane spacing.
+        # One slice: keep the slice thickness as plane spacing. (A multi-frame file holds its
+        # planes' spacing in its own geometry.)
         volume = Volume(
             volume.array,
             np.array([headers[0]["thickness"], *volume.spacing[1:]]),

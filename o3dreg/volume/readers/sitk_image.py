@@ -57,6 +57,8 @@ def from_sitk(image: Any, source: str) -> Volume:
         raise ValueError(f"`path`: {source!r} is a {dim}D image; a volume needs 3 dimensions")
     array = sitk.GetArrayFromImage(image)
     spacing = np.asarray(image.GetSpacing(), dtype=np.float64)[::-1]
+    if array.shape[0] == 1 and image.HasMetaDataKey("0018|0050"):
+        spacing[0] = _slice_thickness(image)  # one DICOM slice: its thickness, as in a folder
     origin = np.asarray(image.GetOrigin(), dtype=np.float64)
     try:
         return Volume(array, spacing, origin, np.asarray(image.GetDirection(), dtype=np.float64))
