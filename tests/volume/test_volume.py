@@ -485,6 +485,46 @@ def test_a_nifti_whose_qform_and_sform_disagree_is_read_by_the_qform_with_a_warn
     np.testing.assert_allclose(scanner.origin, [-50.0, 60.0, 70.0])
 
 
+def test_a_nifti_placed_by_its_sform_gets_the_sforms_voxel_sizes(tmp_path, caplog):
+    # nibabel, given only an sform, leaves pixdim at 1: ITK places the volume by the sform's
+    # directions and origin but sizes its voxels by pixdim, so a known voxel landed 8 mm off
+    # and the volume shrank to a third along k, without a word. The standard (and nibabel)
+    # place voxels by the sform's columns.
+    data = np.zeros((8, 7, 6), np.int16)
+    affine = np.eye(4)
+    affine[:3, :3] = ROTATION @ np.diag([0.8, 1.2, 3.0])
+    affine[:3, 3] = [12.0, -30.0, 55.0]
+    image = nib.Nifti1Image(data, None)
+    image.set_sform(affine, code=2)
+    image.set_qform(None, code=0)
+    nib.save(image, tmp_path / "sform.nii")
+    assert np.allclose(nib.load(tmp_path / "sform.nii").header["pixdim"][1:4], 1.0)
+    with caplog.at_level("WARNING", logger="o3dreg"):
+        v = read_volume(tmp_path / "sform.nii")
+    np.testing.assert_allclose(v.affine, LPS_FROM_RAS @ affine, atol=1e-5)
+    assert "differ from those of the sform" in caplog.text
+    # Consistent headers: the same geometry, nothing said.
+    caplog.clear()
+    nib.save(nib.Nifti1Image(data, affine), tmp_path / "both.nii")
+    with caplog.at_level("WARNING", logger="o3dreg"):
+        np.testing.assert_allclose(read_volume(tmp_path / "both.nii").affine, v.affine, atol=1e-5)
+    assert caplog.text == ""
+
+
+def test_a_nifti_with_a_negative_voxel_size_or_in_nifti2_is_refused_clearly(tmp_path):
+    data = np.zeros((8, 7, 6), np.int16)
+    affine = np.diag([0.8, 1.2, 3.0, 1.0])
+    nib.save(nib.Nifti1Image(data, affine), tmp_path / "scan.nii")
+    raw = bytearray((tmp_path / "scan.nii").read_bytes())
+    raw[80:84] = struct.pack("<f", -0.8)  # pixdim[1]: ITK and nibabel place it 8 mm apart
+    (tmp_path / "negative.nii").write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match=r"negative\.nii' has voxel sizes .* wants them positive"):
+        read_volume(tmp_path / "negative.nii")
+    nib.save(nib.Nifti2Image(data, affine), tmp_path / "two.nii")
+    with pytest.raises(OSError, match="is a NIfTI-2 file, which SimpleITK cannot read"):
+        read_volume(tmp_path / "two.nii")
+
+
 def test_an_nrrd_space_taken_as_lps_by_guess_is_a_warning(tmp_path, caplog):
     # An anatomical space o3dreg does not know can swap left and right: a warning. The
     # format's generic frames (the bundled CT's "3D-left-handed") have no left or right.

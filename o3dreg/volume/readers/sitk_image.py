@@ -80,14 +80,23 @@ def _slice_thickness(image: Any) -> float:
 def read_sitk_file(path: str) -> Volume:
     import SimpleITK as sitk
 
-    if path.lower().endswith((".nii", ".nii.gz")):
+    nifti = path.lower().endswith((".nii", ".nii.gz"))
+    if nifti:
         _check_nifti_complete(path)
         _check_nifti_spacing(path)
         _warn_if_qform_and_sform_differ(path)
     try:
         image = sitk.ReadImage(path)
     except RuntimeError as exc:
+        if nifti and _nifti1_header(path) is None and _nifti_data_end_or_none(path) is not None:
+            raise OSError(
+                f"`path`: {path!r} is a NIfTI-2 file, which SimpleITK cannot read: save it as "
+                "NIfTI-1 (for example nibabel.save(nibabel.Nifti1Image(image.dataobj, "
+                "image.affine), 'scan.nii.gz'))"
+            ) from exc
         raise OSError(f"`path`: could not read {path!r}: {sitk_error(exc)}") from exc
+    if nifti:
+        _space_voxels_by_the_sform(image, path)
     volume = from_sitk(image, path)
     logger.info("read %s: %r", path, volume)
     return volume
@@ -122,8 +131,8 @@ def _check_nifti_complete(path: str) -> None:
 
 def _check_nifti_spacing(path: str) -> None:
     """``ValueError`` when a NIfTI header's voxel sizes (``pixdim[1:4]``) are zero or not
-    finite: SimpleITK reads such a size as 1 mm, which would place and scale the volume
-    silently wrong."""
+    finite (SimpleITK reads such a size as 1 mm, which would place and scale the volume
+    silently wrong), or negative."""
     opener: Any = gzip.open if path.lower().endswith(".gz") else open
     try:
         with opener(path, "rb") as fh:
@@ -145,6 +154,72 @@ def _check_nifti_spacing(path: str) -> None:
             f"`path`: {path!r} has voxel sizes (pixdim[1:4]) {pixdim.tolist()}; each must be a "
             "finite non-zero number"
         )
+    if np.any(pixdim < 0):
+        # The standard wants them positive (handedness is qfac's, pixdim[0]); ITK and
+        # nibabel place such a file differently (8 mm apart on a 6-voxel test volume).
+        raise ValueError(
+            f"`path`: {path!r} has voxel sizes (pixdim[1:4]) {pixdim.tolist()}; the NIfTI "
+            "standard wants them positive (the qform's handedness is pixdim[0]) and readers "
+            "disagree on where a negative one puts the voxels: rewrite the header with "
+            "positive sizes"
+        )
+
+
+def _space_voxels_by_the_sform(image: Any, path: str) -> None:
+    """Give ``image`` the voxel sizes of its NIfTI-1 sform where ITK placed it by the sform.
+
+    ITK takes the direction and origin from the sform (when its code is 1, or the qform has
+    none) but the voxel sizes from ``pixdim``; a file whose sform carries the geometry and
+    whose ``pixdim`` was left at 1 (nibabel writes such files when only the sform is set)
+    would be scaled silently. The NIfTI standard places voxels by the sform's columns.
+    """
+    header = _nifti1_header(path)
+    if header is None:
+        return
+    order, head = header
+    qform_code, sform_code = struct.unpack(order + "2h", head[252:256])
+    if sform_code <= 0 or (sform_code != 1 and qform_code > 0):
+        return  # placed by the qform (or by pixdim alone): pixdim is its voxel size
+    sform = np.array(struct.unpack(order + "12f", head[280:328]), dtype=np.float64).reshape(3, 4)
+    # ITK converts the spatial units (xyzt_units, bits 0-2) to millimetres.
+    unit = {1: 1000.0, 3: 1e-3}.get(head[123] & 7, 1.0)
+    sizes = np.linalg.norm(sform[:, :3], axis=0) * unit
+    read = np.asarray(image.GetSpacing(), dtype=np.float64)
+    if not np.all(sizes > 0) or np.allclose(sizes, read, rtol=1e-4):
+        return
+    logger.warning(
+        "%s: the NIfTI header's voxel sizes (pixdim %s mm) differ from those of the sform "
+        "that places the volume (%s mm); read with the sform's, as the NIfTI standard places "
+        "the voxels",
+        path,
+        np.round(read, 6).tolist(),
+        np.round(sizes, 6).tolist(),
+    )
+    image.SetSpacing(sizes.tolist())
+
+
+def _nifti_data_end_or_none(path: str) -> int | None:
+    """:func:`_nifti_data_end` of the file's header, ``None`` when it is not NIfTI."""
+    opener: Any = gzip.open if path.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rb") as fh:
+            return _nifti_data_end(fh.read(540), path)
+    except (OSError, EOFError, zlib.error, ValueError):
+        return None
+
+
+def _nifti1_header(path: str) -> tuple[str, bytes] | None:
+    """The byte order and the 348 bytes of a NIfTI-1 header (``None`` for anything else)."""
+    opener: Any = gzip.open if path.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rb") as fh:
+            head = fh.read(348)
+    except (OSError, EOFError, zlib.error):
+        return None
+    for order in ("<", ">"):
+        if len(head) == 348 and struct.unpack(order + "i", head[:4])[0] == 348:
+            return order, head
+    return None
 
 
 def _warn_if_qform_and_sform_differ(path: str) -> None:
@@ -153,17 +228,10 @@ def _warn_if_qform_and_sform_differ(path: str) -> None:
     anatomy) and by the qform otherwise, other software by its own rule (nibabel by the sform
     whenever it has a code), so the same file can land in two places depending on the
     software."""
-    opener: Any = gzip.open if path.lower().endswith(".gz") else open
-    try:
-        with opener(path, "rb") as fh:
-            head = fh.read(348)
-    except (OSError, EOFError, zlib.error):
-        return
-    for order in ("<", ">"):
-        if len(head) == 348 and struct.unpack(order + "i", head[:4])[0] == 348:
-            break
-    else:
+    header = _nifti1_header(path)
+    if header is None:
         return  # NIfTI-2 or not NIfTI: nothing checked
+    order, head = header
     qform_code, sform_code = struct.unpack(order + "2h", head[252:256])
     if qform_code <= 0 or sform_code <= 0:
         return
