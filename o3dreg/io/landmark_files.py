@@ -92,8 +92,9 @@ def read_landmarks(
         ``r,a,s`` or ``x,y,z`` (other columns ignored), or rows ``label,x,y,z`` without a
         header (statismo's and scalismo's landmark files); a Slicer markups file ``.mrk.json``
         (``markups[0].controlPoints``) or ``.fcsv`` (the fields its ``# columns`` line names);
-        points Slicer marks undefined, preview or missing (not placed) are skipped with a
-        ``UserWarning`` naming them; a MeshLab picked-points file ``.pp`` (inactive points skipped).
+        points Slicer marks undefined, preview or missing (not placed; in a CSV, ``defined``
+        0) are skipped with a ``UserWarning`` naming them; a MeshLab picked-points file ``.pp``
+        (inactive points skipped).
     coordinate_system : {'LPS', 'RAS'}, optional
         System of the points returned. Default ``'LPS'``, the system of o3dreg's meshes.
     file_coordinate_system : {'LPS', 'RAS'}, optional
@@ -222,12 +223,30 @@ def _read_csv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
                     f"`path`: {path!r} must have a header with columns l,p,s or r,a,s or x,y,z, "
                     f"got {fields}"
                 )
-        labels, points = [], []
+        labels, points, skipped = [], [], []
         for k, row in enumerate(reader):
             row = {key.strip().lower(): value for key, value in row.items() if key}
+            label = str(row.get("label") or f"L{k + 1}").strip()
+            # Slicer's control point export writes defined = 0 for a point not placed (its
+            # coordinates are zeros, not a position), and its import takes 0 as undefined.
+            if _is_false(row.get("defined")):
+                skipped.append((label, "undefined"))
+                continue
             points.append(_numbers([row[c] for c in columns], path, f"row {k + 2}"))
-            labels.append(str(row.get("label") or f"L{k + 1}").strip())
+            labels.append(label)
+    _skip_unplaced(path, skipped, 4)
     return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), declared
+
+
+def _is_false(value: str | None) -> bool:
+    """Whether a CSV flag (``1``/``0``, ``true``/``false``) is set to false; empty is not."""
+    text = (value or "").strip().lower()
+    if text in ("false", "no"):
+        return True
+    try:
+        return float(text) == 0.0
+    except ValueError:
+        return False
 
 
 def _fcsv_system(value: str, path: str) -> str:

@@ -227,3 +227,23 @@ def test_a_label_of_several_lines_is_kept_or_refused(tmp_path):
         else:
             write_landmarks(path, ["a\nb", "c"], LPS[:2])
             assert read_landmarks(path, file_coordinate_system="LPS")[0] == ("a\nb", "c")
+
+
+@pytest.mark.parametrize(("columns", "points"), [("l,p,s", LPS), ("r,a,s", RAS)])
+def test_slicer_markups_csv_export_skips_points_not_defined(tmp_path, columns, points):
+    # Slicer's control point export writes an unplaced point as defined = 0 at (0, 0, 0).
+    rows = [f"label,{columns},defined,selected,visible,locked,description"]
+    rows += [f"A,{points[0][0]},{points[0][1]},{points[0][2]},1,1,1,0,"]
+    rows += ["B,0,0,0,0,1,1,0,", "C,0,0,0,false,1,1,0,"]
+    rows += [f"D,{points[1][0]},{points[1][1]},{points[1][2]},1,1,1,0,"]
+    path = tmp_path / "export.csv"
+    path.write_text("\n".join(rows) + "\n")
+    with pytest.warns(UserWarning) as record:
+        labels, got = read_landmarks(path)
+    assert len(record) == 1
+    message = str(record[0].message)
+    assert repr(str(path)) in message
+    assert "2 control point(s) not placed, skipped: 'B' (undefined), 'C' (undefined)" in message
+    assert record[0].filename == __file__  # the caller's line, as the other readers warn
+    assert labels == ("A", "D")
+    np.testing.assert_allclose(got, LPS[:2])
