@@ -544,3 +544,46 @@ def test_an_nrrd_space_taken_as_lps_by_guess_is_a_warning(tmp_path, caplog):
     warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warned) == 1 and "space 'up-down-sideways' is not LPS" in warned[0]
     assert any("'3d-left-handed' has no anatomical axes" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize("encoding", ["raw", "ascii"])
+def test_nrrd_space_units_are_taken_to_millimetres(tmp_path, encoding):
+    # Neither SimpleITK nor pynrrd applies `space units`: a file in cm was read 10 times too
+    # small (595 mm off at a test voxel). Both readers (raw: SimpleITK, ascii: pynrrd) agree.
+    data = np.zeros((4, 5, 6), np.uint8)
+    header = {
+        "space": "left-posterior-superior",
+        "space directions": np.diag([0.08, 0.12, 0.3]),
+        "space origin": np.array([1.0, 2.0, 3.0]),
+        "encoding": encoding,
+    }
+    nrrd.write(str(tmp_path / "mm.nrrd"), data, header)
+    nrrd.write(str(tmp_path / "cm.nrrd"), data, {**header, "space units": ["cm"] * 3})
+    mm, cm = read_volume(tmp_path / "mm.nrrd"), read_volume(tmp_path / "cm.nrrd")
+    np.testing.assert_allclose(cm.affine[:3], mm.affine[:3] * [[10, 10, 10, 10]] * 1.0)
+    nrrd.write(str(tmp_path / "mm2.nrrd"), data, {**header, "space units": ["mm"] * 3})
+    np.testing.assert_allclose(read_volume(tmp_path / "mm2.nrrd").affine, mm.affine)
+    nrrd.write(str(tmp_path / "in.nrrd"), data, {**header, "space units": ["inch"] * 3})
+    with pytest.raises(ValueError, match=r"has space units \['inch', 'inch', 'inch'\]"):
+        read_volume(tmp_path / "in.nrrd")
+
+
+def test_nrrd_axis_mins_place_the_volume_whichever_reader(tmp_path):
+    # The per-axis form (spacings and axis mins, no space): SimpleITK puts the first sample
+    # half a spacing beyond the minimum (cell centring, the default) or on it ("node"); the
+    # pynrrd path (text encodings) ignored the minima: 30 mm apart for the same header.
+    values = np.zeros(4 * 5 * 6, np.uint8)
+    for field, half in (("", 0.5), ("centers: node cell ???\n", [0, 0.5, 0.5])):
+        for spelling in ("centers", "centerings"):
+            origins = []
+            for encoding, body in (("raw", values.tobytes()), ("ascii", b"0\n" * values.size)):
+                path = tmp_path / f"{encoding}.nrrd"
+                header = (
+                    "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 6 5 4\nspacings: 0.8 1.2 3\n"
+                    f"axis mins: 10 20 30\n{field.replace('centers', spelling)}"
+                    f"encoding: {encoding}\n\n"
+                )
+                path.write_bytes(header.encode() + body)
+                origins.append(read_volume(path).origin)
+            expected = np.array([10.0, 20.0, 30.0]) + np.multiply(half, [0.8, 1.2, 3.0])
+            np.testing.assert_allclose(origins, [expected, expected], err_msg=field + spelling)

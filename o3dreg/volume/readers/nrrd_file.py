@@ -34,28 +34,63 @@ _NRRD_SPACE_TO_LPS = {
 _TEXT_ENCODINGS = ("ascii", "text", "txt")
 
 
+#: Millimetres per unit of an NRRD ``space units`` field (neither reader applies them).
+_NRRD_UNITS = {
+    "mm": 1.0, "millimeter": 1.0, "millimeters": 1.0, "millimetre": 1.0, "millimetres": 1.0,
+    "cm": 10.0, "centimeter": 10.0, "centimeters": 10.0, "centimetre": 10.0, "centimetres": 10.0,
+    "m": 1000.0, "meter": 1000.0, "meters": 1000.0, "metre": 1000.0, "metres": 1000.0,
+    "um": 1e-3, "\u00b5m": 1e-3, "micron": 1e-3, "microns": 1e-3, "micrometer": 1e-3,
+    "micrometers": 1e-3, "micrometre": 1e-3, "micrometres": 1e-3,
+}  # fmt: skip
+
+
 def read_nrrd(path: str) -> Volume:
+    header = _check_geometry_fields(path)
+    millimetres = 1.0 if header is None else _millimetres_per_unit(header, path)
+    volume = _read_nrrd(path, header)
+    if millimetres != 1.0:
+        volume = Volume(
+            volume.array,
+            volume.spacing * millimetres,
+            volume.origin * millimetres,
+            volume.direction,
+        )
+    logger.info("read %s: %r", path, volume)
+    return volume
+
+
+def _read_nrrd(path: str, header: dict[str, Any] | None) -> Volume:
     import SimpleITK as sitk
 
-    header = _check_geometry_fields(path)
     if header is not None:
         if "type" in header:
             _nrrd_dtype(header, path)  # an unknown type is refused before any reader sees it
         if str(header.get("encoding", "")).lower() in _TEXT_ENCODINGS:
-            volume = _read_nrrd_pynrrd(path)
-            logger.info("read %s with pynrrd: %r", path, volume)
-            return volume
+            logger.debug("reading %s (text encoding) with pynrrd", path)
+            return _read_nrrd_pynrrd(path)
     try:
         image = sitk.ReadImage(path)
     except RuntimeError as exc:
         logger.debug("SimpleITK could not read %s (%s); trying pynrrd", path, sitk_error(exc))
     else:
-        volume = from_sitk(image, path)
-        logger.info("read %s: %r", path, volume)
-        return volume
-    volume = _read_nrrd_pynrrd(path)
-    logger.info("read %s with pynrrd: %r", path, volume)
-    return volume
+        return from_sitk(image, path)
+    return _read_nrrd_pynrrd(path)
+
+
+def _millimetres_per_unit(header: dict[str, Any], path: str) -> float:
+    """The factor that takes the header's ``space units`` to millimetres (1 without them)."""
+    units = header.get("space units")
+    if units is None:
+        return 1.0
+    names = [str(u).strip().strip('"').lower() for u in units]
+    names = [n for n in names if n not in ("", "???", "none")]  # unknown units: taken as mm
+    factors = {_NRRD_UNITS.get(n) for n in names}
+    if None in factors or len(factors) > 1:
+        raise ValueError(
+            f"`path`: {path!r} has space units {list(units)}; o3dreg reads one unit for all "
+            "axes (mm, cm, m or um): convert the file to mm"
+        )
+    return factors.pop() if factors else 1.0
 
 
 def _check_geometry_fields(path: str) -> dict[str, Any] | None:
@@ -195,6 +230,21 @@ def _nrrd_geometry(header: dict[str, Any], path: str) -> tuple[np.ndarray, np.nd
         spacing = np.abs(spacing)
     origin_in = header.get("space origin")
     origin = np.zeros(3)
+    mins = header.get("axis mins")
+    if origin_in is None and mins is not None and directions is None:
+        # The per-axis form (no space): the first sample lies at the axis minimum, or half a
+        # sample beyond it when samples are cell-centred, the default (as ITK reads it).
+        mins = np.asarray(mins, dtype=np.float64)[:3]
+        centers = header.get("centers", header.get("centerings", ()))
+        if isinstance(centers, str):  # pynrrd keeps the "centers" spelling as one string
+            centers = centers.split()
+        node = [str(c).lower() == "node" for c in centers]
+        half = np.array([0.0 if n else 0.5 for n in node] + [0.5] * 3)[:3]
+        origin = (mins + half[: mins.size] * spacing[: mins.size]) * flips[: mins.size]
+        if origin.size == 2:
+            origin = np.append(origin, 0.0)
+        if not np.all(np.isfinite(origin)):
+            raise ValueError(f"`path`: {path!r} has axis mins {mins.tolist()}; they must be finite")
     if origin_in is not None:
         origin = np.asarray(origin_in, dtype=np.float64)[:3] * flips
         if not np.all(np.isfinite(origin)):
