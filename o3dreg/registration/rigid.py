@@ -565,7 +565,7 @@ def _registration_rigid(
         )
         if given:
             final = search.refine(candidates[0][1], estimation_method, criteria)
-            warnings = ()
+            warnings: tuple[str, ...] = ()
             if final.fitness == 0:
                 warnings = (
                     "no target point lies within max_correspondence_distance "

@@ -84,8 +84,9 @@ def _millimetres_per_unit(header: dict[str, Any], path: str) -> float:
         return 1.0
     names = [str(u).strip().strip('"').lower() for u in units]
     names = [n for n in names if n not in ("", "???", "none")]  # unknown units: taken as mm
-    factors = {_NRRD_UNITS.get(n) for n in names}
-    if None in factors or len(factors) > 1:
+    unknown = [n for n in names if n not in _NRRD_UNITS]
+    factors = {_NRRD_UNITS[n] for n in names if n in _NRRD_UNITS}
+    if unknown or len(factors) > 1:
         raise ValueError(
             f"`path`: {path!r} has space units {list(units)}; o3dreg reads one unit for all "
             "axes (mm, cm, m or um): convert the file to mm"
