@@ -10,8 +10,8 @@ default) when the file says which system it is in:
 =================== ========================================================================
 format              how the file says its system
 =================== ========================================================================
-``.mrk.json``       ``markups[0].coordinateSystem`` (``"LPS"`` or ``"RAS"``; absent means
-                    LPS, as Slicer reads it)
+``.mrk.json``       the point list's ``coordinateSystem`` (``"LPS"`` or ``"RAS"``; absent
+                    means LPS, as Slicer reads it)
 ``.fcsv``           ``# CoordinateSystem = LPS`` / ``RAS`` (or ``1`` / ``0``, Slicer 4.x);
                     absent: Slicer before 4.11 wrote RAS and no line, so RAS is assumed,
                     with a warning
@@ -91,10 +91,16 @@ def read_landmarks(
         ``.csv`` with a header row naming a ``label`` column and the coordinates ``l,p,s``,
         ``r,a,s`` or ``x,y,z`` (other columns ignored), or rows ``label,x,y,z`` without a
         header (statismo's and scalismo's landmark files); a Slicer markups file ``.mrk.json``
-        (``markups[0].controlPoints``) or ``.fcsv`` (the fields its ``# columns`` line names);
-        points Slicer marks undefined, preview or missing (not placed; in a CSV, ``defined``
-        0) are skipped with a ``UserWarning`` naming them; a MeshLab picked-points file ``.pp``
-        (inactive points skipped).
+        or ``.fcsv`` (the fields its ``# columns`` line names); points Slicer marks undefined,
+        preview or missing (not placed; in a CSV, ``defined`` 0) are skipped with a
+        ``UserWarning`` naming them; a MeshLab picked-points file ``.pp`` (inactive points
+        skipped). A ``.mrk.json`` gives the ``controlPoints`` of its one point list (markup
+        ``type`` ``"Fiducial"``; a markup without a type is taken as one), in mm (converted
+        from ``coordinateUnits`` ``um``, ``cm`` or ``m``). Other markups beside it (lines,
+        angles, curves, planes, ROIs) are ignored with a ``UserWarning``; a file with several
+        point lists or none raises ``ValueError`` listing its markups (name, type, number of
+        control points): the control points of a line or angle are its ends and vertex, not
+        landmarks, and point lists are not merged.
     coordinate_system : {'LPS', 'RAS'}, optional
         System of the points returned. Default ``'LPS'``, the system of o3dreg's meshes.
     file_coordinate_system : {'LPS', 'RAS'}, optional
@@ -107,7 +113,7 @@ def read_landmarks(
     -------
     labels : tuple of str
     points : (l, 3) ndarray
-        In ``coordinate_system``, in the file's units (mm for Slicer).
+        In ``coordinate_system``, in the file's units (mm for Slicer's files).
     """
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`path` must be a path, got {type(path).__name__}")
@@ -348,11 +354,86 @@ def _read_pp(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
     return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), None
 
 
+#: Length units of a markup's ``coordinateUnits`` (UCUM codes; Slicer writes ``mm``, the schema
+#: also names ``um``), as millimetres.
+_UNITS_MM = {"mm": 1.0, "um": 1e-3, "cm": 10.0, "m": 1000.0}
+
+
+def _markup_summary(index: int, markup: Any) -> str:
+    """``markups[i] 'name' (Type, n control points)``, for messages."""
+    if not isinstance(markup, dict):
+        return f"markups[{index}] ({type(markup).__name__}, not a markup)"
+    name = markup.get("name")
+    named = f" {str(name)!r}" if name else ""
+    control = markup.get("controlPoints")
+    count = len(control) if isinstance(control, list) else 0
+    kind = markup.get("type", "no type")
+    return f"markups[{index}]{named} ({kind}, {count} control point(s))"
+
+
+def _is_point_list(markup: Any) -> bool:
+    # Slicer writes "Fiducial" for a point list. A markup without a type (Slicer requires one)
+    # names no other kind: its points are taken as landmarks (hand-written files omit it).
+    return isinstance(markup, dict) and str(markup.get("type", "Fiducial")).lower() == "fiducial"
+
+
+def _choose_point_list(doc: Any, path: str) -> dict[str, Any]:
+    """The one point list of a markups file; other markups beside it ignored with a warning."""
+    markups = doc.get("markups") if isinstance(doc, dict) else None
+    if not isinstance(markups, list) or not markups:
+        got = "an empty list" if markups == [] else type(markups).__name__
+        raise ValueError(
+            f"`path`: {path!r} is not a 3D Slicer markups file (a non-empty `markups` list "
+            f"expected, got {got if markups is not None else 'none'})"
+        )
+    lists = [k for k, m in enumerate(markups) if _is_point_list(m)]
+    held = ", ".join(_markup_summary(k, m) for k, m in enumerate(markups))
+    if not lists:
+        raise ValueError(
+            f"`path`: {path!r} holds {held} and no point list (markup type 'Fiducial'): the "
+            "control points of a line, angle, curve, plane or ROI are not landmarks; place the "
+            "landmarks in a Slicer point list and save that"
+        )
+    if len(lists) > 1:
+        raise ValueError(
+            f"`path`: {path!r} holds {len(lists)} point lists: {held}; one point list per file "
+            "is read (mixing them would pair landmarks of different lists): save the one "
+            "wanted in a file of its own (Slicer saves each markups node to its own .mrk.json)"
+        )
+    if len(markups) > 1:
+        others = ", ".join(_markup_summary(k, m) for k, m in enumerate(markups) if k != lists[0])
+        warnings.warn(
+            f"{path!r}: read the point list {_markup_summary(lists[0], markups[lists[0]])}; "
+            f"ignored {others} (not point lists)",
+            UserWarning,
+            stacklevel=4,
+        )
+    return markups[lists[0]]
+
+
+def _units_to_mm(markup: dict[str, Any], path: str) -> float:
+    """The factor from a markup's ``coordinateUnits`` (absent: mm) to millimetres."""
+    units = markup.get("coordinateUnits", "mm")
+    # A coded entry [code, coding scheme, meaning], e.g. ["mm", "UCUM", "millimeter"].
+    code = units[0] if isinstance(units, list) and units else units
+    factor = _UNITS_MM.get(code) if isinstance(code, str) else None
+    if factor is None:
+        raise ValueError(
+            f"`path`: {path!r} has coordinateUnits {units!r}; one of "
+            f"{', '.join(repr(u) for u in _UNITS_MM)} expected"
+        )
+    return factor
+
+
 def _read_markups(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
     try:
         with open(path, encoding="utf-8") as fh:
             doc = json.load(fh)
-        markup = doc["markups"][0]
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"`path`: {path!r} is not a 3D Slicer markups file: {exc}") from exc
+    markup = _choose_point_list(doc, path)
+    scale = _units_to_mm(markup, path)
+    try:
         control = markup.get("controlPoints") or []
         # Slicer reads a markup without coordinateSystem as LPS.
         declared = str(markup.get("coordinateSystem") or "LPS").upper()
@@ -371,21 +452,16 @@ def _read_markups(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
             points.append(position)
             labels.append(label)
         points_arr = np.array(points, dtype=np.float64).reshape(-1, 3)
-    except (
-        json.JSONDecodeError,
-        KeyError,
-        IndexError,
-        TypeError,
-        ValueError,
-        AttributeError,
-    ) as exc:
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
         raise ValueError(
             f"`path`: {path!r} is not a 3D Slicer markups file "
-            f"(markups[0].controlPoints[i].position expected): {exc}"
+            f"(controlPoints[i].position expected): {exc}"
         ) from exc
     if declared not in _SYSTEMS:
         raise ValueError(f"`path`: {path!r} has coordinateSystem {declared!r}; LPS or RAS expected")
     _skip_unplaced(path, skipped, 4)
+    if scale != 1.0:
+        points_arr = points_arr * scale
     return tuple(labels), points_arr, declared
 
 

@@ -247,3 +247,81 @@ def test_slicer_markups_csv_export_skips_points_not_defined(tmp_path, columns, p
     assert record[0].filename == __file__  # the caller's line, as the other readers warn
     assert labels == ("A", "D")
     np.testing.assert_allclose(got, LPS[:2])
+
+
+def _markup(kind, name, labels, points, **extra):
+    control = [{"label": lab, "position": list(p)} for lab, p in zip(labels, points)]
+    markup = {"type": kind, "name": name, "coordinateSystem": "LPS", "controlPoints": control}
+    return {**markup, **extra}
+
+
+def _markups_file(tmp_path, *markups):
+    path = tmp_path / "m.mrk.json"
+    path.write_text(json.dumps({"@schema": "markups-schema-v1.0.3.json#", "markups": markups}))
+    return path
+
+
+def test_mrk_json_with_several_point_lists_is_refused_listing_them(tmp_path):
+    path = _markups_file(
+        tmp_path,
+        _markup("Fiducial", "left", LABELS[:2], LPS[:2].tolist()),
+        _markup("Fiducial", "right", LABELS[2:], LPS[2:].tolist()),
+    )
+    with pytest.raises(ValueError) as info:
+        read_landmarks(path)
+    message = str(info.value)
+    assert "holds 2 point lists" in message
+    assert "markups[0] 'left' (Fiducial, 2 control point(s))" in message
+    assert "markups[1] 'right' (Fiducial, 1 control point(s))" in message
+    assert "save the one wanted in a file of its own" in message
+
+
+@pytest.mark.parametrize("kind", ["Curve", "ClosedCurve", "Line", "Angle", "Plane", "ROI"])
+def test_mrk_json_of_a_markup_that_is_not_a_point_list_is_refused(tmp_path, kind):
+    path = _markups_file(tmp_path, _markup(kind, "M", LABELS, LPS.tolist()))
+    with pytest.raises(
+        ValueError,
+        match=rf"markups\[0\] 'M' \({kind}, 3 control point\(s\)\) and no "
+        r"point list \(markup type 'Fiducial'\)",
+    ):
+        read_landmarks(path)
+
+
+def test_mrk_json_reads_its_one_point_list_and_warns_about_the_other_markups(tmp_path):
+    path = _markups_file(
+        tmp_path,
+        _markup("Curve", "centreline", ["c1", "c2"], [[0, 0, 0], [1, 1, 1]]),
+        _markup("Fiducial", "landmarks", LABELS, RAS.tolist(), coordinateSystem="RAS"),
+        _markup("Plane", "cut", ["p"], [[5, 5, 5]]),
+    )
+    with pytest.warns(UserWarning) as record:
+        labels, points = read_landmarks(path)
+    assert len(record) == 1
+    message = str(record[0].message)
+    assert "read the point list markups[1] 'landmarks' (Fiducial, 3 control point(s))" in message
+    assert "ignored markups[0] 'centreline' (Curve, 2 control point(s))" in message
+    assert "markups[2] 'cut' (Plane, 1 control point(s))" in message
+    assert labels == LABELS
+    np.testing.assert_allclose(points, LPS)
+
+
+@pytest.mark.parametrize(
+    ("units", "scale"),
+    [("mm", 1.0), ("um", 1e3), ("cm", 0.1), ("m", 1e-3), (["um", "UCUM", "micrometer"], 1e3)],
+)
+def test_mrk_json_coordinate_units_are_converted_to_mm(tmp_path, units, scale):
+    path = _markups_file(
+        tmp_path,
+        _markup("Fiducial", "F", LABELS, (LPS * scale).tolist(), coordinateUnits=units),
+    )
+    labels, points = read_landmarks(path)
+    assert labels == LABELS
+    np.testing.assert_allclose(points, LPS, rtol=1e-12)
+
+
+def test_mrk_json_of_unknown_units_is_refused(tmp_path):
+    path = _markups_file(
+        tmp_path, _markup("Fiducial", "F", LABELS, LPS.tolist(), coordinateUnits="in")
+    )
+    with pytest.raises(ValueError, match=r"coordinateUnits 'in'; one of 'mm', 'um', 'cm', 'm'"):
+        read_landmarks(path)
