@@ -222,16 +222,19 @@ def _check_slice_positions(files: list[str], headers: list[dict[str, Any]], uid:
             "first"
         )
     positions = offsets @ normal + float(start @ normal)
+    # Repeated positions anywhere in the list (GDCM may not put a duplicate beside its twin,
+    # where it would read as an irregular gap).
+    rank = np.argsort(positions, kind="stable")
+    twins = rank[1:][np.abs(np.diff(positions[rank])) < 1e-3]
+    if twins.size:
+        names = ", ".join(os.path.basename(files[i]) for i in np.sort(twins)[:5])
+        raise ValueError(
+            f"DICOM series {uid}: {twins.size} slice(s) share a position with another slice "
+            f"({names}); the folder may hold duplicated or multi-phase images"
+        )
     gaps = np.diff(positions)
     order = "ascending" if np.median(gaps) > 0 else "descending"
     gaps = np.abs(gaps)
-    duplicates = np.flatnonzero(gaps < 1e-3)
-    if duplicates.size:
-        names = ", ".join(os.path.basename(files[i + 1]) for i in duplicates[:5])
-        raise ValueError(
-            f"DICOM series {uid}: {duplicates.size} slice(s) share a position with the previous "
-            f"one ({names}); the folder may hold duplicated or multi-phase images"
-        )
     typical = float(np.median(gaps))
     bad = np.flatnonzero(np.abs(gaps - typical) > _SLICE_GAP_RTOL * typical)
     if bad.size:
