@@ -7,8 +7,9 @@ correspondence), STL excepted, and text is written at full float64 precision:
 
 * **VTK**, the format statismo, scalismo, ShapeWorks and 3D Slicer exchange. The triangle subset
   is read: polygons, quads and pixels (split into triangle fans, with a warning), triangles and
-  triangle strips; vertices and lines are skipped; volume cells are refused; point and cell data
-  are ignored. Legacy files: ``POLYDATA`` and ``UNSTRUCTURED_GRID`` (as meshio writes it),
+  triangle strips; vertices and lines are skipped; volume cells are refused; point, cell and
+  field data are ignored (a legacy file's dataset ``FIELD`` block before ``POINTS``, as VTK 9
+  and PyVista write it, is passed over by its arrays' sizes). Legacy files: ``POLYDATA`` and ``UNSTRUCTURED_GRID`` (as meshio writes it),
   versions up to 5.1 (the ``OFFSETS`` / ``CONNECTIVITY`` layout of VTK 9), ASCII and BINARY
   (big-endian). XML files (``PolyData``, ``UnstructuredGrid``): ``ascii``, inline ``binary``
   (base64) and ``appended`` (raw or base64) data, uncompressed or zlib-compressed, 32- or 64-bit
@@ -157,6 +158,15 @@ _LEGACY_TYPES = {
     "vtkidtype": ">i8",
 }
 
+#: Data types of field data arrays as VTK's legacy writer stores them in binary: ``signed_char``
+#: and ``vtktypeuint64`` besides the above, and ``vtkIdType`` written as 32-bit ``int``.
+_FIELD_TYPES = {
+    **{name: dtype for name, dtype in _LEGACY_TYPES.items() if dtype is not None},
+    "signed_char": ">i1",
+    "vtktypeuint64": ">u8",
+    "vtkidtype": ">i4",
+}
+
 
 class _LegacyReader:
     """A cursor over a legacy VTK file: keyword lines, then ASCII numbers or big-endian bytes."""
@@ -174,6 +184,32 @@ class _LegacyReader:
             if text:
                 return text
         return None
+
+    def raw_line(self) -> str | None:
+        """The next line as it is, empty or not (``None`` at the end)."""
+        if self.pos >= len(self.data):
+            return None
+        end = self.data.find(b"\n", self.pos)
+        end = len(self.data) if end < 0 else end
+        text = self.data[self.pos : end].decode("ascii", errors="replace").rstrip("\r")
+        self.pos = end + 1
+        return text
+
+    def skip_bytes(self, size: int, what: str) -> None:
+        if self.pos + size > len(self.data):
+            raise OSError(f"{self.path!r}: binary data ends early (in {what})")
+        self.pos += size
+
+    def skip_tokens(self, count: int, what: str) -> None:
+        """Pass ``count`` whitespace-separated ASCII values, without reading them as numbers."""
+        seen = 0
+        while seen < count:
+            text = self.line()
+            if text is None:
+                raise OSError(f"{self.path!r}: expected {count} values in {what}, the file ends")
+            seen += len(text.split())
+        if seen != count:
+            raise OSError(f"{self.path!r}: expected {count} values in {what}, got {seen}")
 
     def numbers(self, count: int, dtype: str, binary: bool) -> np.ndarray:
         if binary:
@@ -208,6 +244,9 @@ def _legacy_dtype(name: str, path: str) -> str:
 def read_vtk(path: str) -> tuple[np.ndarray, np.ndarray]:
     """Read the triangles of a legacy VTK ``POLYDATA`` file (ASCII or BINARY, versions <= 5.1).
 
+    A dataset ``FIELD`` block before the geometry is passed over (strings, bits and numbers,
+    with their ``METADATA``); point, cell and field data after it are not read.
+
     Returns ``(vertices (n, 3) float64, faces (m, 3) int64)``.
     """
     with open(path, "rb") as fh:
@@ -231,10 +270,12 @@ def read_vtk(path: str) -> tuple[np.ndarray, np.ndarray]:
     vertices: np.ndarray | None = None
     triangles: list[np.ndarray] = []
     cells: tuple[np.ndarray, np.ndarray] | None = None
+    components = 1  # of the last array read, which a METADATA block may name
     while (text := reader.line()) is not None:
         words = text.split()
         key = words[0].upper()
         if kind == "UNSTRUCTURED_GRID" and key in ("CELLS", "CELL_TYPES"):
+            components = 1
             if key == "CELLS":
                 cells = _legacy_cells(reader, words, version, binary, path)
                 continue
@@ -246,8 +287,9 @@ def read_vtk(path: str) -> tuple[np.ndarray, np.ndarray]:
         if key == "POINTS":
             n = int(words[1])
             vertices = reader.numbers(3 * n, _legacy_dtype(words[2], path), binary).reshape(n, 3)
-            vertices = vertices.astype(np.float64)
+            vertices, components = vertices.astype(np.float64), 3
         elif key in ("VERTICES", "LINES", "POLYGONS", "TRIANGLE_STRIPS"):
+            components = 1
             offsets, connectivity = _legacy_cells(reader, words, version, binary, path)
             if key in ("POLYGONS", "TRIANGLE_STRIPS"):
                 triangles.append(
@@ -256,14 +298,11 @@ def read_vtk(path: str) -> tuple[np.ndarray, np.ndarray]:
                     )
                 )
         elif key == "METADATA":
-            # Information keys (VTK >= 8), ended by an empty line.
-            while reader.pos < len(reader.data):
-                end = reader.data.find(b"\n", reader.pos)
-                end = len(reader.data) if end < 0 else end
-                blank = not reader.data[reader.pos : end].strip()
-                reader.pos = end + 1
-                if blank:
-                    break
+            _skip_metadata(reader, components)
+        elif key == "FIELD" and cells is None and not triangles:
+            # The dataset's field data, which VTK writes before POINTS (PyVista's
+            # field_data): arrays of known sizes, passed over.
+            _skip_field(reader, words, binary, path)
         elif key in ("POINT_DATA", "CELL_DATA", "FIELD"):
             break  # attributes follow the geometry: nothing more to read
         else:
@@ -300,6 +339,84 @@ def _legacy_cells(
         at += npts + 1
     connectivity = np.concatenate(connectivity_parts) if connectivity_parts else np.zeros(0)
     return np.array(offsets_list, dtype=np.int64), connectivity.astype(np.int64)
+
+
+def _skip_metadata(reader: _LegacyReader, components: int) -> None:
+    """Pass an array's ``METADATA`` block (VTK >= 8), its keyword line already read:
+    ``COMPONENT_NAMES`` (one line per component, empty for an unnamed one) and ``INFORMATION n``
+    keys, ended by an empty line."""
+    while (text := reader.raw_line()) is not None and text.strip():
+        if text.strip().upper() == "COMPONENT_NAMES":
+            for _ in range(components):
+                reader.raw_line()
+
+
+def _skip_field(reader: _LegacyReader, words: list[str], binary: bool, path: str) -> None:
+    """Pass a ``FIELD name n`` block, its keyword line already read: ``n`` arrays, each a line
+    ``name numComponents numTuples dataType``, its values (ASCII, or big-endian binary
+    followed by a newline) and possibly a ``METADATA`` block."""
+    try:
+        count = int(words[2])
+        if count < 0:
+            raise ValueError(count)
+    except (IndexError, ValueError):
+        raise OSError(
+            f"{path!r}: 'FIELD name numArrays' expected, got {' '.join(words)!r}"
+        ) from None
+    for _ in range(count):
+        header = reader.line()
+        if header is None:
+            raise OSError(f"{path!r}: FIELD {words[1]!r} ends before its {count} arrays")
+        parts = header.split()
+        if parts == ["NULL_ARRAY"]:
+            continue
+        try:
+            name, components, tuples = parts[0], int(parts[1]), int(parts[2])
+            kind = parts[3].lower()
+            if components < 0 or tuples < 0:
+                raise ValueError(header)
+        except (IndexError, ValueError):
+            raise OSError(
+                f"{path!r}: FIELD {words[1]!r}: an array line 'name numComponents numTuples "
+                f"dataType' expected, got {header!r}"
+            ) from None
+        what, values = f"FIELD array {name!r}", components * tuples
+        if kind in ("string", "utf8_string"):
+            _skip_strings(reader, values, binary, what)
+        elif kind == "bit":
+            if binary:
+                reader.skip_bytes((values + 7) // 8, what)
+            else:
+                reader.skip_tokens(values, what)
+        elif kind in _FIELD_TYPES:
+            if binary:
+                reader.skip_bytes(values * np.dtype(_FIELD_TYPES[kind]).itemsize, what)
+            else:
+                reader.skip_tokens(values, what)
+        else:
+            raise OSError(f"{path!r}: {what} has data type {parts[3]!r}, which is not supported")
+        at = reader.pos
+        if (reader.line() or "").upper() == "METADATA":
+            _skip_metadata(reader, components)
+        else:
+            reader.pos = at
+
+
+def _skip_strings(reader: _LegacyReader, count: int, binary: bool, what: str) -> None:
+    """Pass ``count`` strings: ASCII, one line each (empty for an empty string); binary, each
+    after a 1, 2, 4 or 8-byte big-endian length whose two top bits say its size."""
+    if not binary:
+        for _ in range(count):
+            if reader.raw_line() is None:
+                raise OSError(f"{reader.path!r}: expected {count} strings in {what}, file ends")
+        return
+    for _ in range(count):
+        if reader.pos >= len(reader.data):
+            raise OSError(f"{reader.path!r}: binary data ends early (in {what})")
+        size = {3: 1, 2: 2, 1: 4, 0: 8}[reader.data[reader.pos] >> 6]
+        reader.skip_bytes(size, what)
+        head = int.from_bytes(reader.data[reader.pos - size : reader.pos], "big")
+        reader.skip_bytes(head & ((1 << (8 * size - 2)) - 1), what)
 
 
 #: VTK cell types: skipped (vertices, lines), surface cells split into triangles.

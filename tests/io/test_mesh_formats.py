@@ -178,6 +178,71 @@ def test_legacy_vtk_42_binary_int32_cells(tmp_path):
     np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
 
 
+def _field_data(binary):
+    """Dataset field data as VTK 9's legacy writer puts it before POINTS (PyVista's
+    ``field_data``): each array ``name numComponents numTuples dataType``, its values, and in a
+    METADATA block one line per component name, empty for an unnamed one."""
+    out = b"FIELD FieldData 5\nTimeValue 2 1 double\n"
+    out += np.array([1.5, 2.5], ">f8").tobytes() + b"\n" if binary else b"1.5 2.5\n"
+    # The first component has no name: its line is empty, not the end of the block.
+    out += b"METADATA\nCOMPONENT_NAMES\n\nsecond\nINFORMATION 1\n"
+    out += b"NAME UNITS_LABEL LOCATION vtkDataArray\nDATA s\n\n"
+    strings = [b"patient 7", b"", b"x" * 70, b"a\nPOINTS 1 float"]
+    out += b"name 1 4 string\n"
+    if binary:
+        # A length byte 0b11xxxxxx below 64, two bytes 0b10xxxxxx... up to 16383; the bytes as
+        # they are (a newline inside a string is not the end of a line).
+        for text in strings:
+            head = 0xC0 | len(text) if len(text) < 64 else 0x8000 | len(text)
+            out += head.to_bytes(1 if len(text) < 64 else 2, "big") + text
+        out += b"\n"
+    else:
+        out += b"patient%207\n\n" + b"x" * 70 + b"\na%0APOINTS%201%20float\n\n"
+    out += b"flags 1 10 bit\n"
+    out += bytes([0b10110010, 0b11000000]) + b"\n" if binary else b"1 0 1 1 0 0 1 0\n1 1\n"
+    out += b"ids 2 3 vtkIdType\n"  # written as 32-bit int
+    out += np.arange(6).astype(">i4").tobytes() + b"\n" if binary else b"0 1 2 3 4 5\n"
+    return out + b"empty 1 0 float\n\n"
+
+
+@pytest.mark.parametrize("binary", [False, True])
+@pytest.mark.parametrize("version", ["4.2", "5.1"])
+def test_legacy_vtk_with_dataset_field_data_before_points(tmp_path, binary, version):
+    if version == "5.1":
+        data = _legacy_51(binary)
+    else:
+        cells = np.array([3, 0, 1, 2, 3, 0, 2, 3])
+        data = b"# vtk DataFile Version 4.2\nvtk output\n" + (b"BINARY" if binary else b"ASCII")
+        data += b"\nDATASET POLYDATA\nPOINTS 4 double\n"
+        if binary:
+            data += SQUARE[:4].astype(">f8").tobytes() + b"\nPOLYGONS 2 8\n"
+            data += cells.astype(">i4").tobytes() + b"\n"
+        else:
+            data += b" ".join(str(x).encode() for x in SQUARE[:4].ravel())
+            data += b"\nPOLYGONS 2 8\n" + b" ".join(str(x).encode() for x in cells) + b"\n"
+    at = data.index(b"POINTS")
+    path = tmp_path / "field.vtk"
+    path.write_bytes(data[:at] + _field_data(binary) + data[at:])
+    mesh = read_triangle_mesh(path)
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), SQUARE[:4])
+    np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
+
+
+def test_legacy_vtk_field_data_of_an_unknown_type_or_size_is_named(tmp_path):
+    data = _legacy_51(True)
+    at = data.index(b"POINTS")
+    path = tmp_path / "variant.vtk"
+    path.write_bytes(data[:at] + b"FIELD FieldData 1\nv 1 1 variant\n1 1\n" + data[at:])
+    with pytest.raises(
+        OSError, match=r"FIELD array 'v' has data type 'variant', which is not supported"
+    ):
+        read_triangle_mesh(path)
+    # A negative size would move the binary cursor backwards.
+    path.write_bytes(data[:at] + b"FIELD FieldData 1\nt 1 -8 double\n" + data[at:])
+    with pytest.raises(OSError, match=r"an array line .* expected, got 't 1 -8 double'"):
+        read_triangle_mesh(path)
+
+
 def _vtp(arrays_xml, appended=b"", header="UInt32", compressor=None, encoding="raw"):
     attrs = f'type="PolyData" version="1.0" byte_order="LittleEndian" header_type="{header}"'
     if compressor:
