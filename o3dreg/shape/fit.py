@@ -113,7 +113,8 @@ def fit_shape_model(
     1/variance: with ``S = I`` this is ``alpha_j = variance_j / (variance_j + regularization)
     A_j^T (T^-1 y - M)``, the posterior mean of probabilistic PCA with noise variance
     ``regularization``). Both directions are weighted to count as ``n`` points.
-    Stops when the instance moves by less than ``tolerance`` times the model's size.
+    Stops when the instance moves by less than ``tolerance`` times its size (the model's size
+    times the pose's scale: the same fit whatever the patient's units).
 
     Parameters
     ----------
@@ -306,7 +307,10 @@ def _fit_model(
         rhs = np.einsum("kjd,j,jd->k", sa, w, y - sm)
         a = np.linalg.solve(lhs, rhs) if k else a
         new = apply_transformation(pose, _instance(model, a))
-        change = float(np.sqrt(((new - current) ** 2).sum(axis=1).mean())) / max(size, 1e-300)
+        # Relative to the instance's size in the patient's units (a similarity pose scales it).
+        scale = float(np.cbrt(abs(np.linalg.det(pose[:3, :3]))))
+        moved = float(np.sqrt(((new - current) ** 2).sum(axis=1).mean()))
+        change = moved / max(size * scale, 1e-300)
         current = new
         if change < tolerance:
             success = True
