@@ -186,7 +186,10 @@ def generalized_procrustes(
     the mean is recomputed and the alignment repeated until the mean stops moving:
     ``|M_k - M_{k-1}|_F / |M_k|_F < tolerance``. The mean is kept in the orientation of the
     first shape (each new mean is rotated onto the previous one), so results do not drift, and
-    with ``scaling`` its centroid size is the mean centroid size of the inputs (units are kept).
+    with ``scaling`` its centroid size is the mean centroid size of the inputs (units are kept)
+    and each shape is scaled into the tangent space at the mean (its projection onto the mean
+    is the mean, ``<x_i, M> = |M|^2``), so the shapes do not differ along the mean's own
+    direction: a model built from them has no mode of pure size change.
 
     Parameters
     ----------
@@ -215,6 +218,8 @@ def generalized_procrustes(
        :doi:`10.1007/BF02291478`
     .. [2] M. Berar, M. Desvignes, G. Bailly, Y. Payan, "3D meshes registration: application to
        statistical skull model", ICIAR 2004, LNCS 3212, section 3.3.
+    .. [3] I. L. Dryden, K. V. Mardia, "Statistical Shape Analysis", Wiley 1998, section 4.3
+       (tangent coordinates).
     """
     x = as_shape_array(shapes)
     scaling = check_bool(scaling, "scaling")
@@ -245,9 +250,7 @@ def _generalized_procrustes(
     iterations = 0
     change = np.inf
     for iterations in range(1, max_iteration + 1):  # noqa: B007
-        for i in range(k):
-            transforms[i] = fit_transformation(x[i], mean, scaling)
-            aligned[i] = apply_transformation(transforms[i], x[i])
+        _align_all(x, mean, scaling, transforms, aligned)
         new_mean = aligned.mean(axis=0)
         new_mean -= new_mean.mean(axis=0)
         # Keep the orientation of the previous mean (a rotation of all shapes is free).
@@ -261,9 +264,7 @@ def _generalized_procrustes(
         if change < tolerance:
             success = True
             break
-    for i in range(k):
-        transforms[i] = fit_transformation(x[i], mean, scaling)
-        aligned[i] = apply_transformation(transforms[i], x[i])
+    _align_all(x, mean, scaling, transforms, aligned)
     message = (
         f"mean converged in {iterations} iterations (relative change {change:.3g})"
         if success
@@ -279,3 +280,22 @@ def _generalized_procrustes(
         success=success,
         message=message,
     )
+
+
+def _align_all(
+    x: np.ndarray, mean: np.ndarray, scaling: bool, transforms: np.ndarray, aligned: np.ndarray
+) -> None:
+    """Each shape rotated (and scaled) onto the centred ``mean``, into ``transforms`` and
+    ``aligned``. With ``scaling``, the scale puts each shape in the tangent space at the mean:
+    its projection onto the mean is the mean (``<x_i, M> = |M|^2``). The least-squares scale
+    would shrink each shape by the cosine of its angle to the mean, a size difference that
+    becomes a mode of the model (a mode of uniform scaling in a model meant to have none)."""
+    norm2 = float((mean**2).sum())
+    for i in range(x.shape[0]):
+        transforms[i] = fit_transformation(x[i], mean, scaling)
+        aligned[i] = apply_transformation(transforms[i], x[i])
+        if scaling:
+            along = float((aligned[i] * mean).sum())
+            if along > 0:
+                transforms[i][:3] *= norm2 / along  # the centroid stays at the origin
+                aligned[i] *= norm2 / along

@@ -21,6 +21,7 @@ from o3dreg import (
     procrustes_transform,
     register_batch,
 )
+from o3dreg.shape.build import MIN_VARIANCE_RATIO
 
 
 def principal_cosines(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -76,13 +77,17 @@ def test_pca_recovers_known_linear_model_exactly(pop):
 def test_synthesis_projection_and_scores(pop):
     (tv, tf), _, truths, _, _ = pop
     model = build_shape_model(truths, tf, names=[f"p{i}" for i in range(len(truths))])
-    # P = M + A alpha, and projecting a training shape (any pose) gives back its scores.
+    # P = M + A alpha, and projecting a training shape (any pose) gives back its scores, up to
+    # the modes below MIN_VARIANCE_RATIO the model leaves out (here 0.003 mm^2 of 6400: the
+    # second-order rest of the poses, 0.004 mm per point).
     for i in (0, 3):
         proj = model.project(_posed(truths[i], 40 + i))
-        np.testing.assert_allclose(proj.coefficients, model.scores[i], atol=1e-6)
-        assert proj.mean_error < 1e-6
+        np.testing.assert_allclose(proj.coefficients, model.scores[i], atol=1e-4)
+        assert proj.mean_error < 0.01
+        # The reconstruction from the scores and from the projection: the same up to those
+        # coefficients' difference (1e-4) times a unit mode's largest entry.
         np.testing.assert_allclose(
-            model.synthesize(model.scores[i]), proj.reconstruction, atol=1e-9
+            model.synthesize(model.scores[i]), proj.reconstruction, atol=1e-5
         )
     shape = model.synthesize([1.0, -2.0], standardized=True)
     expected = (
@@ -216,6 +221,27 @@ def test_fit_recovers_pose_and_shape(pop):
         fit_shape_model("model", target)
 
 
+def test_a_similarity_model_has_no_mode_of_size_and_projects_its_instances_exactly(pop):
+    # Shapes scaled by least squares onto the mean shrink by the cosine of their angle to it:
+    # that size difference became a mode (93% along the mean on a statismo mandible
+    # population) and a projected instance read +4 standard deviations on it. In the tangent
+    # space at the mean no shape differs along the mean's own direction.
+    (_tv, tf), _, truths, _, _ = pop
+    sizes = np.random.default_rng(5).uniform(0.8, 1.25, len(truths))
+    shapes = [_posed(x * k, 50 + i) for i, (x, k) in enumerate(zip(truths, sizes))]
+    model = build_shape_model(shapes, tf, scaling=True)
+    direction = (model.mean - model.mean.mean(axis=0)).ravel()
+    direction /= np.linalg.norm(direction)
+    along = np.abs(model.modes.reshape(model.number_of_modes, -1) @ direction)
+    assert along.max() < 1e-9, along
+    assert (model.variances >= MIN_VARIANCE_RATIO * model.total_variance).all()
+    truth = np.zeros(model.number_of_modes)
+    truth[:3] = [1.0, -1.2, 0.5]
+    instance = model.synthesize(truth, standardized=True)
+    projected = model.project(_posed(instance * 0.7, 60)).coefficients / model.standard_deviations
+    np.testing.assert_allclose(projected, truth, atol=1e-6)
+
+
 def test_the_fit_from_two_starts_is_the_uninterrupted_fit_of_the_better(pop, monkeypatch):
     # Both starts are fitted coarsely and only the better one is carried on: the result must be
     # exactly what fitting that start alone to the full tolerance gives (same iterations).
@@ -243,6 +269,33 @@ def test_the_fit_from_two_starts_is_the_uninterrupted_fit_of_the_better(pop, mon
     same = [np.array_equal(a.vertices, fit.vertices) for a in alone]
     assert any(same), [np.abs(a.vertices - fit.vertices).max() for a in alone]
     assert alone[same.index(True)].iterations == fit.iterations
+
+
+def test_a_similarity_fit_is_the_same_whatever_the_patients_units(pop):
+    # The fit stops on the instance's movement relative to its size in the patient's units:
+    # measured against the model's size instead, a patient in metres (mm model) stopped after
+    # one iteration with the coefficients at 60% of the truth, and one in micrometres ran 1000
+    # times too long (found on a statismo mandible model; reproduced here on a model instance).
+    (_tv, tf), _, truths, _, _ = pop
+    model = build_shape_model(truths[:9], tf, scaling=True)
+    truth = np.zeros(model.number_of_modes)
+    truth[:3] = np.array([1.0, -1.2, 0.5]) * model.standard_deviations[:3]
+    turn = Rotation.from_rotvec([0.2, -0.1, 0.3]).as_matrix()  # 21 degrees
+    patient = model.synthesize(truth) @ turn.T + [5.0, -3.0, 2.0]
+    fits = {
+        s: fit_shape_model(model, (patient * s, model.faces), check_reflection=False)
+        for s in (1, 1e-3, 1e3)
+    }
+    sd = model.standard_deviations
+    for s, fit in fits.items():
+        assert fit.status == "ok", (s, fit)
+        # The first three modes (98% of the variance) within 2% of a standard deviation of the
+        # truth in every unit, and every mode within 2% of one of the fit in millimetres, in
+        # about as many iterations (the rigid start differs by rounding between units; the
+        # smallest modes, of 0.001-0.05 mm, are loose).
+        np.testing.assert_allclose(fit.coefficients[:3] / sd[:3], truth[:3] / sd[:3], atol=0.02)
+        np.testing.assert_allclose(fit.coefficients / sd, fits[1].coefficients / sd, atol=0.02)
+        assert abs(fit.iterations - fits[1].iterations) <= 0.1 * fits[1].iterations, s
 
 
 @pytest.mark.parametrize("cut", [0.2, 0.4])
