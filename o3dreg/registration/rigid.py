@@ -564,22 +564,7 @@ def _registration_rigid(
             vs, fs, vt, ft, max_correspondence_distance, diagonal, target_query, search_method
         )
         if given:
-            final = search.refine(candidates[0][1], estimation_method, criteria)
-            warnings: tuple[str, ...] = ()
-            if final.fitness == 0:
-                warnings = (
-                    "no target point lies within max_correspondence_distance "
-                    f"({search.distance:.3g}) of the source moved by `init`: ICP left `init` "
-                    "unrefined; check `init` (and the units of both surfaces) or raise "
-                    "max_correspondence_distance",
-                )
-                logger.warning("registration_rigid: %s", warnings[0])
-            return RigidRegistrationResult(
-                final,
-                score=search.score(np.asarray(final.transformation)),
-                candidates=1,
-                warnings=warnings,
-            )
+            return _refined_init(search, candidates[0][1], estimation_method, criteria)
         result = search.run(candidates, estimation_method, criteria)
     if with_scaling and cut > PARTIAL_BOUNDARY:
         scale = float(np.cbrt(np.linalg.det(np.asarray(result.transformation)[:3, :3])))
@@ -591,6 +576,27 @@ def _registration_rigid(
         )
         logger.warning("registration_rigid: %s", result.warnings[-1])
     return result
+
+
+def _refined_init(
+    search: _CandidateSearch, init: np.ndarray, method: Any, criteria: Any
+) -> RigidRegistrationResult:
+    """The given ``init`` refined by ICP; said when ICP found no pair to refine it with."""
+    final = search.refine(init, method, criteria)
+    warnings: tuple[str, ...] = ()
+    if final.fitness == 0:
+        warnings = (
+            f"no target point lies within max_correspondence_distance ({search.distance:.3g}) "
+            "of the source moved by `init`: ICP left `init` unrefined; check `init` (and the "
+            "units of both surfaces) or raise max_correspondence_distance",
+        )
+        logger.warning("registration_rigid: %s", warnings[0])
+    return RigidRegistrationResult(
+        final,
+        score=search.score(np.asarray(final.transformation)),
+        candidates=1,
+        warnings=warnings,
+    )
 
 
 def open_boundary_ratio(
