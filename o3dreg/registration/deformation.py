@@ -134,9 +134,10 @@ class LatticeDeformation:
 
         Newton's method on ``T(x) - points`` with the map's Jacobian, from ``points - u(points)``
         (``u`` the displacement), each step halved until it lowers the point's residual. Where the
-        map is one-to-one (:meth:`LatticeDeformation.min_jacobian_determinant` ``> 0``, as in a
-        registration whose status is ``'ok'``) the answer is unique and a few steps reach it; where
-        it folds, the point found is one of several.
+        map is one-to-one (:meth:`LatticeDeformation.min_jacobian_determinant` ``> 0``; a
+        registration's status ``'ok'`` vouches for the cells that hold template vertices) the
+        answer is unique and a few steps reach it; where it folds, the point found is one of
+        several.
 
         Parameters
         ----------

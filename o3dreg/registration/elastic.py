@@ -302,7 +302,7 @@ def registration_elastic(
         distances=measured.summary(),
         levels=fit.history,
         quality=MapQuality(
-            min_jacobian_determinant=fit.det,
+            min_jacobian_determinant=min(fit.det, fit.cell_det),
             min_cell_jacobian_determinant=fit.cell_det,
             flipped_triangles=flipped_triangles(points, fit.moved, fs),
             supported=fit.supported,

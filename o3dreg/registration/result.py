@@ -189,7 +189,10 @@ class MapQuality:
     Attributes
     ----------
     min_jacobian_determinant : float
-        Smallest ``det(dT/dx)`` at the source vertices (``<= 0`` means the map folds there).
+        Smallest ``det(dT/dx)`` at the source vertices and at the samples of
+        ``min_cell_jacobian_determinant``: the number the verdict judges folds by (``<= 0``
+        means the map folds where the source is). Cells without a source vertex are not
+        sampled: ``deformation.min_jacobian_determinant()`` samples every cell of the lattice.
     min_cell_jacobian_determinant : float
         Smallest ``det(dT/dx)`` over 8 interior samples (local coordinates 1/4 and 3/4) of every
         finest cell holding a source vertex: the map is one-to-one there when positive.
