@@ -598,3 +598,25 @@ def test_nrrd_axis_mins_place_the_volume_whichever_reader(tmp_path):
                 origins.append(read_volume(path).origin)
             expected = np.array([10.0, 20.0, 30.0]) + np.multiply(half, [0.8, 1.2, 3.0])
             np.testing.assert_allclose(origins, [expected, expected], err_msg=field + spelling)
+
+
+@pytest.mark.parametrize("suffix", [".mha", ".mhd"])
+def test_a_metaimage_whose_compressed_data_does_not_inflate_is_refused(tmp_path, ramp, suffix):
+    # ITK prints "Uncompress failed" and returns garbage voxels (+-22000 from a 0-6 image) for a
+    # header that says CompressedData = True over raw bytes, or a damaged stream.
+    image = sitk.GetImageFromArray(ramp)
+    sitk.WriteImage(image, str(tmp_path / f"good{suffix}"), useCompression=True)
+    assert np.array_equal(read_volume(tmp_path / f"good{suffix}").array, ramp)
+    sitk.WriteImage(image, str(tmp_path / f"raw{suffix}"), useCompression=False)
+    header = tmp_path / f"raw{suffix}"
+    header.write_bytes(
+        header.read_bytes().replace(b"CompressedData = False", b"CompressedData = True")
+    )
+    with pytest.raises(OSError, match=r"says its data is compressed .* not inflate to the"):
+        read_volume(header)
+    data = tmp_path / ("good.zraw" if suffix == ".mhd" else "good.mha")
+    damaged = bytearray(data.read_bytes())
+    damaged[-40:-20] = bytes(20)  # zeros inside the deflate stream
+    data.write_bytes(bytes(damaged))
+    with pytest.raises(OSError, match=r"says its data is compressed"):
+        read_volume(tmp_path / f"good{suffix}")
