@@ -620,3 +620,19 @@ def test_a_metaimage_whose_compressed_data_does_not_inflate_is_refused(tmp_path,
     data.write_bytes(bytes(damaged))
     with pytest.raises(OSError, match=r"says its data is compressed"):
         read_volume(tmp_path / f"good{suffix}")
+
+
+def test_a_dicom_medium_names_the_folders_that_hold_the_series(tmp_path, stored_slices):
+    # A DICOMDIR at the root, the images in PT000000/ST000000/SE000000 (the standard medium
+    # layout): the root holds no series; the message names where they are.
+    write_dicom_series(
+        tmp_path / "PT000000",
+        stored_slices,
+        slope=1.0,
+        intercept=-1024.0,
+        positions_z=[0, 2, 4, 6, 8],
+    )
+    (tmp_path / "DICOMDIR").write_bytes(b"\0" * 128 + b"DICM")
+    with pytest.raises(OSError, match=r"folders below it .*: PT000000 \(5 files\)"):
+        read_volume(tmp_path)
+    assert read_volume(tmp_path / "PT000000").shape == (5, 6, 7)

@@ -27,6 +27,15 @@ def read_dicom_series(folder: str, series_uid: str | None) -> Volume:
 
     series = list(sitk.ImageSeriesReader.GetGDCMSeriesIDs(folder))
     if not series:
+        below = _folders_with_dicom_files(folder)
+        if below:
+            shown = "; ".join(f"{name} ({count} files)" for name, count in below[:5])
+            more = f" and {len(below) - 5} more" if len(below) > 5 else ""
+            raise OSError(
+                f"`path`: no DICOM series found in folder {folder!r} itself; the DICOM files "
+                f"are in folders below it (a DICOM medium's layout): {shown}{more}; give the "
+                "folder of one series"
+            )
         raise OSError(f"`path`: no DICOM series found in folder {folder!r}")
     _check_every_file_listed(folder, series)
     if series_uid is None:
@@ -161,6 +170,22 @@ def _check_every_file_listed(folder: str, series: list[str]) -> None:
             f"(truncated or damaged?): {', '.join(left_out[:5])}"
             f"{', ...' if len(left_out) > 5 else ''}"
         )
+
+
+def _folders_with_dicom_files(folder: str, depth: int = 4) -> list[tuple[str, int]]:
+    """Folders below ``folder`` (``depth`` levels at most) that hold DICOM files, relative to it,
+    with their counts (each folder's first few files are looked at, not every one)."""
+    found = []
+    for root, dirs, files in os.walk(folder):
+        level = os.path.relpath(root, folder).count(os.sep) + 1
+        if root == folder:
+            continue
+        if level >= depth:
+            dirs.clear()
+        names = [f for f in files if f.upper() != "DICOMDIR"]
+        if any(is_dicom_file(os.path.join(root, f)) for f in names[:3]):
+            found.append((os.path.relpath(root, folder), len(names)))
+    return sorted(found)
 
 
 def is_dicom_file(path: str) -> bool:
