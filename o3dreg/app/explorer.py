@@ -154,23 +154,33 @@ def _check_triangles(value: Any) -> int:
     return int(value)
 
 
-def _registration_cases(
-    folder: str, faces: np.ndarray, max_triangles: int, targets: Mapping[str, Any]
-) -> list[dict]:
-    """One case per ``NAME.json`` record of a batch folder (see :func:`~o3dreg.register_batch`)."""
-    cases = []
+def _folder_records(folder: str) -> list[tuple[str, dict[str, Any]]]:
+    """``(name, record)`` of every ``NAME.json`` record of a batch folder."""
+    records = []
     for entry in sorted(os.listdir(folder)):
         if not entry.endswith(".json") or entry.startswith("."):
             continue
-        name = entry[: -len(".json")]
         try:
             with open(os.path.join(folder, entry), encoding="utf-8") as f:
                 record = json.load(f)
         except (OSError, ValueError) as error:
             logger.warning("explorer: skipping unreadable record %s: %s", entry, error)
             continue
-        if not isinstance(record, dict):
-            continue
+        if isinstance(record, dict):
+            records.append((entry[: -len(".json")], record))
+    return records
+
+
+def _registration_cases(
+    folder: str,
+    records: list[tuple[str, dict[str, Any]]],
+    faces: np.ndarray,
+    max_triangles: int,
+    targets: Mapping[str, Any],
+) -> list[dict]:
+    """One case per record (see :func:`~o3dreg.register_batch`), its mesh read from ``folder``."""
+    cases = []
+    for name, record in records:
         notes: list[str] = []
         registered = target = None
         mesh_path = os.path.join(folder, f"{name}.ply")
@@ -241,8 +251,9 @@ def write_model_explorer(
         Every mode gets a slider.
     registrations : str, os.PathLike or BatchResult, optional
         A :func:`~o3dreg.register_batch` output folder (``NAME.json`` records and ``NAME.ply``
-        semilandmark meshes), or its result. Patients whose file (the record's ``source``) is
-        gone are shown without distances.
+        semilandmark meshes: every record in it is shown), or its result (its patients only,
+        with its records' verdicts, a population check's included). Patients whose file (the
+        record's ``source``) is gone are shown without distances.
     targets : mapping of str to mesh or path, optional
         Patient surfaces by name (``open3d.geometry.TriangleMesh``, ``(vertices, faces)`` or a
         file), for records that do not name a readable file (patients registered from arrays).
@@ -311,8 +322,15 @@ def write_model_explorer(
         ],
     }
     if folder is not None:
+        folder = os.fspath(folder)
+        batch = getattr(registrations, "records", None)
+        # A BatchResult's own records: its patients only, with the verdicts it holds (a
+        # population check's included, which the files on disk do not carry).
+        records = (
+            [(r.name, r.as_dict()) for r in batch] if batch is not None else _folder_records(folder)
+        )
         data["cases"] = _registration_cases(
-            os.fspath(folder), faces, max_triangles, dict(targets or {})
+            folder, records, faces, max_triangles, dict(targets or {})
         )
     return atomic_write_text(path, _page(data), overwrite=overwrite)
 

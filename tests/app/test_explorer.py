@@ -164,6 +164,42 @@ def test_explorer_shows_failed_and_moved_patients_with_their_verdict(folder, tmp
     assert "registered" not in cases["p9"]
 
 
+def test_a_batch_shows_its_own_patients_with_its_verdicts(folder, tmp_path):
+    # build-model passes its population-checked batch: a patient the check made suspect (left
+    # out of the model) was shown "ok" from its file on disk, and any other record in the folder
+    # (a patient of an earlier build) was offered as one of the model's patients.
+    import dataclasses
+
+    from o3dreg.app.batch import BatchResult, PatientRecord
+
+    model = ShapeModel.load(folder / "model.npz")
+    records = tmp_path / "registrations"
+    shutil.copytree(folder / "registrations", records)
+    known = {f.name for f in dataclasses.fields(PatientRecord)}
+    batch = []
+    for name in ("p0", "p1", "p2"):
+        saved = json.loads((records / f"{name}.json").read_text())
+        saved = {k: v for k, v in saved.items() if k in known}
+        saved["transformation"] = tuple(saved.get("transformation", ()))
+        saved["warnings"] = tuple(saved.get("warnings", ()))
+        batch.append(PatientRecord(**saved))
+    assert all(r.verdict == "ok" for r in batch)
+    outlier = "its Procrustes residual is an outlier of the population"
+    batch[2] = dataclasses.replace(batch[2], verdict="suspect", warnings=(outlier,))
+    result = BatchResult(tuple(batch), str(records), np.asarray(model.faces))
+    cases = page_data(write_model_explorer(tmp_path / "a.html", model, registrations=result))
+    cases = {c["name"]: c for c in cases["cases"]}
+    assert set(cases) == {"p0", "p1", "p2"}  # p3.json is in the folder, not in the batch
+    assert cases["p2"]["verdict"]["verdict"] == "suspect"
+    assert cases["p2"]["verdict"]["warnings"] == [outlier]
+    assert cases["p0"]["verdict"]["verdict"] == "ok" and "registered" in cases["p0"]
+    # Given the folder, every record in it.
+    folder_cases = page_data(
+        write_model_explorer(tmp_path / "b.html", model, registrations=records)
+    )
+    assert {c["name"] for c in folder_cases["cases"]} == {"p0", "p1", "p2", "p3"}
+
+
 def test_explorer_rejects_bad_input(folder, tmp_path):
     model = ShapeModel.load(folder / "model.npz")
     with pytest.raises(TypeError, match="`model` must be a ShapeModel"):
