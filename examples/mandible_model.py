@@ -174,7 +174,9 @@ def main(argv=None) -> int:
 
     # 5. Sliding semilandmarks (towards the Procrustes mean), and the model it gives.
     targets = [o3dreg.read_triangle_mesh(p) for p in paths[1:] if Path(p).stem in regnames]
-    slid = slide_semilandmarks(shapes, targets, criterion="procrustes", max_iteration=5)
+    slid = slide_semilandmarks(
+        shapes, targets, criterion="procrustes", max_iteration=5, faces=faces
+    )
     slid_model = build_shape_model(slid.shapes, faces, names=regnames)
     slid_gen = generalization(slid.shapes, faces)
     print(slid)

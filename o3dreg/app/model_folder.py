@@ -398,7 +398,7 @@ def build_model_folder(
         if slide:
             used = set(names)
             surfaces = [read_triangle_mesh(r.source) for r in batch.registered if r.name in used]
-            slid = slide_semilandmarks(shapes, surfaces, scaling=scaling)
+            slid = slide_semilandmarks(shapes, surfaces, scaling=scaling, faces=faces)
             shapes = slid.shapes
         try:
             model = build_shape_model(shapes, faces, names=names, scaling=scaling)

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from .._geometry import apply_transformation
-from .._validation import as_mesh_arrays, check_positive
+from .._geometry import apply_transformation, face_cross
+from .._validation import as_faces, as_mesh_arrays, check_positive
 from ..registration.distance import SurfaceDistanceQuery
 from .procrustes import as_shape_array, generalized_procrustes
 
@@ -27,6 +27,10 @@ __all__ = ["SlidingResult", "slide_semilandmarks"]
 logger = logging.getLogger("o3dreg")
 
 CRITERIA = ("procrustes", "bending")
+
+#: A move that turns a semilandmark triangle over is halved this many times for the vertices of
+#: the turned triangles, then dropped for them (they stay where they are).
+FOLD_HALVINGS = 6
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,7 +46,8 @@ class SlidingResult:
     displacements : (iterations,) ndarray
         Mean distance moved by the semilandmarks at each iteration.
     procrustes_distances : (iterations + 1,) ndarray
-        Mean RMS distance of the aligned shapes to their mean, before and after each iteration.
+        Mean RMS distance of the aligned shapes to their mean: of the shapes given, then after
+        each iteration (the first one includes their projection onto the surfaces).
     success : bool
     message : str
     """
@@ -93,6 +98,7 @@ def slide_semilandmarks(
     tolerance: float = 1e-3,
     fixed: Any = None,
     scaling: bool = False,
+    faces: Any = None,
 ) -> SlidingResult:
     """Slide semilandmarks along the patient surfaces to minimise a criterion against the mean.
 
@@ -108,6 +114,12 @@ def slide_semilandmarks(
 
     then it is projected back to the closest point of the patient surface. Stops when the mean
     displacement falls below ``tolerance`` times the mean shape's RMS radius.
+
+    Each point slides on its own, so a large slide (a patient far from the mean) can carry a
+    point past its neighbours and turn triangles of the semilandmark mesh over. Given the
+    mesh's ``faces``, no move (the first projection onto the surfaces included) turns a
+    triangle over relative to the shape given: the move of the vertices of a triangle it would
+    turn is halved, :data:`FOLD_HALVINGS` times at most, then dropped for them.
 
     Parameters
     ----------
@@ -125,6 +137,9 @@ def slide_semilandmarks(
         Indices of points that do not slide (true landmarks).
     scaling : bool, optional
         Similarity instead of rigid Procrustes. Default ``False``.
+    faces : (m, 3) array_like of int, optional
+        The triangles of the semilandmark meshes (the template's): with them, moves that would
+        turn a triangle over are held back. Without them nothing guards the meshes.
 
     Returns
     -------
@@ -164,7 +179,8 @@ def slide_semilandmarks(
         if idx.size and (idx.min() < 0 or idx.max() >= x.shape[1]):
             raise ValueError(f"`fixed` must index points in [0, {x.shape[1] - 1}]")
         free[idx] = False
-    return _slide(x, surfaces, criterion, max_iteration, tolerance, free, scaling)
+    tris = None if faces is None else as_faces(faces, x.shape[1], "faces")
+    return _slide(x, surfaces, criterion, max_iteration, tolerance, free, scaling, tris)
 
 
 def _slide(
@@ -175,17 +191,23 @@ def _slide(
     tolerance: float,
     free: np.ndarray,
     scaling: bool,
+    faces: np.ndarray | None,
 ) -> SlidingResult:
     queries = [SurfaceDistanceQuery(v, f) for v, f in surfaces]
-    current = np.stack([q.closest(s)[2] for q, s in zip(queries, x)])
+    # Each shape's triangle normals as given: no move may turn one over.
+    guards = [None if faces is None else _FoldGuard(shape, faces) for shape in x]
+    current = np.stack(
+        [_projected(q, s, np.zeros_like(s), g) for q, s, g in zip(queries, x, guards)]
+    )
     displacements: list[float] = []
-    distances: list[float] = []
+    distances: list[float] = [float(generalized_procrustes(x, scaling=scaling).residuals.mean())]
     success = False
     iterations = 0
     for iterations in range(1, max_iteration + 1):
         gpa = generalized_procrustes(current, scaling=scaling)
         mean = gpa.shapes.mean(axis=0)
-        distances.append(float(gpa.residuals.mean()))
+        if iterations > 1:
+            distances.append(float(gpa.residuals.mean()))
         radius = float(np.sqrt(((mean - mean.mean(axis=0)) ** 2).sum(axis=1).mean()))
         be = _bending_matrix(mean) if criterion == "bending" else None
         moved = np.empty_like(current)
@@ -202,7 +224,7 @@ def _slide(
                 assert be is not None
                 step = _bending_step(shape, t1, t2, be, free)
             step[~free] = 0.0
-            moved[i] = query.closest(shape + step)[2]
+            moved[i] = _projected(query, shape, step, guards[i])
         disp = float(np.linalg.norm(moved - current, axis=2).mean())
         displacements.append(disp)
         current = moved
@@ -226,6 +248,43 @@ def _slide(
         success=success,
         message=message,
     )
+
+
+class _FoldGuard:
+    """The triangles of one semilandmark mesh and their normals as given: which triangles a
+    move turns over (normals at 90 degrees or more from their given direction)."""
+
+    def __init__(self, shape: np.ndarray, faces: np.ndarray) -> None:
+        self.faces = faces
+        self.normals = face_cross(shape, faces)
+
+    def turned(self, moved: np.ndarray) -> np.ndarray:
+        return (face_cross(moved, self.faces) * self.normals).sum(axis=1) <= 0.0
+
+
+def _projected(
+    query: SurfaceDistanceQuery, shape: np.ndarray, step: np.ndarray, guard: _FoldGuard | None
+) -> np.ndarray:
+    """``shape + step`` projected onto the surface; with a ``guard``, the move of the vertices
+    of triangles it would turn over is halved, then dropped (those stay where they are)."""
+    moved = query.closest(shape + step)[2]
+    if guard is None:
+        return moved
+    before = guard.turned(shape)  # turned already (none for the shape given): not this move's
+    share = np.ones(shape.shape[0])
+    for attempt in range(FOLD_HALVINGS + shape.shape[0]):
+        new = guard.turned(moved) & ~before
+        if not new.any():
+            return moved
+        held = np.unique(guard.faces[new])
+        # Halved FOLD_HALVINGS times, then dropped; each later round drops more vertices, so
+        # the loop ends with every move dropped at worst (the shape itself).
+        share[held] = 0.0 if attempt >= FOLD_HALVINGS else share[held] * 0.5
+        target = shape + step * share[:, None]
+        moved = query.closest(target)[2]
+        still = share == 0.0
+        moved[still] = shape[still]
+    return shape
 
 
 def _bending_step(
