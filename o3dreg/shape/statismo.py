@@ -340,9 +340,12 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
         )
     faces = cells.T if cells.shape[0] == 3 else cells
     standardised = np.zeros((0, k))
-    # statismo writes a 1 x 1 zero matrix when a model has no scores.
+    # statismo writes a 1 x 1 zero matrix when a model has no scores (with one mode it would
+    # read as one training shape of score 0; a model of one shape has no mode).
+    placeholder = scores_t is not None and scores_t.shape == (1, 1) and not np.any(scores_t)
     if scores_t is not None and scores_t.ndim == 2 and scores_t.shape[0] == k and k > 0:
-        standardised = scores_t.T
+        if not placeholder:
+            standardised = scores_t.T
     basis, variances, scores = _orthonormal_modes(basis, variances, standardised)
     uris = [data_info.get(f"URI_{i}") for i in range(scores.shape[0])]
     names = (

@@ -244,3 +244,21 @@ def test_names_beyond_ascii_survive_a_round_trip(tmp_path):
     model = build_shape_model(truths, tf, names=names)
     back = read_statismo(write_statismo(tmp_path / "u.h5", model))
     assert list(back.names) == names
+
+
+@pytest.mark.parametrize("modes", [1, 3])
+def test_statismos_no_scores_placeholder_is_no_training_shape(tmp_path, modes):
+    # statismo writes a 1 x 1 zero scores matrix for a model without scores; with one mode
+    # it read as one training shape of score 0 ("shape000").
+    (_tv, tf), _, truths, _, _ = population(modes + 1, seed=6, template_resolution=8)
+    built = build_shape_model(truths, tf)
+    assert built.number_of_modes == modes
+    path = write_statismo(tmp_path / "m.h5", built)
+    with h5py.File(path, "r+") as h5:
+        del h5["modelinfo/scores"]
+        h5["modelinfo/scores"] = np.zeros((1, 1), np.float32)
+        del h5["modelinfo/modelBuilder-0/dataInfo"]
+        h5["modelinfo/modelBuilder-0"].create_group("dataInfo")
+    read = read_statismo(path)
+    assert read.number_of_shapes == 0 and read.scores.shape == (0, modes)
+    np.testing.assert_allclose(read.variances, built.variances, rtol=1e-5)
