@@ -750,3 +750,10 @@ def _run_batch(
         if done:
             _write_json(os.path.join(output_dir, "summary.json"), done)
     return BatchResult(tuple(records[n] for n in names), output_dir, template[1])
+
+
+def write_summary(batch: BatchResult) -> None:
+    """Write ``summary.json`` of ``batch`` (its records as they are now: after a population
+    check, with the verdicts it gave) into its output folder."""
+    if batch.records:
+        _write_json(os.path.join(batch.output_dir, "summary.json"), batch.as_dicts())

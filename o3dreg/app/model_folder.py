@@ -33,7 +33,7 @@ from ..shape.model import ShapeModel
 from ..shape.quality import QualityCurve, compactness, generalization, specificity
 from ..shape.sliding import SlidingResult, slide_semilandmarks
 from ..shape.statismo import write_statismo
-from .batch import BatchResult, register_batch
+from .batch import BatchResult, register_batch, stored_source, write_summary
 from .explorer import write_model_explorer
 from .population import check_population
 from .settings import RegistrationSettings
@@ -390,6 +390,8 @@ def build_model_folder(
             init=inits,
         )
         batch = check_population(batch)
+        # The batch's summary says what the check found, as report.json does.
+        write_summary(batch)
         names, shapes = batch.shapes(accepted_only=not keep_flagged)
         if len(names) < 2:
             return ModelFolder(out, batch, None, [], None, {})
@@ -434,7 +436,10 @@ def build_model_folder(
                 )
             report = {
                 "model_dir": out,
-                "patients": batch.as_dicts(),
+                # Sources relative to the model folder, as each record stores them.
+                "patients": [
+                    {**d, "source": stored_source(d["source"], out)} for d in batch.as_dicts()
+                ],
                 "settings": settings.as_dict(),
                 "in_model": list(names),
                 "registered": [r.name for r in batch.registered],

@@ -141,3 +141,30 @@ def test_a_second_build_into_the_same_folder_is_refused_while_one_runs(tmp_path)
     folder = build_model_folder(template, paths, str(out), levels=[ElasticLevel(2)])
     assert folder.model is not None
     assert not (out / model_folder.LOCK_FILE).exists()  # a finished build leaves no lock file
+
+
+def test_the_summary_and_the_report_agree_on_a_population_outlier(tmp_path):
+    # Two coarse levels from the identity leave p0 with a mean distance 4.5 times the others':
+    # its own verdict is 'ok', the population check makes it 'suspect'. The batch's
+    # summary.json said 'ok' while report.json said 'suspect'; and report.json stored sources
+    # relative to where the command ran, each record relative to its own folder.
+    (tv, tf), targets, _, _, poses = population(6, seed=3)
+    write_triangle_mesh(tmp_path / "template.ply", (tv, tf))
+    paths = []
+    for i, (v, f) in enumerate(targets):
+        unposed = (v - poses[i][:3, 3]) @ poses[i][:3, :3]  # in the template's frame
+        write_triangle_mesh(tmp_path / f"p{i}.ply", (unposed, f))
+        paths.append(str(tmp_path / f"p{i}.ply"))
+    settings = RegistrationSettings(levels=(ElasticLevel(2), ElasticLevel(4)), start="identity")
+    out = tmp_path / "model"
+    folder = build_model_folder(
+        read_triangle_mesh(tmp_path / "template.ply"), paths, str(out), settings=settings
+    )
+    checked = {r.name: r.verdict for r in folder.batch.records}
+    outliers = [r.name for r in folder.batch.records if any("outlier" in w for w in r.warnings)]
+    assert outliers and all(checked[name] == "suspect" for name in outliers), checked
+    summary = json.loads((out / "registrations" / "summary.json").read_text())
+    report = json.loads((out / "report.json").read_text())
+    assert {d["name"]: d["verdict"] for d in summary} == checked
+    assert {d["name"]: d["verdict"] for d in report["patients"]} == checked
+    assert {d["source"] for d in report["patients"]} == {f"../p{i}.ply" for i in range(6)}
