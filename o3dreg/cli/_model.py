@@ -14,6 +14,8 @@ import sys
 from collections.abc import Iterator
 from typing import Any
 
+import numpy as np
+
 from ..app.explorer import write_model_explorer
 from ..app.model_folder import build_model_folder, check_inputs_outside, existing_model_files
 from ..io import json_text
@@ -167,7 +169,10 @@ def add_parser(subparsers: Any) -> None:
     )
     fit.add_argument("patient", help="patient mesh")
     fit.add_argument(
-        "--landmarks", required=True, help="template landmarks (.mrk.json, .fcsv, .csv, .pp; LPS)"
+        "--landmarks",
+        required=True,
+        help="landmarks on the model's template (a model folder) or on its mean shape, in the "
+        "model's frame (a .h5 file) (.mrk.json, .fcsv, .csv, .pp; LPS)",
     )
     fit.add_argument("--truth", help="true landmarks on the patient, to report errors")
     fit.add_argument(
@@ -412,7 +417,18 @@ def run_fit(args: argparse.Namespace) -> int:
         template_path = os.path.join(args.model_dir, "template.ply")
         template = read_triangle_mesh(template_path, name="MODEL/template.ply")
         model.check_template(template, "MODEL/template.ply")
-    landmarks = load_template_landmarks(args.landmarks, template)
+    try:
+        landmarks = load_template_landmarks(args.landmarks, template)
+    except ValueError as exc:
+        if not _is_statismo(args.model_dir):
+            raise
+        centre = np.asarray(template.vertices).mean(axis=0)
+        raise ValueError(
+            f"{exc}; a .h5 model holds no template: its landmarks go on its mean shape, in the "
+            f"model's frame (centred at {np.round(centre, 3).tolist()}): place them on "
+            "`o3dreg model modes` mean.ply, or use the model folder, whose template.ply is in "
+            "the patients' frame"
+        ) from None
     patient = read_triangle_mesh(args.patient, name="PATIENT")
     truth_file = None
     if args.truth:  # read before the fit: a bad file costs no work

@@ -306,9 +306,8 @@ class DistanceEstimation:
         (inside out, as some marching-cubes and scanner outputs are) is detected from the
         correspondences after the rigid step and compared reversed. Default 90: only surfaces
         facing away from each other (the inner side of a thin shell, debris) are kept apart; a
-        smaller angle also drops correct matches where the shapes differ much (the cone onto a
-        sphere ends 2.4 mm target->template mean at 90, as with no normal test, and 11.2 mm at
-        60). ``None`` (or 180) disables it.
+        smaller angle may also drop correct matches where the shapes differ much, whose
+        normals start far apart. ``None`` (or 180) disables it.
     min_target_component : float or None
         Ignore the connected components of the target with fewer vertices than this fraction
         of its largest component (islands, debris, loose fragments a marching-cubes surface

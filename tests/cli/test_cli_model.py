@@ -13,6 +13,7 @@ from _helpers import population
 
 from o3dreg import write_landmarks, write_triangle_mesh
 from o3dreg.cli import main
+from o3dreg.io.mesh import read_triangle_mesh
 from o3dreg.registration.verdict import STATUSES, worst_status
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -141,6 +142,16 @@ def test_build_model_info_modes_fit(files, capsys):
     assert "repeats landmark labels ['a']" in capsys.readouterr().err
     assert main([*fit, str(files / "lm.mrk.json"), "--truth", str(files / "dup_truth.csv")]) == 2
     assert "--truth repeats landmark labels ['b']" in capsys.readouterr().err
+    # Landmarks away from the mean given with the model's .h5 file (no template in it: its
+    # mean, in the Procrustes frame, takes landmarks; a template in the patients' frame lies
+    # elsewhere): the refusal says where they go.
+    tv = np.asarray(read_triangle_mesh(files / "template.ply").vertices)
+    write_landmarks(files / "lm_far.mrk.json", ["a", "b"], tv[[0, 100]] + 200.0)
+    h5_fit = ["model", "fit", str(out / "model.h5"), str(files / "p5.ply"), "--landmarks"]
+    assert main([*h5_fit, str(files / "lm_far.mrk.json")]) == 2
+    assert "a .h5 model holds no template: its landmarks go on its mean shape" in (
+        capsys.readouterr().err
+    )
     # -q: nothing on standard output, for every model action (they printed their tables).
     assert main(["model", "info", str(out), "-q"]) == 0
     assert main(["model", "modes", str(out), "-o", str(files / "mq"), "-q"]) == 0
