@@ -45,7 +45,7 @@ def add_parser(subparsers: Any) -> None:
         "--output",
         required=True,
         metavar="OUT",
-        help="mesh file (.ply, .obj, .stl, .off, .glb, .vtk, .vtp)",
+        help="mesh file (.ply, .obj, .stl, .off, .gltf, .glb, .vtk, .vtp, .vtu)",
     )
     parser.add_argument(
         "--threshold",

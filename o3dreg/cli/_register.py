@@ -63,7 +63,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
-        "source", help="template mesh that moves (.ply, .obj, .stl, .off, .glb, .vtk, .vtp)"
+        "source",
+        help="template mesh that moves (.ply, .obj, .stl, .off, .gltf, .glb, .vtk, .vtp, .vtu)",
     )
     p.add_argument("target", help="patient mesh it is matched to")
     p.add_argument("-o", "--output", required=True, help="semilandmark mesh to write")

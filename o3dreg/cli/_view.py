@@ -32,7 +32,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
-        "meshes", nargs="+", help="mesh files (.ply, .obj, .stl, .off, .glb, .vtk, .vtp)"
+        "meshes",
+        nargs="+",
+        help="mesh files (.ply, .obj, .stl, .off, .gltf, .glb, .vtk, .vtp, .vtu)",
     )
     p.add_argument(
         "--distance-to",

@@ -329,6 +329,8 @@ def write_triangle_mesh(
         The vertex order is the mesh's meaning (a registered template: vertex ``i`` corresponds
         across patients): a format that cannot keep it (STL) raises ``ValueError``. Default
         ``False``.
+    name : str, optional
+        How messages name ``path`` (a command line passes its option). Default ``'path'``.
 
     Returns
     -------

@@ -50,6 +50,10 @@ class LandmarkRegistrationResult:
         units: a large one points at a misplaced (or mislabelled) landmark.
     scale : float
         The uniform scale of ``transformation`` (1 when rigid).
+    warnings : tuple of str
+        What the fit says of the landmarks (also logged): a set no motion fits (labels
+        swapped, coordinate systems mixed), else each landmark far from its pair under the fit
+        of the others.
     """
 
     transformation: np.ndarray

@@ -65,7 +65,10 @@ class RobustLoss:
 
 @dataclass(frozen=True, repr=False)
 class L2Loss(RobustLoss):
-    """Plain least squares, ``w = 1``: the paper's cost."""
+    """Plain least squares, ``w = 1``: the paper's cost.
+
+    ``scale`` (``sigma``): as :class:`RobustLoss`'s.
+    """
 
     name: ClassVar[str] = "linear"
 
@@ -75,7 +78,10 @@ class L2Loss(RobustLoss):
 
 @dataclass(frozen=True, repr=False)
 class HuberLoss(RobustLoss):
-    """``w = min(1, 1 / z)``, ``k = 1.345``: quadratic near zero, linear in the tail."""
+    """``w = min(1, 1 / z)``, ``k = 1.345``: quadratic near zero, linear in the tail.
+
+    ``scale`` (``sigma``): as :class:`RobustLoss`'s.
+    """
 
     name: ClassVar[str] = "huber"
     constant: ClassVar[float] = 1.345
@@ -87,7 +93,10 @@ class HuberLoss(RobustLoss):
 @dataclass(frozen=True, repr=False)
 class CauchyLoss(RobustLoss):
     """``w = 1 / (1 + z^2)``, ``k = 2.3849``: every residual keeps a weight (no hard cut), so a
-    correspondence that starts far off can still come in, while debris weighs little."""
+    correspondence that starts far off can still come in, while debris weighs little.
+
+    ``scale`` (``sigma``): as :class:`RobustLoss`'s.
+    """
 
     name: ClassVar[str] = "cauchy"
     constant: ClassVar[float] = 2.3849
@@ -99,7 +108,10 @@ class CauchyLoss(RobustLoss):
 @dataclass(frozen=True, repr=False)
 class TukeyLoss(RobustLoss):
     """``w = (1 - z^2)^2`` for ``z < 1``, else 0, ``k = 4.6851``: residuals beyond ``k sigma``
-    are dropped."""
+    are dropped.
+
+    ``scale`` (``sigma``): as :class:`RobustLoss`'s.
+    """
 
     name: ClassVar[str] = "tukey"
     constant: ClassVar[float] = 4.6851

@@ -338,6 +338,15 @@ class RigidRegistrationResult(reg.RegistrationResult):  # type: ignore[misc]
     warnings : tuple of str
         Plain sentences: an ambiguity (:attr:`ambiguous`), a scale found on a partial target,
         an ``init`` from which ICP found no correspondence.
+    ambiguous : bool
+        Whether a distinct pose scored within :data:`AMBIGUITY_RATIO` of the winner, untold
+        apart by the input pose (then a warning says so).
+
+    Parameters
+    ----------
+    icp : open3d.pipelines.registration.RegistrationResult, optional
+        The winning ICP result, whose transformation, fitness, RMSE and correspondences are
+        copied; the other arguments set the attributes of the same names.
     """
 
     def __init__(
