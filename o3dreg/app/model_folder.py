@@ -199,11 +199,12 @@ def check_inputs_outside(
 
 
 #: Suffixes tried, in order, for a patient's landmark file beside its mesh.
-LANDMARK_SUFFIXES = (".mrk.json", ".csv")
+LANDMARK_SUFFIXES = (".mrk.json", ".fcsv", ".csv")
 
 
 def patient_landmark_file(mesh_path: str | os.PathLike[str]) -> str:
-    """The landmark file of a patient mesh: ``PATH/NAME.mrk.json``, else ``PATH/NAME.csv``.
+    """The landmark file of a patient mesh: ``PATH/NAME.mrk.json``, else ``PATH/NAME.fcsv``,
+    else ``PATH/NAME.csv``.
 
     ``NAME`` is the mesh file name without its suffix (``.nii.gz`` counted as one).
 
@@ -302,8 +303,8 @@ def build_model_folder(
         ``RegistrationSettings()``.
     landmarks : str or path-like, optional
         The template's landmark file. Each patient ``PATH/NAME.EXT`` is then started from the
-        landmarks of :func:`patient_landmark_file` (``PATH/NAME.mrk.json``, else
-        ``PATH/NAME.csv``), paired by label: a rigid fit, or a similarity when
+        landmarks of :func:`patient_landmark_file` (``PATH/NAME.mrk.json``, ``.fcsv`` or
+        ``.csv``), paired by label: a rigid fit, or a similarity when
         ``settings.start == 'similarity'``. A patient without one raises before any work.
     keep_flagged : bool, optional
         Put patients whose verdict is ``'suspect'`` or ``'failed'`` in the model too. Default

@@ -73,7 +73,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--landmarks",
         nargs=2,
         metavar=("TEMPLATE_FILE", "PATIENT_FILE"),
-        help="start from corresponding landmarks (CSV label,x,y,z or Slicer .mrk.json, paired "
+        help="start from corresponding landmarks (CSV label,x,y,z, Slicer .mrk.json or .fcsv, paired "
         "by label): a rigid fit, a similarity with --with-scaling; replaces the rigid search",
     )
     p.add_argument("--project", action="store_true", help="move vertices onto the target surface")

@@ -33,10 +33,12 @@ def test_population_findings_mark_the_outlier():
 def test_landmark_file_naming_rule(tmp_path):
     mesh = tmp_path / "case01.ply"
     mesh.write_text("")
-    with pytest.raises(OSError, match=r"case01\.mrk\.json or .*case01\.csv"):
+    with pytest.raises(OSError, match=r"case01\.mrk\.json or .*case01\.fcsv or .*case01\.csv"):
         patient_landmark_file(mesh)
     (tmp_path / "case01.csv").write_text("label,x,y,z\n")
     assert patient_landmark_file(mesh) == str(tmp_path / "case01.csv")
+    (tmp_path / "case01.fcsv").write_text("# Markups fiducial file version = 4.11\n")
+    assert patient_landmark_file(mesh) == str(tmp_path / "case01.fcsv")  # Slicer's own
     (tmp_path / "case01.mrk.json").write_text("{}")
     assert patient_landmark_file(str(mesh)) == str(tmp_path / "case01.mrk.json")
 
