@@ -55,6 +55,9 @@ def test_reconstruct_json_summary(tmp_path, scan, capsys):
     )  # fmt: skip
     ball = json.loads(out)
     assert ball["components_kept"] == 1
+    # A ball inside the scan: closed and edge-manifold (checked from its edges; Open3D's
+    # is_watertight() said False for such marching-cubes surfaces, touching triangles).
+    assert ball["closed"] is True and ball["edge_manifold"] is True
     assert np.allclose(ball["extent_mm"], np.array([0.5, 0.75, 1.5]) * 14.6, atol=1e-4)
     centre = np.mean(ball["bounds_mm"], axis=0)
     assert np.allclose(centre, [-10 + 14 * 0.5, 20 + 15 * 0.75, 5 + 12 * 1.5], atol=0.5)
