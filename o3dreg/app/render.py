@@ -399,11 +399,22 @@ def render_mesh(
                 mappable = matplotlib.cm.ScalarMappable(
                     norm=matplotlib.colors.Normalize(lo, hi), cmap=cmap
                 )
-                fig.colorbar(mappable, cax=cax, label=label)
+                fig.colorbar(mappable, cax=cax, label=label, extend=colorbar_extend(values, lo, hi))
                 _keep_inside(fig, cax)
         fig.savefig(tmp, format="png", dpi=dpi)
 
     return atomic_write(path, write, overwrite=overwrite, name="path")
+
+
+def colorbar_extend(values: np.ndarray, lo: float, hi: float) -> str:
+    """Matplotlib's ``extend`` for a colour bar from ``lo`` to ``hi``: values beyond the scale
+    take its end colour, and the bar's pointed ends say that some do."""
+    finite = values[np.isfinite(values)]
+    over = finite.size > 0 and float(finite.max()) > hi
+    under = finite.size > 0 and float(finite.min()) < lo
+    return {(True, True): "both", (True, False): "max", (False, True): "min"}.get(
+        (over, under), "neither"
+    )
 
 
 def mode_displacements(model: Any, mode: int, standard_deviations: float) -> np.ndarray:

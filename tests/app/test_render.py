@@ -199,3 +199,15 @@ def test_the_colour_bar_label_stays_inside_the_picture(tmp_path, scale):
     image = matplotlib.image.imread(render_shape_modes(model, tmp_path / "m.png"))[..., :3]
     ink = np.flatnonzero((image.min(axis=2) < 0.9).any(axis=0))
     assert ink.max() < image.shape[1] - 2
+
+
+def test_a_colour_bar_says_when_values_pass_its_ends():
+    # The demo's distance pictures end their scale at 3 mm while distances reach 6.85 mm:
+    # the bar's pointed end says that some values are beyond it.
+    from o3dreg.app.render import colorbar_extend
+
+    values = np.array([0.0, 1.0, 6.85, np.nan])
+    assert colorbar_extend(values, 0.0, 3.0) == "max"
+    assert colorbar_extend(values, 0.5, 3.0) == "both"
+    assert colorbar_extend(values, 0.5, 7.0) == "min"
+    assert colorbar_extend(values, 0.0, 7.0) == "neither"
