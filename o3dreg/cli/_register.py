@@ -182,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     init = None
+    landmark_start = None
     if args.landmarks:
         fit = registration_landmarks(*args.landmarks, with_scaling=args.with_scaling)
         emit(
@@ -190,6 +191,13 @@ def run(args: argparse.Namespace) -> int:
             args,
         )
         init = fit.transformation
+        landmark_start = {
+            "labels": list(fit.labels),
+            "residuals": [float(r) for r in fit.residuals],
+            "rms": fit.rms,
+            "scale": fit.scale,
+            "warnings": list(fit.warnings),
+        }
     result = settings.register(source, target, init=init, callback=progress)
     seconds = time.perf_counter() - start
     if bar is not None:
@@ -203,7 +211,12 @@ def run(args: argparse.Namespace) -> int:
         if args.deformation:
             result.deformation.save(args.deformation, overwrite=args.overwrite)
         report = report_dict(
-            result, source=args.source, target=args.target, output=args.output, seconds=seconds
+            result,
+            source=args.source,
+            target=args.target,
+            output=args.output,
+            seconds=seconds,
+            landmark_start=landmark_start,
         )
         if args.report:
             write_json(args.report, report, overwrite=args.overwrite)
@@ -213,7 +226,12 @@ def run(args: argparse.Namespace) -> int:
                 source,
                 target,
                 result,
-                verdict=report,
+                # The page lists the landmark fit's findings with the verdict's.
+                verdict={
+                    **report,
+                    "warnings": report["warnings"]
+                    + (landmark_start["warnings"] if landmark_start else []),
+                },
                 name=f"{os.path.basename(args.source)} -> {os.path.basename(args.target)}",
                 overwrite=args.overwrite,
             )

@@ -148,6 +148,10 @@ def test_register_starts_from_landmarks(turned, tmp_path, capsys):
     np.testing.assert_allclose(report["transformation"], truth, atol=1e-6)
     assert code == (0 if report["status"] == "ok" and report["success"] else 1)
     assert report["status"] == "ok"
+    # The report says where the start came from (it said rigid_start: null and nothing else).
+    start = report["landmark_start"]
+    assert len(start["labels"]) == 5 and start["rms"] < 1e-6 and start["warnings"] == []
+    assert report["rigid_start"] is None
 
 
 SHARED = [
