@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
+from .._geometry import face_cross
 from .._validation import check_bool
 from ..io import json_text
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
@@ -200,6 +201,27 @@ def check_inputs_outside(
 
 #: Suffixes tried, in order, for a patient's landmark file beside its mesh.
 LANDMARK_SUFFIXES = (".mrk.json", ".fcsv", ".csv")
+
+
+#: A mode whose shape at +-3 standard deviations turns more than this fraction of the
+#: triangles over (relative to the mean) is folded (the 8 mandibles' model: 0.02% at most; a
+#: linear model of very large variations may fold at 3 SD too, and is said to).
+FOLDED_MODE_FRACTION = 0.01
+
+
+def folded_modes(model: ShapeModel, modes: int = 3) -> list[tuple[int, float, float]]:
+    """``(mode, standard deviations, fraction)`` of the first ``modes`` modes whose shape at
+    -3 or +3 standard deviations turns more than :data:`FOLDED_MODE_FRACTION` of the triangles
+    over relative to the mean (normals at 90 degrees or more)."""
+    faces = np.asarray(model.faces)
+    reference = face_cross(np.asarray(model.mean), faces)
+    out = []
+    for mode in range(min(modes, model.number_of_modes)):
+        for sd in (-3.0, 3.0):
+            turned = (face_cross(model.mode_shape(mode, sd), faces) * reference).sum(axis=1) <= 0
+            if turned.mean() > FOLDED_MODE_FRACTION:
+                out.append((mode, sd, float(turned.mean())))
+    return out
 
 
 def patient_landmark_file(mesh_path: str | os.PathLike[str]) -> str:
@@ -403,6 +425,8 @@ def build_model_folder(
             surfaces = [read_triangle_mesh(r.source) for r in batch.registered if r.name in used]
             slid = slide_semilandmarks(shapes, surfaces, scaling=scaling, faces=faces)
             shapes = slid.shapes
+            if not slid.success:
+                logger.warning("build-model: sliding semilandmarks %s", slid.message)
         try:
             model = build_shape_model(shapes, faces, names=names, scaling=scaling)
         except ValueError as exc:  # the patients' shapes do not differ: no model file is written
@@ -410,6 +434,19 @@ def build_model_folder(
                 f"{exc}; no model written, the registrations in "
                 f"{os.path.join(out, 'registrations')!r} are kept"
             ) from exc
+        folded = folded_modes(model)
+        for mode, sd, fraction in folded:
+            logger.warning(
+                "build-model: mode %d at %+g SD turns %.1f%% of the triangles over (a folded "
+                "shape)%s",
+                mode + 1,
+                sd,
+                100 * fraction,
+                ": the slid semilandmarks moved differently from patient to patient; build "
+                "without --slide"
+                if slide
+                else "",
+            )
         # The model's files are written together or not at all: they are written into a hidden
         # folder beside the model's and moved into place once all are written, so a failed or
         # interrupted run (a full disk, Ctrl-C) leaves the folder's earlier model as it was and
@@ -452,6 +489,10 @@ def build_model_folder(
                 "keep_flagged": keep_flagged,
                 "variances": model.variance_records(),
                 "quality": {c.name: c.as_dict() for c in curves},
+                "folded_modes": [
+                    {"mode": m + 1, "standard_deviations": sd, "turned_fraction": f}
+                    for m, sd, f in folded
+                ],
                 "sliding": None
                 if slid is None
                 else {"iterations": slid.iterations, "message": slid.message},
