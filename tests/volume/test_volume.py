@@ -194,23 +194,21 @@ def test_dicom_series_fractional_rescale(tmp_path, stored_slices):
     assert np.allclose(v.array, stored_slices * 0.5 - 1000.5)
 
 
-def test_dicom_series_with_a_duplicated_slice_is_named_as_such(tmp_path, stored_slices):
-    # The slice at z = 4 twice, each with its own UID and instance number: GDCM's order need
-    # not put the twins side by side, where the duplicate read as "non-uniform spacing".
+@pytest.mark.parametrize(
+    "positions, message",
+    [
+        # The slice at z = 4 twice, each with its own UID and instance number: GDCM's order
+        # need not put the twins side by side, where the duplicate read as "non-uniform spacing".
+        ([0, 2, 4, 6, 4], r"1 slice\(s\) share a position with another slice"),
+        ([0, 2, 4, 8, 10], r"non-uniform slice spacing .* missing slices"),
+    ],
+)
+def test_dicom_series_with_a_duplicated_or_missing_slice_says_which(
+    tmp_path, stored_slices, positions, message
+):
     folder = tmp_path / "series"
-    write_dicom_series(
-        folder, stored_slices, slope=1.0, intercept=-1024.0, positions_z=[0, 2, 4, 6, 4]
-    )
-    with pytest.raises(ValueError, match=r"1 slice\(s\) share a position with another slice"):
-        read_volume(folder)
-
-
-def test_dicom_series_missing_slice_detected(tmp_path, stored_slices):
-    folder = tmp_path / "series"
-    write_dicom_series(
-        folder, stored_slices, slope=1.0, intercept=-1024.0, positions_z=[0, 2, 4, 8, 10]
-    )
-    with pytest.raises(ValueError, match=r"non-uniform slice spacing .* missing slices"):
+    write_dicom_series(folder, stored_slices, slope=1.0, intercept=-1024.0, positions_z=positions)
+    with pytest.raises(ValueError, match=message):
         read_volume(folder)
 
 
