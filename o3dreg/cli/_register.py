@@ -7,17 +7,21 @@ import logging
 import os
 import sys
 import time
+import warnings
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
 from ..app.explorer import write_registration_explorer
+from ..io.landmark_files import read_landmarks
 from ..io.mesh import (
     SEMILANDMARK_SUFFIXES,
     check_semilandmark_suffix,
     read_triangle_mesh,
     write_triangle_mesh,
 )
+from ..registration.distance import SurfaceDistanceQuery
 from ..registration.landmark_start import registration_landmarks
 from ..registration.options import default_levels
 from ..registration.result import ElasticRegistrationResult, LevelReport
@@ -123,6 +127,27 @@ def report_dict(result: ElasticRegistrationResult, **extra) -> dict:
     }
 
 
+def _off_surface(path: str, mesh: Any, side: str, used: tuple[str, ...]) -> list[str]:
+    """A sentence naming the paired landmarks of ``path`` farther from ``mesh`` than 5% of its
+    size (anatomy the mesh does not show: they steer the start all the same)."""
+    with warnings.catch_warnings():  # the file's own warnings were given when it was read
+        warnings.simplefilter("ignore")
+        labels, points = read_landmarks(path)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    limit = 0.05 * float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    distance = SurfaceDistanceQuery(vertices, faces).distance(np.asarray(points))
+    far = [
+        f"{label} ({d:.3g})" for label, d in zip(labels, distance) if label in used and d > limit
+    ]
+    if not far:
+        return []
+    return [
+        f"{side} landmarks far from the {side} surface (more than {limit:.3g}, 5% of its size): "
+        f"{', '.join(far)}; they steer the start all the same: leave out landmarks of anatomy "
+        "the meshes do not show"
+    ]
+
+
 def run(args: argparse.Namespace) -> int:
     # The registered template is a semilandmark mesh: its vertex order must survive the file.
     if args.output.lower().endswith(".stl"):
@@ -191,12 +216,18 @@ def run(args: argparse.Namespace) -> int:
             args,
         )
         init = fit.transformation
+        far = [
+            *_off_surface(args.landmarks[0], source, "template", fit.labels),
+            *_off_surface(args.landmarks[1], target, "patient", fit.labels),
+        ]
+        for line in far:
+            logger.warning("register: %s", line)
         landmark_start = {
             "labels": list(fit.labels),
             "residuals": [float(r) for r in fit.residuals],
             "rms": fit.rms,
             "scale": fit.scale,
-            "warnings": list(fit.warnings),
+            "warnings": list(fit.warnings) + far,
         }
     result = settings.register(source, target, init=init, callback=progress)
     seconds = time.perf_counter() - start

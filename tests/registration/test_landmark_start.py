@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from _helpers import similarity_transform
 
-from o3dreg import registration_landmarks, write_landmarks
+from o3dreg import read_landmarks, registration_landmarks, write_landmarks
 from o3dreg.cli import main
 
 LABELS = ["nasion", "left orbit", "right orbit", "chin", "vertex"]
@@ -152,6 +152,30 @@ def test_register_starts_from_landmarks(turned, tmp_path, capsys):
     start = report["landmark_start"]
     assert len(start["labels"]) == 5 and start["rms"] < 1e-6 and start["warnings"] == []
     assert report["rigid_start"] is None
+
+
+def test_landmarks_off_the_meshes_are_named(turned, tmp_path):
+    # Slicer files often hold landmarks of anatomy the mesh does not show (a mandible's files
+    # with landmarks on the skull base): they steer the start all the same, and the report says
+    # which they are.
+    folder, truth = turned
+    labels, points = read_landmarks(folder / "template.csv")
+    size = float(np.linalg.norm(np.ptp(points, axis=0)))
+    off = points[0] + [0.0, 0.0, 3.0 * size]  # far above the bunny
+    write_landmarks(tmp_path / "t.csv", [*labels, "skull"], np.vstack([points, off]))
+    moved = np.vstack([points, off]) @ truth[:3, :3].T + truth[:3, 3]
+    write_landmarks(tmp_path / "p.csv", [*labels, "skull"], moved)
+    main(
+        [
+            "register", str(folder / "template.ply"), str(folder / "patient.ply"),
+            "-o", str(tmp_path / "out.ply"), "--levels", "2", "--report", str(tmp_path / "r.json"),
+            "--landmarks", str(tmp_path / "t.csv"), str(tmp_path / "p.csv"), "-q",
+        ]
+    )  # fmt: skip
+    found = json.loads((tmp_path / "r.json").read_text())["landmark_start"]["warnings"]
+    assert len(found) == 2  # the template's side and the patient's
+    assert all("far from the" in w and "skull (" in w for w in found)
+    assert all(lab not in w for w in found for lab in labels)
 
 
 SHARED = [
