@@ -243,11 +243,8 @@ def write_report(
         "```",
         "",
         "Standard deviations in mm of the whole shape vector (the coordinates of all "
-        f"{len(model.mean)} vertices); per vertex (RMS) they are "
-        + ", ".join(
-            f"{float(sd) / np.sqrt(len(model.mean)):.2f}" for sd in model.standard_deviations
-        )
-        + " mm.",
+        f"{len(model.mean)} vertices); the last row is what one standard deviation moves each "
+        "vertex, RMS.",
         "",
         "![Variance explained per mode](images/variances.png)",
         "",

@@ -214,7 +214,9 @@ class ShapeModel:
         return self.modes.reshape(self.number_of_modes, -1).T
 
     def variance_table(self, *, number_of_modes: int | None = None) -> str:
-        """The paper's Table 4 as text: variance % and cumulated variance % per mode."""
+        """The paper's Table 4 as text: variance % and cumulated variance % per mode, the
+        standard deviation (of the whole shape vector, input units) and what it moves each
+        point by, RMS (the mode is a unit vector over ``3n`` coordinates: ``sd / sqrt(n)``)."""
         k = self.number_of_modes
         if number_of_modes is not None:
             asked = check_positive(
@@ -228,7 +230,9 @@ class ShapeModel:
         )
         var = f"{'Variances %':<22}" + "".join(f"{100 * v:>9.2f}" for v in ratio[:k])
         cum = f"{'Cumulated Variance %':<22}" + "".join(f"{100 * v:>9.2f}" for v in cumulative[:k])
-        return "\n".join([head, var, cum, sd])
+        per_point = self.standard_deviations[:k] / np.sqrt(max(self.number_of_points, 1))
+        rms = f"{'SD per point (RMS)':<22}" + "".join(f"{v:>9.3g}" for v in per_point)
+        return "\n".join([head, var, cum, sd, rms])
 
     def variance_records(self) -> list[dict[str, float]]:
         """Table 4 as a list of ``{mode, variance, standard_deviation, ratio, cumulative}``."""
