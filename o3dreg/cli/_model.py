@@ -381,8 +381,10 @@ def run_modes(args: argparse.Namespace) -> int:
     sds = list(dict.fromkeys(args.sd))  # --sd 1 1 writes one file
     names = ["mean.ply"] + [f"mode{m + 1}_{c:+g}sd.ply" for m in range(count) for c in sds]
     if os.path.isdir(folder):
+        # Named as the user gave the folder: --output, or the default beside the model.
+        where = "--output" if args.output else f"{folder} (the default folder)"
         check_outputs(
-            {f"--output {name}": os.path.join(folder, name) for name in names}, args.overwrite
+            {f"{where} {name}": os.path.join(folder, name) for name in names}, args.overwrite
         )
     os.makedirs(folder, exist_ok=True)
     # All the meshes or none (a full disk left mean.ply behind an exit status 2).
