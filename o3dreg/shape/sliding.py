@@ -78,7 +78,10 @@ def _tangent_bases(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _bending_matrix(reference: np.ndarray) -> np.ndarray:
-    """Bending energy matrix ``Be`` (upper-left ``n x n`` block of ``L^-1``) of a 3D TPS."""
+    """Bending energy matrix ``Be`` (upper-left ``n x n`` block of ``L^-1``) of a 3D TPS.
+
+    With the 3D kernel ``U(r) = r`` it is negative semidefinite: the bending energy is
+    ``-Y^T (I_3 (x) Be) Y``."""
     n = reference.shape[0]
     k = np.linalg.norm(reference[:, None, :] - reference[None, :, :], axis=2)  # U(r) = r in 3D
     p = np.hstack([np.ones((n, 1)), reference])
@@ -108,7 +111,7 @@ def slide_semilandmarks(
 
     * ``'procrustes'``: the squared distance to the mapped mean (the point's tangential offset
       to its mean position is removed), or
-    * ``'bending'``: the thin-plate-spline bending energy ``Y^T (I_3 (x) Be) Y`` of the map from
+    * ``'bending'``: the thin-plate-spline bending energy ``-Y^T (I_3 (x) Be) Y`` of the map from
       the mean to the shape (Bookstein 1997; Gunz et al. 2005), solved for all tangential
       offsets at once (dense: ``n`` up to a few thousand);
 
@@ -290,7 +293,8 @@ def _projected(
 def _bending_step(
     shape: np.ndarray, t1: np.ndarray, t2: np.ndarray, be: np.ndarray, free: np.ndarray
 ) -> np.ndarray:
-    """Tangential offsets minimising ``(Y + U t)^T (I_3 (x) Be) (Y + U t)`` (free points)."""
+    """Tangential offsets of the free points at the stationary point of ``(Y + U t)^T (I_3 (x)
+    Be) (Y + U t)``: the least bending energy (``Be`` is negative semidefinite)."""
     idx = np.flatnonzero(free)
     m = idx.size
     if m == 0:
