@@ -512,6 +512,12 @@ def test_a_nifti_placed_by_its_sform_gets_the_sforms_voxel_sizes(tmp_path, caplo
         v = read_volume(tmp_path / "sform.nii")
     np.testing.assert_allclose(v.affine, LPS_FROM_RAS @ affine, atol=1e-5)
     assert "differ from those of the sform" in caplog.text
+    # The same as a 4D file of one volume (ITK keeps its fourth spacing).
+    image4 = nib.Nifti1Image(data[..., None], None)
+    image4.set_sform(affine, code=2)
+    image4.set_qform(None, code=0)
+    nib.save(image4, tmp_path / "sform4d.nii")
+    np.testing.assert_allclose(read_volume(tmp_path / "sform4d.nii").affine, v.affine, atol=1e-5)
     # Consistent headers: the same geometry, nothing said.
     caplog.clear()
     nib.save(nib.Nifti1Image(data, affine), tmp_path / "both.nii")

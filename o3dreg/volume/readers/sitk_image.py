@@ -259,17 +259,17 @@ def _space_voxels_by_the_sform(image: Any, path: str) -> None:
     unit = {1: 1000.0, 3: 1e-3}.get(head[123] & 7, 1.0)
     sizes = np.linalg.norm(sform[:, :3], axis=0) * unit
     read = np.asarray(image.GetSpacing(), dtype=np.float64)
-    if not np.all(sizes > 0) or np.allclose(sizes, read, rtol=1e-4):
-        return
+    if read.size < 3 or not np.all(sizes > 0) or np.allclose(sizes, read[:3], rtol=1e-4):
+        return  # a 2D image has no third column to compare; a 4D one keeps its time step
     logger.warning(
         "%s: the NIfTI header's voxel sizes (pixdim %s mm) differ from those of the sform "
         "that places the volume (%s mm); read with the sform's, as the NIfTI standard places "
         "the voxels",
         path,
-        np.round(read, 6).tolist(),
+        np.round(read[:3], 6).tolist(),
         np.round(sizes, 6).tolist(),
     )
-    image.SetSpacing(sizes.tolist())
+    image.SetSpacing([*sizes.tolist(), *read[3:].tolist()])
 
 
 def _nifti_data_end_or_none(path: str) -> int | None:
