@@ -86,6 +86,15 @@ def face_cross(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out
 
 
+def turned_triangles(before: np.ndarray, after: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Per triangle, whether its normal reverses between two vertex sets (``n_before .
+    n_after <= 0``), ``(m,)`` bool; a triangle of zero area before never counts."""
+    n0, n1 = face_cross(before, faces), face_cross(after, faces)
+    area0 = row_norms(n0)
+    valid = area0 > 1e-12 * max(float(area0.max(initial=0.0)), 1e-300)
+    return valid & ((n0 * n1).sum(axis=1) <= 0.0)
+
+
 def face_doubled_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """``|(b - a) x (c - a)|`` of every triangle, ``(m,)``: twice its area. The same numbers as
     ``row_norms(face_cross(vertices, faces))``, without the ``(m, 3)`` intermediate."""

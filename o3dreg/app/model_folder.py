@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from .._geometry import face_cross
+from .._geometry import turned_triangles
 from .._validation import check_bool
 from ..io import json_text
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
@@ -213,12 +213,11 @@ def folded_modes(model: ShapeModel, modes: int = 3) -> list[tuple[int, float, fl
     """``(mode, standard deviations, fraction)`` of the first ``modes`` modes whose shape at
     -3 or +3 standard deviations turns more than :data:`FOLDED_MODE_FRACTION` of the triangles
     over relative to the mean (normals at 90 degrees or more)."""
-    faces = np.asarray(model.faces)
-    reference = face_cross(np.asarray(model.mean), faces)
+    faces, mean = np.asarray(model.faces), np.asarray(model.mean)
     out = []
     for mode in range(min(modes, model.number_of_modes)):
         for sd in (-3.0, 3.0):
-            turned = (face_cross(model.mode_shape(mode, sd), faces) * reference).sum(axis=1) <= 0
+            turned = turned_triangles(mean, model.mode_shape(mode, sd), faces)
             if turned.mean() > FOLDED_MODE_FRACTION:
                 out.append((mode, sd, float(turned.mean())))
     return out

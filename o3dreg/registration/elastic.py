@@ -33,6 +33,7 @@ from .._geometry import (
     face_doubled_areas,
     into_frame,
     row_norms,
+    turned_triangles,
 )
 from .._validation import (
     as_mesh_arrays,
@@ -803,11 +804,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def flipped_triangles(before: np.ndarray, after: np.ndarray, faces: np.ndarray) -> int:
     """Triangles whose normal reverses (``n_before . n_after <= 0``) between two vertex sets;
     triangles of zero area before are not counted."""
-
-    n0, n1 = face_cross(before, faces), face_cross(after, faces)
-    area0 = np.linalg.norm(n0, axis=1)
-    valid = area0 > 1e-12 * max(float(area0.max(initial=0.0)), 1e-300)
-    return int(np.count_nonzero(valid & ((n0 * n1).sum(axis=1) <= 0.0)))
+    return int(np.count_nonzero(turned_triangles(before, after, faces)))
 
 
 def _min_cell_determinant(deformation: LatticeDeformation, points: np.ndarray) -> float:

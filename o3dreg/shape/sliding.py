@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from .._geometry import apply_transformation, face_cross
+from .._geometry import apply_transformation, turned_triangles
 from .._validation import as_faces, as_mesh_arrays, check_positive
 from ..registration.distance import SurfaceDistanceQuery
 from .procrustes import as_shape_array, generalized_procrustes
@@ -197,11 +197,8 @@ def _slide(
     faces: np.ndarray | None,
 ) -> SlidingResult:
     queries = [SurfaceDistanceQuery(v, f) for v, f in surfaces]
-    # Each shape's triangle normals as given: no move may turn one over.
-    guards = [None if faces is None else _FoldGuard(shape, faces) for shape in x]
-    current = np.stack(
-        [_projected(q, s, np.zeros_like(s), g) for q, s, g in zip(queries, x, guards)]
-    )
+    # No move may turn a triangle over relative to the shape as given.
+    current = np.stack([_projected(q, s, np.zeros_like(s), s, faces) for q, s in zip(queries, x)])
     displacements: list[float] = []
     distances: list[float] = [float(generalized_procrustes(x, scaling=scaling).residuals.mean())]
     success = False
@@ -227,7 +224,7 @@ def _slide(
                 assert be is not None
                 step = _bending_step(shape, t1, t2, be, free)
             step[~free] = 0.0
-            moved[i] = _projected(query, shape, step, guards[i])
+            moved[i] = _projected(query, shape, step, x[i], faces)
         disp = float(np.linalg.norm(moved - current, axis=2).mean())
         displacements.append(disp)
         current = moved
@@ -253,38 +250,30 @@ def _slide(
     )
 
 
-class _FoldGuard:
-    """The triangles of one semilandmark mesh and their normals as given: which triangles a
-    move turns over (normals at 90 degrees or more from their given direction)."""
-
-    def __init__(self, shape: np.ndarray, faces: np.ndarray) -> None:
-        self.faces = faces
-        self.normals = face_cross(shape, faces)
-
-    def turned(self, moved: np.ndarray) -> np.ndarray:
-        return (face_cross(moved, self.faces) * self.normals).sum(axis=1) <= 0.0
-
-
 def _projected(
-    query: SurfaceDistanceQuery, shape: np.ndarray, step: np.ndarray, guard: _FoldGuard | None
+    query: SurfaceDistanceQuery,
+    shape: np.ndarray,
+    step: np.ndarray,
+    given: np.ndarray,
+    faces: np.ndarray | None,
 ) -> np.ndarray:
-    """``shape + step`` projected onto the surface; with a ``guard``, the move of the vertices
-    of triangles it would turn over is halved, then dropped (those stay where they are)."""
+    """``shape + step`` projected onto the surface; with ``faces``, the move of the vertices
+    of triangles it would turn over relative to ``given`` (the shape as given) is halved, then
+    dropped (those stay where they are)."""
     moved = query.closest(shape + step)[2]
-    if guard is None:
+    if faces is None:
         return moved
-    before = guard.turned(shape)  # turned already (none for the shape given): not this move's
+    before = turned_triangles(given, shape, faces)  # none for the shape given: not this move's
     share = np.ones(shape.shape[0])
     for attempt in range(FOLD_HALVINGS + shape.shape[0]):
-        new = guard.turned(moved) & ~before
+        new = turned_triangles(given, moved, faces) & ~before
         if not new.any():
             return moved
-        held = np.unique(guard.faces[new])
+        held = np.unique(faces[new])
         # Halved FOLD_HALVINGS times, then dropped; each later round drops more vertices, so
         # the loop ends with every move dropped at worst (the shape itself).
         share[held] = 0.0 if attempt >= FOLD_HALVINGS else share[held] * 0.5
-        target = shape + step * share[:, None]
-        moved = query.closest(target)[2]
+        moved = query.closest(shape + step * share[:, None])[2]
         still = share == 0.0
         moved[still] = shape[still]
     return shape

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from _helpers import FAST, population
 
-from o3dreg import build_shape_model, register_batch, slide_semilandmarks
+from o3dreg import build_shape_model, generalized_procrustes, register_batch, slide_semilandmarks
+from o3dreg._geometry import face_cross, turned_triangles
 from o3dreg.registration.distance import SurfaceDistanceQuery
 
 
@@ -80,11 +81,10 @@ def test_a_slide_never_turns_a_semilandmark_triangle_over():
     # mean folded 2-6% of a mandible's triangles in 5 iterations). Guarded, the centre's move
     # and its right neighbours' are halved until none turns; the vertices of no turned triangle
     # (0, 2, 6: on the left, and corners whose only triangles stay) move in full.
-    from o3dreg.shape.sliding import _FoldGuard, _projected
+    from o3dreg.shape.sliding import _projected
 
-    plane = (np.array([[-10.0, -10, 0], [10, -10, 0], [10, 10, 0], [-10, 10, 0]]), [[0, 1, 2]])
-    plane = (plane[0], np.array([[0, 1, 2], [0, 2, 3]]))
-    query = SurfaceDistanceQuery(*plane)
+    corners = np.array([[-10.0, -10, 0], [10, -10, 0], [10, 10, 0], [-10, 10, 0]])
+    query = SurfaceDistanceQuery(corners, np.array([[0, 1, 2], [0, 2, 3]]))
     grid = np.array([[x, y, 0.0] for y in (-1, 0, 1) for x in (-1, 0, 1)])
     faces = []
     for r in range(2):
@@ -94,24 +94,19 @@ def test_a_slide_never_turns_a_semilandmark_triangle_over():
     faces = np.array(faces)
     step = np.tile([0.1, 0.0, 0.0], (9, 1))
     step[4] = [1.5, 0.0, 0.0]
-    guard = _FoldGuard(grid, faces)
-    assert guard.turned(grid + step).any()  # the unguarded move folds
-    moved = _projected(query, grid, step, guard)
-    assert not guard.turned(moved).any()
+    assert turned_triangles(grid, grid + step, faces).any()  # the unguarded move folds
+    moved = _projected(query, grid, step, grid, faces)
+    assert not turned_triangles(grid, moved, faces).any()
     np.testing.assert_allclose(moved[[0, 2, 6]], grid[[0, 2, 6]] + step[[0, 2, 6]])
     assert 0.1 < moved[4, 0] < 1.1  # held back, not dropped
 
 
 def test_guarded_sliding_keeps_the_meshes_unfolded(registered):
     tf, targets, shapes = registered
-    from o3dreg._geometry import face_cross
-
     result = slide_semilandmarks(shapes, targets, max_iteration=4, faces=tf)
     for given, slid in zip(shapes, result.shapes):
         assert ((face_cross(slid, tf) * face_cross(given, tf)).sum(axis=1) > 0).all()
     # The first distance is that of the shapes given, the last that of the slid ones.
-    from o3dreg import generalized_procrustes
-
     before = generalized_procrustes(shapes).residuals.mean()
     assert result.procrustes_distances[0] == pytest.approx(before)
     assert len(result.procrustes_distances) == result.iterations + 1
