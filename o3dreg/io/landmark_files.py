@@ -43,6 +43,7 @@ import numpy as np
 
 from .._validation import as_points
 from .mesh import atomic_write_text
+from .units import millimetres_per_unit
 
 __all__ = ["LANDMARK_SUFFIXES", "check_landmark_suffix", "read_landmarks", "write_landmarks"]
 
@@ -354,11 +355,6 @@ def _read_pp(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
     return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), None
 
 
-#: Length units of a markup's ``coordinateUnits`` (UCUM codes; Slicer writes ``mm``, the schema
-#: also names ``um``), as millimetres.
-_UNITS_MM = {"mm": 1.0, "um": 1e-3, "cm": 10.0, "m": 1000.0}
-
-
 def _markup_summary(index: int, markup: Any) -> str:
     """``markups[i] 'name' (Type, n control points)``, for messages."""
     if not isinstance(markup, dict):
@@ -416,11 +412,11 @@ def _units_to_mm(markup: dict[str, Any], path: str) -> float:
     units = markup.get("coordinateUnits", "mm")
     # A coded entry [code, coding scheme, meaning], e.g. ["mm", "UCUM", "millimeter"].
     code = units[0] if isinstance(units, list) and units else units
-    factor = _UNITS_MM.get(code) if isinstance(code, str) else None
+    factor = millimetres_per_unit(code)
     if factor is None:
         raise ValueError(
-            f"`path`: {path!r} has coordinateUnits {units!r}; one of "
-            f"{', '.join(repr(u) for u in _UNITS_MM)} expected"
+            f"`path`: {path!r} has coordinateUnits {units!r}; a length unit (mm, um, cm, m) "
+            "expected"
         )
     return factor
 

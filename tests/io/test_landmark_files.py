@@ -323,5 +323,5 @@ def test_mrk_json_of_unknown_units_is_refused(tmp_path):
     path = _markups_file(
         tmp_path, _markup("Fiducial", "F", LABELS, LPS.tolist(), coordinateUnits="in")
     )
-    with pytest.raises(ValueError, match=r"coordinateUnits 'in'; one of 'mm', 'um', 'cm', 'm'"):
+    with pytest.raises(ValueError, match=r"coordinateUnits 'in'; a length unit \(mm, um, cm, m\)"):
         read_landmarks(path)

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from ...io.units import millimetres_per_unit
 from ..volume import Volume
 from .raw_slices import read_raw_slices
 from .sitk_image import from_sitk, sitk_error
@@ -32,16 +33,6 @@ _NRRD_SPACE_TO_LPS = {
 #: NRRD encodings of text data: read by pynrrd, which checks the numbers (SimpleITK 2.5 crashed
 #: on a header saying ascii over raw bytes).
 _TEXT_ENCODINGS = ("ascii", "text", "txt")
-
-
-#: Millimetres per unit of an NRRD ``space units`` field (neither reader applies them).
-_NRRD_UNITS = {
-    "mm": 1.0, "millimeter": 1.0, "millimeters": 1.0, "millimetre": 1.0, "millimetres": 1.0,
-    "cm": 10.0, "centimeter": 10.0, "centimeters": 10.0, "centimetre": 10.0, "centimetres": 10.0,
-    "m": 1000.0, "meter": 1000.0, "meters": 1000.0, "metre": 1000.0, "metres": 1000.0,
-    "um": 1e-3, "\u00b5m": 1e-3, "micron": 1e-3, "microns": 1e-3, "micrometer": 1e-3,
-    "micrometers": 1e-3, "micrometre": 1e-3, "micrometres": 1e-3,
-}  # fmt: skip
 
 
 def read_nrrd(path: str) -> Volume:
@@ -82,11 +73,10 @@ def _millimetres_per_unit(header: dict[str, Any], path: str) -> float:
     units = header.get("space units")
     if units is None:
         return 1.0
-    names = [str(u).strip().strip('"').lower() for u in units]
-    names = [n for n in names if n not in ("", "???", "none")]  # unknown units: taken as mm
-    unknown = [n for n in names if n not in _NRRD_UNITS]
-    factors = {_NRRD_UNITS[n] for n in names if n in _NRRD_UNITS}
-    if unknown or len(factors) > 1:
+    # Neither reader applies the units. "???" and "none" say they are unknown: taken as mm.
+    named = [u for u in units if str(u).strip().strip('"').lower() not in ("", "???", "none")]
+    factors = {millimetres_per_unit(str(u)) or 0.0 for u in named}  # 0: a unit not known
+    if 0.0 in factors or len(factors) > 1:
         raise ValueError(
             f"`path`: {path!r} has space units {list(units)}; o3dreg reads one unit for all "
             "axes (mm, cm, m or um): convert the file to mm"
