@@ -83,14 +83,16 @@ def read_sitk_file(path: str) -> Volume:
     nifti = path.lower().endswith((".nii", ".nii.gz"))
     if path.lower().endswith((".mha", ".mhd")):
         _check_metaimage_compressed(path)
+    head = _nifti_head(path) if nifti else b""  # the header, read once for the checks below
+    nifti1 = _nifti1_header(head)
     if nifti:
-        _check_nifti_complete(path)
-        _check_nifti_spacing(path)
-        _warn_if_qform_and_sform_differ(path)
+        _check_nifti_complete(path, head)
+        _check_nifti_spacing(path, head)
+        _warn_if_qform_and_sform_differ(path, nifti1)
     try:
         image = sitk.ReadImage(path)
     except RuntimeError as exc:
-        if nifti and _nifti1_header(path) is None and _nifti_data_end_or_none(path) is not None:
+        if nifti and nifti1 is None and _nifti_data_end(head, path) is not None:
             raise OSError(
                 f"`path`: {path!r} is a NIfTI-2 file, which SimpleITK cannot read: save it as "
                 "NIfTI-1 (for example nibabel.save(nibabel.Nifti1Image(image.dataobj, "
@@ -98,7 +100,7 @@ def read_sitk_file(path: str) -> Volume:
             ) from exc
         raise OSError(f"`path`: could not read {path!r}: {sitk_error(exc)}") from exc
     if nifti:
-        _space_voxels_by_the_sform(image, path)
+        _space_voxels_by_the_sform(image, path, nifti1)
     volume = from_sitk(image, path)
     logger.info("read %s: %r", path, volume)
     return volume
@@ -176,43 +178,45 @@ def _inflated_size(path: str, start: int, limit: int) -> tuple[int, str]:
     return size, f"{size} bytes"
 
 
-def _check_nifti_complete(path: str) -> None:
-    """``OSError`` when a NIfTI file holds fewer voxel bytes than its header promises.
-
-    SimpleITK fills the missing part of a truncated ``.nii`` or ``.nii.gz`` with zeros.
-    """
+def _nifti_head(path: str) -> bytes:
+    """The first 540 bytes of a (possibly gzipped) NIfTI file; what there is of them."""
     opener: Any = gzip.open if path.lower().endswith(".gz") else open
     try:
         with opener(path, "rb") as fh:
-            head = fh.read(540)
-            expected = _nifti_data_end(head, path)
-            if expected is None:
-                return  # not a header we know: SimpleITK reports it
-            if opener is open:
-                size = os.path.getsize(path)
-            else:
-                fh.seek(0)
-                size = 0
-                while block := fh.read(1 << 22):
-                    size += len(block)
+            return fh.read(540)
     except (EOFError, gzip.BadGzipFile, zlib.error) as exc:
         raise OSError(f"`path`: {path!r} is truncated or corrupt ({exc})") from exc
+
+
+def _check_nifti_complete(path: str, head: bytes) -> None:
+    """``OSError`` when a NIfTI file holds fewer voxel bytes than its header (``head``)
+    promises.
+
+    SimpleITK fills the missing part of a truncated ``.nii`` or ``.nii.gz`` with zeros.
+    """
+    expected = _nifti_data_end(head, path)
+    if expected is None:
+        return  # not a header we know: SimpleITK reports it
+    if not path.lower().endswith(".gz"):
+        size = os.path.getsize(path)
+    else:
+        size = 0
+        try:
+            with gzip.open(path, "rb") as fh:
+                while block := fh.read(1 << 22):
+                    size += len(block)
+        except (EOFError, gzip.BadGzipFile, zlib.error) as exc:
+            raise OSError(f"`path`: {path!r} is truncated or corrupt ({exc})") from exc
     if size < expected:
         raise OSError(
             f"`path`: {path!r} is truncated: {size} bytes where its header needs {expected}"
         )
 
 
-def _check_nifti_spacing(path: str) -> None:
+def _check_nifti_spacing(path: str, head: bytes) -> None:
     """``ValueError`` when a NIfTI header's voxel sizes (``pixdim[1:4]``) are zero or not
     finite (SimpleITK reads such a size as 1 mm, which would place and scale the volume
     silently wrong), or negative."""
-    opener: Any = gzip.open if path.lower().endswith(".gz") else open
-    try:
-        with opener(path, "rb") as fh:
-            head = fh.read(540)
-    except (OSError, EOFError, zlib.error):
-        return  # _check_nifti_complete and SimpleITK report an unreadable file
     for order in ("<", ">"):
         size = struct.unpack(order + "i", head[:4])[0] if len(head) >= 4 else 0
         if size == 348 and len(head) >= 348:
@@ -239,15 +243,15 @@ def _check_nifti_spacing(path: str) -> None:
         )
 
 
-def _space_voxels_by_the_sform(image: Any, path: str) -> None:
+def _space_voxels_by_the_sform(image: Any, path: str, header: tuple[str, bytes] | None) -> None:
     """Give ``image`` the voxel sizes of its NIfTI-1 sform where ITK placed it by the sform.
 
     ITK takes the direction and origin from the sform (when its code is 1, or the qform has
     none) but the voxel sizes from ``pixdim``; a file whose sform carries the geometry and
     whose ``pixdim`` was left at 1 (nibabel writes such files when only the sform is set)
     would be scaled silently. The NIfTI standard places voxels by the sform's columns.
+    ``header``: :func:`_nifti1_header`'s.
     """
-    header = _nifti1_header(path)
     if header is None:
         return
     order, head = header
@@ -272,37 +276,21 @@ def _space_voxels_by_the_sform(image: Any, path: str) -> None:
     image.SetSpacing([*sizes.tolist(), *read[3:].tolist()])
 
 
-def _nifti_data_end_or_none(path: str) -> int | None:
-    """:func:`_nifti_data_end` of the file's header, ``None`` when it is not NIfTI."""
-    opener: Any = gzip.open if path.lower().endswith(".gz") else open
-    try:
-        with opener(path, "rb") as fh:
-            return _nifti_data_end(fh.read(540), path)
-    except (OSError, EOFError, zlib.error, ValueError):
-        return None
-
-
-def _nifti1_header(path: str) -> tuple[str, bytes] | None:
-    """The byte order and the 348 bytes of a NIfTI-1 header (``None`` for anything else)."""
-    opener: Any = gzip.open if path.lower().endswith(".gz") else open
-    try:
-        with opener(path, "rb") as fh:
-            head = fh.read(348)
-    except (OSError, EOFError, zlib.error):
-        return None
+def _nifti1_header(head: bytes) -> tuple[str, bytes] | None:
+    """The byte order and the 348 bytes of a NIfTI-1 header at the start of ``head``
+    (``None`` for anything else)."""
     for order in ("<", ">"):
-        if len(head) == 348 and struct.unpack(order + "i", head[:4])[0] == 348:
-            return order, head
+        if len(head) >= 348 and struct.unpack(order + "i", head[:4])[0] == 348:
+            return order, head[:348]
     return None
 
 
-def _warn_if_qform_and_sform_differ(path: str) -> None:
+def _warn_if_qform_and_sform_differ(path: str, header: tuple[str, bytes] | None) -> None:
     """Log a warning when a NIfTI-1 header holds a qform and an sform that place the volume
     differently: ITK (and so o3dreg) places it by the sform when its code is 1 (scanner
     anatomy) and by the qform otherwise, other software by its own rule (nibabel by the sform
     whenever it has a code), so the same file can land in two places depending on the
-    software."""
-    header = _nifti1_header(path)
+    software. ``header``: :func:`_nifti1_header`'s."""
     if header is None:
         return  # NIfTI-2 or not NIfTI: nothing checked
     order, head = header
