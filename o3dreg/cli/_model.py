@@ -58,8 +58,9 @@ the median; five patients or more) becomes 'suspect'. Only 'ok' patients enter t
 --keep-flagged; the table lists every flagged patient with its reasons.
 
 landmarks: with --landmarks TEMPLATE_FILE, patient PATH/NAME.EXT is started from the landmarks
-in PATH/NAME.mrk.json, PATH/NAME.fcsv or PATH/NAME.csv (the first that exists; labels paired with the
-template's). A patient without a landmark file stops the command before any registration.
+in PATH/NAME.mrk.json, PATH/NAME.fcsv or PATH/NAME.csv (the first that exists; labels paired
+with the template's). A patient without a landmark file stops the command before any
+registration.
 
 exit status: 0 every patient registered with verdict 'ok'; 1 a patient failed or was flagged
 (the model is built from the others), or fewer than 2 'ok' patients; 2 bad input."""

@@ -25,6 +25,7 @@ from ..registration.distance import SurfaceDistanceQuery
 from ..registration.landmark_start import registration_landmarks
 from ..registration.options import default_levels
 from ..registration.result import ElasticRegistrationResult, LevelReport
+from ..shape.landmark_transfer import LANDMARK_REACH
 from ._common import (
     add_json_option,
     add_overwrite_option,
@@ -77,8 +78,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--landmarks",
         nargs=2,
         metavar=("TEMPLATE_FILE", "PATIENT_FILE"),
-        help="start from corresponding landmarks (CSV label,x,y,z, Slicer .mrk.json or .fcsv, paired "
-        "by label): a rigid fit, a similarity with --with-scaling; replaces the rigid search",
+        help="start from corresponding landmarks (CSV label,x,y,z, Slicer .mrk.json or .fcsv, "
+        "paired by label): a rigid fit, a similarity with --with-scaling; replaces the rigid search",
     )
     p.add_argument("--project", action="store_true", help="move vertices onto the target surface")
     p.add_argument("--deformation", help="also write the deformation (.npz)")
@@ -128,21 +129,24 @@ def report_dict(result: ElasticRegistrationResult, **extra) -> dict:
 
 
 def _off_surface(path: str, mesh: Any, side: str, used: tuple[str, ...]) -> list[str]:
-    """A sentence naming the paired landmarks of ``path`` farther from ``mesh`` than 5% of its
-    size (anatomy the mesh does not show: they steer the start all the same)."""
+    """A sentence naming the paired landmarks of ``path`` farther from ``mesh`` than
+    :data:`~o3dreg.shape.landmark_transfer.LANDMARK_REACH` of its size (anatomy the mesh does not
+    show: they steer the start all the same)."""
     with warnings.catch_warnings():  # the file's own warnings were given when it was read
         warnings.simplefilter("ignore")
         labels, points = read_landmarks(path)
     vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-    limit = 0.05 * float(np.linalg.norm(np.ptp(vertices, axis=0)))
-    distance = SurfaceDistanceQuery(vertices, faces).distance(np.asarray(points))
+    limit = LANDMARK_REACH * float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    # A handful of points: no tree of the whole patient (the registration builds its own).
+    distance = SurfaceDistanceQuery(vertices, faces).closest_few(np.asarray(points))[0]
     far = [
         f"{label} ({d:.3g})" for label, d in zip(labels, distance) if label in used and d > limit
     ]
     if not far:
         return []
     return [
-        f"{side} landmarks far from the {side} surface (more than {limit:.3g}, 5% of its size): "
+        f"{side} landmarks far from the {side} surface (more than {limit:.3g}, "
+        f"{LANDMARK_REACH:.0%} of its size): "
         f"{', '.join(far)}; they steer the start all the same: leave out landmarks of anatomy "
         "the meshes do not show"
     ]

@@ -55,6 +55,11 @@ __all__ = [
 
 logger = logging.getLogger("o3dreg")
 
+#: Landmarks farther from a surface than this fraction of its bounding-box diagonal are not on
+#: the anatomy it shows (refused by :meth:`TemplateLandmarks.from_points`; named by ``o3dreg
+#: register --landmarks``, where they still steer the start).
+LANDMARK_REACH = 0.05
+
 
 @dataclass(frozen=True, eq=False)
 class TemplateLandmarks:
@@ -193,7 +198,8 @@ class TemplateLandmarks:
         labels : sequence of str, optional
         max_distance : float, optional
             Points farther than this from the template surface raise ``ValueError`` (landmarks
-            outside the template). Default 5 % of the template's bounding-box diagonal.
+            outside the template). Default :data:`LANDMARK_REACH` (5 %) of the template's
+            bounding-box diagonal.
         on_surface : bool, optional
             Move each landmark onto its foot point (offset 0). Default ``False``: landmarks
             keep their depth.
@@ -202,7 +208,7 @@ class TemplateLandmarks:
         pts = as_points(points, "points")
         on_surface = check_bool(on_surface, "on_surface")
         if max_distance is None:
-            max_distance = 0.05 * float(np.linalg.norm(np.ptp(v, axis=0)))
+            max_distance = LANDMARK_REACH * float(np.linalg.norm(np.ptp(v, axis=0)))
         else:
             max_distance = check_positive(max_distance, "max_distance", allow_zero=True)
         dist, face, closest = SurfaceDistanceQuery(v, f).closest(pts)
