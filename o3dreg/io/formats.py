@@ -9,9 +9,9 @@ correspondence), STL excepted, and text is written at full float64 precision:
   is read: polygons, quads and pixels (split into triangle fans, with a warning), triangles and
   triangle strips; vertices and lines are skipped; volume cells are refused; point, cell and
   field data are ignored (a legacy file's dataset ``FIELD`` block before ``POINTS``, as VTK 9
-  and PyVista write it, is passed over by its arrays' sizes). Legacy files: ``POLYDATA`` and ``UNSTRUCTURED_GRID`` (as meshio writes it),
-  versions up to 5.1 (the ``OFFSETS`` / ``CONNECTIVITY`` layout of VTK 9), ASCII and BINARY
-  (big-endian). XML files (``PolyData``, ``UnstructuredGrid``): ``ascii``, inline ``binary``
+  and PyVista write it, is passed over by its arrays' sizes). Legacy files: ``POLYDATA`` and
+  ``UNSTRUCTURED_GRID`` (as meshio writes it), versions up to 5.1 (the ``OFFSETS`` /
+  ``CONNECTIVITY`` layout of VTK 9), ASCII and BINARY (big-endian). XML files (``PolyData``, ``UnstructuredGrid``): ``ascii``, inline ``binary``
   (base64) and ``appended`` (raw or base64) data, uncompressed or zlib-compressed, 32- or 64-bit
   headers, either byte order. Legacy files are written in version 4.2 (read by every VTK and
   ITK since 2005, statismo and scalismo included), XML files as version 1.0 with inline base64
@@ -383,16 +383,12 @@ def _skip_field(reader: _LegacyReader, words: list[str], binary: bool, path: str
         what, values = f"FIELD array {name!r}", components * tuples
         if kind in ("string", "utf8_string"):
             _skip_strings(reader, values, binary, what)
-        elif kind == "bit":
-            if binary:
-                reader.skip_bytes((values + 7) // 8, what)
-            else:
-                reader.skip_tokens(values, what)
+        elif (kind == "bit" or kind in _FIELD_TYPES) and not binary:
+            reader.skip_tokens(values, what)
+        elif kind == "bit":  # packed, eight to a byte
+            reader.skip_bytes((values + 7) // 8, what)
         elif kind in _FIELD_TYPES:
-            if binary:
-                reader.skip_bytes(values * np.dtype(_FIELD_TYPES[kind]).itemsize, what)
-            else:
-                reader.skip_tokens(values, what)
+            reader.skip_bytes(values * np.dtype(_FIELD_TYPES[kind]).itemsize, what)
         else:
             raise OSError(f"{path!r}: {what} has data type {parts[3]!r}, which is not supported")
         at = reader.pos

@@ -343,9 +343,13 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
     # statismo writes a 1 x 1 zero matrix when a model has no scores (with one mode it would
     # read as one training shape of score 0; a model of one shape has no mode).
     placeholder = scores_t is not None and scores_t.shape == (1, 1) and not np.any(scores_t)
-    if scores_t is not None and scores_t.ndim == 2 and scores_t.shape[0] == k and k > 0:
-        if not placeholder:
-            standardised = scores_t.T
+    if (
+        scores_t is not None
+        and scores_t.ndim == 2
+        and scores_t.shape[0] == k > 0
+        and not placeholder
+    ):
+        standardised = scores_t.T
     basis, variances, scores = _orthonormal_modes(basis, variances, standardised)
     uris = [data_info.get(f"URI_{i}") for i in range(scores.shape[0])]
     names = (
