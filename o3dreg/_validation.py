@@ -6,10 +6,12 @@ parameter, the expectation and what was received.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
 import os
 import warnings
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -27,6 +29,7 @@ __all__ = [
     "check_positive",
     "check_probability",
     "moved_name",
+    "named_as",
     "to_open3d",
 ]
 
@@ -392,6 +395,27 @@ def check_output_path(path: Any, name: str, *, overwrite: bool) -> str:
     if os.path.exists(path) and not overwrite:
         raise OSError(f"`{name}`: {path!r} exists; pass overwrite=True (--overwrite) to replace it")
     return path
+
+
+@contextlib.contextmanager
+def named_as(name: str, parameter: str = "path") -> Iterator[None]:
+    """Errors raised in the block name ``name`` where they name ```parameter```.
+
+    A reader's helpers name its ``path``; a caller passing ``name`` (a command line: the
+    option or positional the user typed) gets its own name in their messages. Nothing changes
+    when ``name`` is ``parameter`` (library callers).
+    """
+    try:
+        yield
+    except (TypeError, ValueError, OSError, RuntimeError) as exc:
+        text, old = str(exc), f"`{parameter}`"
+        if name == parameter or old not in text:
+            raise
+        try:
+            renamed = type(exc)(text.replace(old, f"`{name}`"))
+        except TypeError:  # an exception type that takes other arguments: keep it as it is
+            raise exc from exc.__cause__
+        raise renamed.with_traceback(exc.__traceback__) from exc.__cause__
 
 
 def to_open3d(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.TriangleMesh:

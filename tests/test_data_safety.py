@@ -257,7 +257,7 @@ def test_register_outputs_checked_before_any_work(meshes, capsys):
         capsys, "register", missing, p, "-o", out, "--landmarks", str(marks), str(marks),
         "--report", str(marks), "--overwrite",
     )  # fmt: skip
-    assert code == 2 and "is the input --landmarks SOURCE_LANDMARKS" in err
+    assert code == 2 and "is the input --landmarks TEMPLATE_FILE" in err
     assert marks.read_text() == "{}"
     # All checks pass: now the missing input is reported.
     code, err = run_main(capsys, "register", missing, p, "-o", out, "--report", out + ".json")

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from .._validation import named_as
 from ..app.explorer import write_model_explorer
 from ..app.model_folder import build_model_folder, check_inputs_outside, existing_model_files
 from ..io import json_text
@@ -95,8 +96,10 @@ def add_parser(subparsers: Any) -> None:
         epilog=BUILD_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    build.add_argument("template", help="template mesh (moves; ~1k-4k vertices)")
-    build.add_argument("targets", nargs="+", help="patient meshes")
+    build.add_argument(
+        "template", metavar="TEMPLATE", help="template mesh (moves; ~1k-4k vertices)"
+    )
+    build.add_argument("targets", metavar="TARGET", nargs="+", help="patient meshes")
     build.add_argument("-o", "--output", required=True, help="model folder (created)")
     add_jobs_option(build)
     build.add_argument("--scheduler", help="Dask scheduler ADDRESS (tcp://host:8786) to run on")
@@ -168,7 +171,7 @@ def add_parser(subparsers: Any) -> None:
         metavar="MODEL",
         help="model folder (o3dreg build-model) or statismo / scalismo .h5 file",
     )
-    fit.add_argument("patient", help="patient mesh")
+    fit.add_argument("patient", metavar="PATIENT", help="patient mesh")
     fit.add_argument(
         "--landmarks",
         required=True,
@@ -228,7 +231,15 @@ def run_build(args: argparse.Namespace) -> int:
     # model.py writes OUT/template.ply: a template file there would be replaced by its copy.
     check_inputs_outside(args.output, [args.template], "TEMPLATE")
     template = read_triangle_mesh(args.template, name="TEMPLATE")
-    with _executor(args) as executor:
+    # The library names the patient files `targets` and the landmark files `landmarks`,
+    # `source` (the template's) and `target` (a patient's): the user typed TARGET and --landmarks.
+    with (
+        _executor(args) as executor,
+        named_as("TARGET", "targets"),
+        named_as("--landmarks", "landmarks"),
+        named_as("--landmarks", "source"),
+        named_as("TARGET landmarks", "target"),
+    ):
         folder = build_model_folder(
             template,
             args.targets,
@@ -326,7 +337,8 @@ def _is_statismo(model: str) -> bool:
 def _load(model_dir: str) -> Any:
     """The model of a model folder (``MODEL/model.npz``) or of a statismo ``.h5`` file."""
     if _is_statismo(model_dir):
-        return read_statismo(model_dir)
+        with named_as("MODEL"):
+            return read_statismo(model_dir)
     if os.path.isfile(model_dir):
         raise ValueError(
             f"MODEL must be a model folder (o3dreg build-model) or a statismo .h5 file, "
@@ -335,7 +347,8 @@ def _load(model_dir: str) -> Any:
     path = os.path.join(model_dir, "model.npz")
     if not os.path.isfile(path):
         raise OSError(f"MODEL: no model.npz in {model_dir!r} (run o3dreg build-model)")
-    return ShapeModel.load(path)
+    with named_as("MODEL/model.npz"):
+        return ShapeModel.load(path)
 
 
 def _beside(model_dir: str, name: str) -> str:
@@ -421,7 +434,8 @@ def run_fit(args: argparse.Namespace) -> int:
         template = read_triangle_mesh(template_path, name="MODEL/template.ply")
         model.check_template(template, "MODEL/template.ply")
     try:
-        landmarks = load_template_landmarks(args.landmarks, template)
+        with named_as("--landmarks"):
+            landmarks = load_template_landmarks(args.landmarks, template)
     except ValueError as exc:
         if not _is_statismo(args.model_dir):
             raise
@@ -435,7 +449,7 @@ def run_fit(args: argparse.Namespace) -> int:
     patient = read_triangle_mesh(args.patient, name="PATIENT")
     truth_file = None
     if args.truth:  # read before the fit: a bad file costs no work
-        truth_file = read_landmarks(args.truth)
+        truth_file = read_landmarks(args.truth, name="--truth")
         repeated = sorted({lab for lab in truth_file[0] if truth_file[0].count(lab) > 1})
         if repeated:
             raise ValueError(f"--truth repeats landmark labels {repeated}")

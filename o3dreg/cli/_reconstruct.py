@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import check_positive
+from .._validation import check_positive, named_as
 from ..io import json_text
 from ..io.mesh import MESH_SUFFIXES, write_triangle_mesh
 from ..mesh.cleaning import (
@@ -25,7 +25,7 @@ from ..mesh.cleaning import (
 from ..mesh.edges import SortedEdges
 from ..volume.isosurface import isosurface
 from ..volume.readers import read_volume
-from ._common import add_json_option, add_overwrite_option, check_outputs, emit
+from ._common import add_json_option, add_overwrite_option, check_outputs, emit, finite_float
 
 logger = logging.getLogger("o3dreg")
 
@@ -50,9 +50,11 @@ def add_parser(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--threshold",
-        type=float,
+        type=finite_float,
         required=True,
-        help="iso-value in the volume's units (HU for CT, e.g. 300-400 for bone; 0.5 for masks)",
+        metavar="LEVEL",
+        help="iso-value in the file's own units, as stored: HU for DICOM CT (bone about 300-400); "
+        "other files may store raw values (the bundled headsq: HU + 1024); 0.5 for a 0/1 mask",
     )
     parser.add_argument("--series-uid", default=None, help="DICOM series to read from a folder")
     parser.add_argument("--step-size", type=int, default=1, help="marching-cubes step in voxels")
@@ -108,8 +110,21 @@ def run(args: argparse.Namespace) -> int:
     if args.decimate is not None:
         check_positive(args.decimate, "--decimate", integer=True)
 
-    volume = read_volume(args.input, series_uid=args.series_uid)
-    mesh = isosurface(volume, args.threshold, step_size=args.step_size)
+    volume = read_volume(args.input, series_uid=args.series_uid, name="INPUT")
+    try:
+        with named_as("INPUT", "volume"):
+            mesh = isosurface(volume, args.threshold, step_size=args.step_size)
+    except RuntimeError:
+        # Said in the option's terms (the library says `level`); the range is measured only
+        # now, on failure: a pass over the volume that a good level does not need.
+        low, high = float(np.min(volume.array)), float(np.max(volume.array))
+        if not low < args.threshold < high:
+            raise ValueError(
+                f"--threshold must lie strictly between the lowest and the highest value of "
+                f"INPUT {args.input!r}, [{low:g}, {high:g}] (the file's own units), got "
+                f"{args.threshold:g}: no surface at that level"
+            ) from None
+        raise
     found = connected_components(mesh)
     if args.crop_box is not None or args.crop_plane is not None:
         box = np.reshape(args.crop_box, (2, 3)) if args.crop_box is not None else None

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from .._validation import named_as
 from ..app.explorer import write_registration_explorer
 from ..io.landmark_files import read_landmarks
 from ..io.mesh import (
@@ -38,6 +39,9 @@ from ._common import (
 from ._registration_options import add_registration_options, settings_from_args
 
 logger = logging.getLogger("o3dreg")
+
+#: How messages name the two files of --landmarks (its metavars).
+LANDMARK_FILES = ("--landmarks TEMPLATE_FILE", "--landmarks PATIENT_FILE")
 
 EPILOG = """examples:
   o3dreg register template.ply patient.ply -o registered.ply
@@ -69,15 +73,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "source",
+        metavar="SOURCE",
         help="template mesh that moves (.ply, .obj, .stl, .off, .gltf, .glb, .vtk, .vtp, .vtu)",
     )
-    p.add_argument("target", help="patient mesh it is matched to")
+    p.add_argument("target", metavar="TARGET", help="patient mesh it is matched to")
     p.add_argument("-o", "--output", required=True, help="semilandmark mesh to write")
     add_registration_options(p)
     p.add_argument(
         "--landmarks",
         nargs=2,
-        metavar=("TEMPLATE_FILE", "PATIENT_FILE"),
+        metavar=tuple(name.split()[1] for name in LANDMARK_FILES),
         help="start from corresponding landmarks (CSV label,x,y,z, Slicer .mrk.json or .fcsv, "
         "paired by label): a rigid fit, a similarity with --with-scaling; replaces the rigid search",
     )
@@ -168,8 +173,7 @@ def run(args: argparse.Namespace) -> int:
             "SOURCE": args.source,
             "TARGET": args.target,
             # A report named like a landmark file (.mrk.json) must not replace it.
-            "--landmarks SOURCE_LANDMARKS": args.landmarks[0] if args.landmarks else None,
-            "--landmarks TARGET_LANDMARKS": args.landmarks[1] if args.landmarks else None,
+            **{name: path for name, path in zip(LANDMARK_FILES, args.landmarks or (None, None))},
         },
         suffixes={
             "--output": SEMILANDMARK_SUFFIXES,
@@ -213,7 +217,9 @@ def run(args: argparse.Namespace) -> int:
     init = None
     landmark_start = None
     if args.landmarks:
-        fit = registration_landmarks(*args.landmarks, with_scaling=args.with_scaling)
+        # The library names the two files `source` and `target`: the user typed --landmarks.
+        with named_as(LANDMARK_FILES[0], "source"), named_as(LANDMARK_FILES[1], "target"):
+            fit = registration_landmarks(*args.landmarks, with_scaling=args.with_scaling)
         emit(
             f"start from {len(fit.labels)} landmark pairs: residual rms {fit.rms:.3g}, "
             f"max {float(fit.residuals.max()):.3g}, scale {fit.scale:.4g}",

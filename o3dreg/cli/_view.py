@@ -33,6 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "meshes",
+        metavar="MESH",
         nargs="+",
         help="mesh files (.ply, .obj, .stl, .off, .gltf, .glb, .vtk, .vtp, .vtu)",
     )

@@ -41,7 +41,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from .._validation import as_points
+from .._validation import as_points, named_as
 from .mesh import atomic_write_text
 from .units import millimetres_per_unit
 
@@ -83,6 +83,7 @@ def read_landmarks(
     *,
     coordinate_system: str = "LPS",
     file_coordinate_system: str | None = None,
+    name: str = "path",
 ) -> tuple[tuple[str, ...], np.ndarray]:
     """Read labelled 3D points from CSV, 3D Slicer (``.mrk.json``, ``.fcsv``) or MeshLab (``.pp``).
 
@@ -110,12 +111,22 @@ def read_landmarks(
         ``coordinate_system`` (an ``.fcsv``: RAS) and a ``UserWarning`` says so. A file that
         says otherwise raises ``ValueError``.
 
+    name : str, optional
+        How messages name ``path`` (a command line passes its option). Default ``'path'``.
+
     Returns
     -------
     labels : tuple of str
     points : (l, 3) ndarray
         In ``coordinate_system``, in the file's units (mm for Slicer's files).
     """
+    with named_as(name):
+        return _read_landmarks(path, coordinate_system, file_coordinate_system)
+
+
+def _read_landmarks(
+    path: str | os.PathLike[str], coordinate_system: str, file_coordinate_system: str | None
+) -> tuple[tuple[str, ...], np.ndarray]:
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`path` must be a path, got {type(path).__name__}")
     path = os.fspath(path)
@@ -164,7 +175,7 @@ def read_landmarks(
             f"{path!r}: coordinate system not stated; taken as {source} ({why}). Pass "
             "file_coordinate_system='LPS' or 'RAS' to say which.",
             UserWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
     if source != target:
         points = points * _FLIP
@@ -241,7 +252,7 @@ def _read_csv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
                 continue
             points.append(_numbers([row[c] for c in columns], path, f"row {k + 2}"))
             labels.append(label)
-    _skip_unplaced(path, skipped, 4)
+    _skip_unplaced(path, skipped, 5)
     return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), declared
 
 
@@ -331,7 +342,7 @@ def _read_fcsv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
             continue
         points.append(_numbers([row[where[c]] for c in ("x", "y", "z")], path, f"line {number}"))
         labels.append(label)
-    _skip_unplaced(path, skipped, 4)
+    _skip_unplaced(path, skipped, 5)
     return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), declared
 
 
@@ -351,7 +362,7 @@ def _read_pp(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
         points.append(_numbers([v if v is not None else "" for v in xyz], path, f"point {k + 1}"))
         labels.append(str(point.get("name") or f"L{k + 1}"))
     if skipped:
-        warnings.warn(f"{path!r}: {skipped} inactive point(s) skipped", UserWarning, stacklevel=3)
+        warnings.warn(f"{path!r}: {skipped} inactive point(s) skipped", UserWarning, stacklevel=4)
     return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), None
 
 
@@ -402,7 +413,7 @@ def _choose_point_list(doc: Any, path: str) -> dict[str, Any]:
             f"{path!r}: read the point list {_markup_summary(lists[0], markups[lists[0]])}; "
             f"ignored {others} (not point lists)",
             UserWarning,
-            stacklevel=4,
+            stacklevel=5,
         )
     return markups[lists[0]]
 
@@ -455,7 +466,7 @@ def _read_markups(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
         ) from exc
     if declared not in _SYSTEMS:
         raise ValueError(f"`path`: {path!r} has coordinateSystem {declared!r}; LPS or RAS expected")
-    _skip_unplaced(path, skipped, 4)
+    _skip_unplaced(path, skipped, 5)
     if scale != 1.0:
         points_arr = points_arr * scale
     return tuple(labels), points_arr, declared

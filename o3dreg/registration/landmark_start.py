@@ -138,7 +138,7 @@ def _fit_findings(
 def _as_landmarks(value: Any, name: str) -> tuple[tuple[str, ...] | None, np.ndarray]:
     """Labels (or ``None``) and points from a file, a ``(labels, points)`` pair or points."""
     if isinstance(value, (str, os.PathLike)):
-        labels, points = read_landmarks(value)
+        labels, points = read_landmarks(value, name=name)
         return tuple(labels), as_points(points, f"{name} landmarks {os.fspath(value)!r}")
     if (
         isinstance(value, tuple)

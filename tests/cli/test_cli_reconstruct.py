@@ -94,7 +94,8 @@ def test_reconstruct_bad_input_leaves_no_file(tmp_path, scan, capsys):
     output = tmp_path / "bone.ply"
     code, _, err = _run(capsys, str(scan), "-o", str(output), "--threshold", "5000")
     assert code == 2
-    assert "no surface found at level 5000: data range is [-1000, 1000]" in err
+    assert "--threshold must lie strictly between" in err
+    assert "[-1000, 1000] (the file's own units), got 5000" in err
     code, _, err = _run(
         capsys, str(scan), "-o", str(output), "--threshold", "400", "--largest", "0"
     )

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 
+from ..._validation import named_as
 from ..volume import Volume
 from .dicom_series import is_dicom_file, read_dicom_series
 from .nrrd_file import read_nrrd
@@ -25,7 +26,9 @@ __all__ = ["VOLUME_SUFFIXES", "read_raw_slices", "read_volume"]
 VOLUME_SUFFIXES = (".dcm", ".nii", ".nii.gz", ".nrrd", ".nhdr", ".mhd", ".mha")
 
 
-def read_volume(path: str | os.PathLike[str], *, series_uid: str | None = None) -> Volume:
+def read_volume(
+    path: str | os.PathLike[str], *, series_uid: str | None = None, name: str = "path"
+) -> Volume:
     """Read a CT scan or a mask as a :class:`Volume` (values in the file's units; HU for CT).
 
     Parameters
@@ -37,6 +40,8 @@ def read_volume(path: str | os.PathLike[str], *, series_uid: str | None = None) 
     series_uid : str, optional
         The DICOM SeriesInstanceUID to read when the folder holds several series. Without it a
         folder with more than one series raises ``ValueError`` listing them.
+    name : str, optional
+        How messages name ``path`` (a command line passes its positional). Default ``'path'``.
 
     Returns
     -------
@@ -58,6 +63,11 @@ def read_volume(path: str | os.PathLike[str], *, series_uid: str | None = None) 
     A single 2D image (e.g. one DICOM slice) is returned as a volume with one plane; its plane
     spacing is the slice thickness where the file has one. Such a volume has no surface.
     """
+    with named_as(name):
+        return _read_volume(path, series_uid)
+
+
+def _read_volume(path: str | os.PathLike[str], series_uid: str | None) -> Volume:
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`path` must be a path, got {type(path).__name__}")
     if series_uid is not None and not isinstance(series_uid, str):
