@@ -27,6 +27,7 @@ import open3d as o3d
 from .._geometry import turned_triangles
 from .._validation import check_bool
 from ..io import json_text
+from ..io.landmark_files import read_landmarks, select_labels
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 from ..registration.options import ElasticLevel
 from ..shape.build import build_shape_model
@@ -292,6 +293,7 @@ def build_model_folder(
     progress: bool = False,
     settings: RegistrationSettings | None = None,
     landmarks: str | os.PathLike[str] | None = None,
+    landmark_labels: Sequence[str] | None = None,
     keep_flagged: bool = False,
     levels: Sequence[ElasticLevel] | None = None,
     scaling: bool = False,
@@ -327,6 +329,10 @@ def build_model_folder(
         landmarks of :func:`patient_landmark_file` (``PATH/NAME.mrk.json``, ``.fcsv`` or
         ``.csv``), paired by label: a rigid fit, or a similarity when
         ``settings.start == 'similarity'``. A patient without one raises before any work.
+    landmark_labels : sequence of str, optional
+        The landmarks of ``landmarks`` (and of each patient's file) to pair, e.g. those of the
+        anatomy the meshes show; each must be in every file. Default: every landmark, the
+        same labels in every file.
     keep_flagged : bool, optional
         Put patients whose verdict is ``'suspect'`` or ``'failed'`` in the model too. Default
         ``False``: only ``'ok'`` patients; the others are listed in ``report.json`` with their
@@ -372,6 +378,11 @@ def build_model_folder(
     check_inputs_outside(output, targets)
     if landmarks is not None:
         check_inputs_outside(output, [landmarks], "landmarks")
+        if landmark_labels is not None:  # the template's file named, before any patient's
+            available = read_landmarks(landmarks)[0]
+            select_labels(available, landmark_labels, repr(os.fspath(landmarks)), "landmark_labels")
+    elif landmark_labels is not None:
+        raise ValueError("`landmark_labels` chooses landmarks of `landmarks`: give `landmarks`")
     _check_distinct_patients(targets)
     inits = None
     if landmarks is not None:
@@ -379,7 +390,7 @@ def build_model_folder(
         for t in targets:
             marks = patient_landmark_file(t)
             try:
-                starts.append(settings.landmark_start(landmarks, marks))
+                starts.append(settings.landmark_start(landmarks, marks, labels=landmark_labels))
             except ValueError as exc:  # name the patient: the message names only the roles
                 raise ValueError(f"patient {os.fspath(t)!r} ({marks!r}): {exc}") from exc
         inits = np.stack(starts)
