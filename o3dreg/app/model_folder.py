@@ -38,6 +38,7 @@ from ..shape.statismo import write_statismo
 from .batch import BatchResult, register_batch, stored_source, write_summary
 from .explorer import write_model_explorer
 from .population import check_population
+from .progress import announce
 from .settings import RegistrationSettings
 
 logger = logging.getLogger("o3dreg")
@@ -319,7 +320,8 @@ def build_model_folder(
         Without it such a folder is refused before any work; a folder holding only finished
         registrations (an interrupted run) is resumed either way.
     progress : bool, optional
-        Show a progress bar.
+        Report progress on stderr: the patients (a bar on a terminal, a line per patient
+        elsewhere) and the steps after them.
     settings : RegistrationSettings, optional
         How each patient is registered: the same settings as ``o3dreg register`` (levels,
         regularisation, single/symmetric distance, robust settings, start). Default
@@ -431,6 +433,8 @@ def build_model_folder(
         faces = np.asarray(template.triangles)
         slid = None
         if slide:
+            if progress:
+                announce(f"sliding the semilandmarks of {len(names)} patients")
             used = set(names)
             surfaces = [read_triangle_mesh(r.source) for r in batch.registered if r.name in used]
             slid = slide_semilandmarks(shapes, surfaces, scaling=scaling, faces=faces)
@@ -461,6 +465,8 @@ def build_model_folder(
         # folder beside the model's and moved into place once all are written, so a failed or
         # interrupted run (a full disk, Ctrl-C) leaves the folder's earlier model as it was and
         # never a half-built one. The registrations stay for the rerun.
+        if progress:
+            announce(f"model of {len(names)} patients: files, quality curves and the explorer")
         staging = tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=out)
         try:
             model.save(os.path.join(staging, "model.npz"), overwrite=True)

@@ -256,7 +256,7 @@ def run_build(args: argparse.Namespace) -> int:
             executor=executor,
             force=args.force,
             overwrite=args.overwrite,
-            progress=not (args.json or args.quiet) and sys.stderr.isatty(),
+            progress=not (args.json or args.quiet),
             settings=settings_from_args(args, template),
             landmarks=args.landmarks,
             landmark_labels=args.labels,

@@ -176,8 +176,8 @@ def run(args: argparse.Namespace) -> int:
         f"target {args.target}: {len(target.vertices)} vertices",
         args,
     )
-    # The progress bar on a terminal only (as build-model): a log file gets no bar, and the
-    # per-level lines through the logger (-v).
+    # The progress bar on a terminal only: one registration takes seconds, so a log file gets
+    # no per-level lines unless asked for (-v, through the logger).
     show = not args.quiet and not args.json and sys.stderr.isatty()
     bar = None
     if show:
