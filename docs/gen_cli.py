@@ -19,7 +19,9 @@ INTRO = """# Command line
 `o3dreg` is installed with the package. Every sub-command prints its own help with `--help`.
 
 Global options come before the sub-command: `--version`, `-q/--quiet` (errors only),
-`-v/--verbose` (progress logging; `-vv` for debug details).
+`-v/--verbose` (progress logging; `-vv` for debug details). `build-model` and `demo` report
+their progress on standard error: a bar on a terminal, elsewhere (a log file, a CI job) a line
+per finished patient and per step.
 
 Exit status:
 

@@ -409,12 +409,10 @@ def named_as(name: str, parameter: str = "path") -> Iterator[None]:
         yield
     except (TypeError, ValueError, OSError, RuntimeError) as exc:
         text, old = str(exc), f"`{parameter}`"
-        if name == parameter or old not in text:
+        # Only the built-in types are remade: a subclass may carry fields its message omits.
+        if name == parameter or old not in text or type(exc).__module__ != "builtins":
             raise
-        try:
-            renamed = type(exc)(text.replace(old, f"`{name}`"))
-        except TypeError:  # an exception type that takes other arguments: keep it as it is
-            raise exc from exc.__cause__
+        renamed = type(exc)(text.replace(old, f"`{name}`"))
         raise renamed.with_traceback(exc.__traceback__) from exc.__cause__
 
 

@@ -34,13 +34,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from .._validation import as_mesh_arrays, as_transformation, check_bool, check_referenced
 from ..io import json_text
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 from ..registration.options import DistanceEstimation, ElasticCriteria, default_levels
 from ..registration.verdict import STATUSES
+from .progress import Progress
 from .settings import RegistrationSettings, resolve_settings
 
 __all__ = ["BatchResult", "PatientRecord", "register_batch", "resume_key"]
@@ -538,8 +538,9 @@ def register_batch(
     force : bool, optional
         Register again patients already finished in ``output_dir``. Default ``False``.
     progress : bool, optional
-        Show a tqdm progress bar (patients done, current patient, elapsed and remaining time) on
-        stderr. Default ``False``.
+        Report progress on stderr: a tqdm bar (patients done, current patient, elapsed and
+        remaining time) on a terminal or in a notebook, elsewhere (a log, a CI job) a line per
+        finished patient. Default ``False``.
     callback : callable, optional
         Called with each :class:`PatientRecord` as it is saved (also for skipped ones).
     settings : RegistrationSettings, optional
@@ -682,13 +683,8 @@ def _run_batch(
         else:
             todo.append(i)
 
-    bar = tqdm(
-        total=len(names),
-        initial=len(names) - len(todo),
-        desc="patients",
-        unit="patient",
-        disable=not progress,
-        dynamic_ncols=True,
+    bar = Progress(
+        len(names), len(names) - len(todo), "patients", "patient", enabled=bool(progress)
     )
 
     def source_of(i: int) -> str:
@@ -709,8 +705,7 @@ def _run_batch(
         if record.status == "failed":
             _write_json(os.path.join(output_dir, f"{name}.json"), record.as_dict())
         records[name] = record
-        bar.set_postfix_str(f"last: {name} ({record.status})")
-        bar.update(1)
+        bar.done(f"{name} ({record.verdict or record.status})")
         if callback is not None:
             callback(record)
 
@@ -728,7 +723,7 @@ def _run_batch(
     try:
         if executor is None:
             for i in todo:
-                bar.set_postfix_str(f"current: {names[i]}")
+                bar.current(names[i])
                 settle(
                     i, functools.partial(_register_one, template, targets[i], inits[i], settings)
                 )

@@ -46,6 +46,7 @@ from ..volume.volume import Volume
 from .batch import BatchResult, register_batch, resume_key, save_registered
 from .datasets import headsq_path
 from .population import check_population
+from .progress import announce
 from .report import write_report
 from .synthetic import SmoothWarp
 
@@ -169,7 +170,8 @@ def run_demo(
     seed : int
         Seed of the synthetic population.
     progress : bool
-        Show a progress bar for the batch.
+        Report progress on stderr: each step of the pipeline as it ends, and the batch's
+        patients (a bar on a terminal, a line per patient elsewhere).
     executor : concurrent.futures.Executor, optional
         Runs the batch's registrations in parallel.
 
@@ -189,6 +191,8 @@ def run_demo(
     def step(text: str) -> None:
         logger.info(text)
         figures["steps"].append(text)
+        if progress:
+            announce(text)
 
     volume = read_volume(headsq_path())
     reference = bone_mesh(volume)
@@ -229,6 +233,8 @@ def run_demo(
     # into the batch folder, the batch skips it rather than registering it again.
     first = patients[0]
     comparison = {}
+    if progress:
+        announce(f"single and symmetric distance on {first.name} (the paper's Table 1)")
     (out / "registered").mkdir()
     for name, method in (("single", DistanceEstimation(symmetric=False)), ("symmetric", None)):
         began = time.perf_counter()
@@ -312,5 +318,7 @@ def run_demo(
 
     seconds = time.perf_counter() - start
     figures["seconds"] = seconds
+    if progress:
+        announce("report: pictures, pages and the explorer")
     report = write_report(out, template, patients, batch, model, figures)
     return DemoResult(out, report, model, batch, float(errors.mean()), seconds)

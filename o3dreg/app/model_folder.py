@@ -27,6 +27,7 @@ import open3d as o3d
 from .._geometry import turned_triangles
 from .._validation import check_bool
 from ..io import json_text
+from ..io.landmark_files import read_landmarks, select_labels
 from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
 from ..registration.options import ElasticLevel
 from ..shape.build import build_shape_model
@@ -37,6 +38,7 @@ from ..shape.statismo import write_statismo
 from .batch import BatchResult, register_batch, stored_source, write_summary
 from .explorer import write_model_explorer
 from .population import check_population
+from .progress import announce
 from .settings import RegistrationSettings
 
 logger = logging.getLogger("o3dreg")
@@ -292,6 +294,7 @@ def build_model_folder(
     progress: bool = False,
     settings: RegistrationSettings | None = None,
     landmarks: str | os.PathLike[str] | None = None,
+    landmark_labels: Sequence[str] | None = None,
     keep_flagged: bool = False,
     levels: Sequence[ElasticLevel] | None = None,
     scaling: bool = False,
@@ -317,7 +320,8 @@ def build_model_folder(
         Without it such a folder is refused before any work; a folder holding only finished
         registrations (an interrupted run) is resumed either way.
     progress : bool, optional
-        Show a progress bar.
+        Report progress on stderr: the patients (a bar on a terminal, a line per patient
+        elsewhere) and the steps after them.
     settings : RegistrationSettings, optional
         How each patient is registered: the same settings as ``o3dreg register`` (levels,
         regularisation, single/symmetric distance, robust settings, start). Default
@@ -327,6 +331,10 @@ def build_model_folder(
         landmarks of :func:`patient_landmark_file` (``PATH/NAME.mrk.json``, ``.fcsv`` or
         ``.csv``), paired by label: a rigid fit, or a similarity when
         ``settings.start == 'similarity'``. A patient without one raises before any work.
+    landmark_labels : sequence of str, optional
+        The landmarks of ``landmarks`` (and of each patient's file) to pair, e.g. those of the
+        anatomy the meshes show; each must be in every file. Default: every landmark, the
+        same labels in every file.
     keep_flagged : bool, optional
         Put patients whose verdict is ``'suspect'`` or ``'failed'`` in the model too. Default
         ``False``: only ``'ok'`` patients; the others are listed in ``report.json`` with their
@@ -372,6 +380,11 @@ def build_model_folder(
     check_inputs_outside(output, targets)
     if landmarks is not None:
         check_inputs_outside(output, [landmarks], "landmarks")
+        if landmark_labels is not None:  # the template's file named, before any patient's
+            available = read_landmarks(landmarks)[0]
+            select_labels(available, landmark_labels, repr(os.fspath(landmarks)), "landmark_labels")
+    elif landmark_labels is not None:
+        raise ValueError("`landmark_labels` chooses landmarks of `landmarks`: give `landmarks`")
     _check_distinct_patients(targets)
     inits = None
     if landmarks is not None:
@@ -379,7 +392,7 @@ def build_model_folder(
         for t in targets:
             marks = patient_landmark_file(t)
             try:
-                starts.append(settings.landmark_start(landmarks, marks))
+                starts.append(settings.landmark_start(landmarks, marks, labels=landmark_labels))
             except ValueError as exc:  # name the patient: the message names only the roles
                 raise ValueError(f"patient {os.fspath(t)!r} ({marks!r}): {exc}") from exc
         inits = np.stack(starts)
@@ -420,6 +433,8 @@ def build_model_folder(
         faces = np.asarray(template.triangles)
         slid = None
         if slide:
+            if progress:
+                announce(f"sliding the semilandmarks of {len(names)} patients")
             used = set(names)
             surfaces = [read_triangle_mesh(r.source) for r in batch.registered if r.name in used]
             slid = slide_semilandmarks(shapes, surfaces, scaling=scaling, faces=faces)
@@ -450,6 +465,8 @@ def build_model_folder(
         # folder beside the model's and moved into place once all are written, so a failed or
         # interrupted run (a full disk, Ctrl-C) leaves the folder's earlier model as it was and
         # never a half-built one. The registrations stay for the rerun.
+        if progress:
+            announce(f"model of {len(names)} patients: files, quality curves and the explorer")
         staging = tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=out)
         try:
             model.save(os.path.join(staging, "model.npz"), overwrite=True)

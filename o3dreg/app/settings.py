@@ -117,11 +117,17 @@ class RegistrationSettings:
         }
         return _plain(description)
 
-    def landmark_start(self, template_landmarks: Any, patient_landmarks: Any) -> np.ndarray:
+    def landmark_start(
+        self, template_landmarks: Any, patient_landmarks: Any, *, labels: Any = None
+    ) -> np.ndarray:
         """The ``init`` from corresponding landmarks (rigid, or a similarity when ``start`` is
-        ``'similarity'``)."""
+        ``'similarity'``): :func:`~o3dreg.registration_landmarks`, with the pairs of ``labels``
+        only when given."""
         return registration_landmarks(
-            template_landmarks, patient_landmarks, with_scaling=self.start == "similarity"
+            template_landmarks,
+            patient_landmarks,
+            with_scaling=self.start == "similarity",
+            labels=labels,
         ).transformation
 
     def register(

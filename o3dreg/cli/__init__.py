@@ -203,6 +203,7 @@ API_NAMES = {
     "plane": "crop_plane",
     "resolution": "levels",
     "number_of_modes": "modes",
+    "landmark_labels": "labels",
 }
 
 

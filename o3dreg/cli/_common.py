@@ -47,6 +47,28 @@ def float_list(text: str) -> list[float]:
     return _number_list(text, float, "numbers", 0.0)
 
 
+def label_list(text: str) -> list[str]:
+    """``"chin,mand_r"`` -> ``["chin", "mand_r"]`` (landmark labels, spaces around them
+    dropped), for argparse ``type=``."""
+    items = [v.strip() for v in text.split(",")]
+    if not all(items):
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated landmark labels with no empty item, got {text!r}"
+        )
+    return items
+
+
+def add_labels_option(parser: argparse.ArgumentParser, files: str) -> None:
+    """``--labels``: the landmarks of ``files`` to use, by label."""
+    parser.add_argument(
+        "--labels",
+        type=label_list,
+        metavar="LABEL,...",
+        help=f"use only these landmarks of {files} (comma-separated labels, e.g. "
+        "chin,mand_r,mand_l; default all): leave out landmarks of anatomy the meshes do not show",
+    )
+
+
 def finite_float(text: str) -> float:
     """A finite number, for argparse ``type=`` (``nan`` and ``inf`` are refused)."""
     try:

@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
     if args.jobs < 1:
         raise ValueError(f"--jobs must be >= 1, got {args.jobs}")
     folder, earlier = prepare_output(args.output)
-    show = not args.quiet and not args.json and sys.stderr.isatty()  # bars on a terminal only
+    show = not args.quiet and not args.json
     emit(f"o3dreg demo: CT -> bone -> template -> {args.patients} patients -> shape model", args)
     # The run writes into a hidden folder and replaces the earlier demo's files only once it
     # has finished: Ctrl-C or an error leaves them as they were.

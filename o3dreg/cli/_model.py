@@ -20,11 +20,13 @@ from .._validation import named_as
 from ..app.explorer import write_model_explorer
 from ..app.model_folder import build_model_folder, check_inputs_outside, existing_model_files
 from ..io import json_text
-from ..io.landmark_files import LANDMARK_SUFFIXES
+from ..io.landmark_files import LANDMARK_SUFFIXES, select_labels
 from ..io.mesh import read_triangle_mesh
 from ..registration.options import ElasticLevel
 from ..shape.landmark_transfer import (
+    LANDMARK_REACH,
     PREDICTION_ONTO,
+    OffTemplateError,
     landmark_errors,
     load_template_landmarks,
     predict_landmarks,
@@ -36,6 +38,7 @@ from ..shape.statismo import read_statismo
 from ._common import (
     add_jobs_option,
     add_json_option,
+    add_labels_option,
     add_overwrite_option,
     all_or_nothing,
     check_outputs,
@@ -45,7 +48,12 @@ from ._common import (
     process_pool,
     standard_deviations,
 )
-from ._registration_options import add_registration_options, settings_from_args
+from ._registration_options import (
+    add_registration_options,
+    far_landmark_warnings,
+    far_landmarks,
+    settings_from_args,
+)
 
 logger = logging.getLogger("o3dreg")
 
@@ -60,8 +68,8 @@ the median; five patients or more) becomes 'suspect'. Only 'ok' patients enter t
 
 landmarks: with --landmarks TEMPLATE_FILE, patient PATH/NAME.EXT is started from the landmarks
 in PATH/NAME.mrk.json, PATH/NAME.fcsv or PATH/NAME.csv (the first that exists; labels paired
-with the template's). A patient without a landmark file stops the command before any
-registration.
+with the template's: the same labels in every file, or those of --labels, which every file must
+hold). A patient without a landmark file stops the command before any registration.
 
 exit status: 0 every patient registered with verdict 'ok'; 1 a patient failed or was flagged
 (the model is built from the others), or fewer than 2 'ok' patients; 2 bad input."""
@@ -82,8 +90,14 @@ worse of the two is reported).
 exit status: 0 verdict 'ok'; 1 'suspect' or 'failed' (outputs written, the reasons printed);
 2 bad input.
 
+landmarks: every landmark of --landmarks must lie on the template (a .h5 model: its mean
+shape), within 5% of its size; --labels chooses those to predict from a file that also holds
+others (a Slicer file with landmarks of the skull beside a mandible's), and --truth then needs
+only those.
+
 examples:
   o3dreg model fit model/ patient.ply --landmarks landmarks.mrk.json
+  o3dreg model fit model/ patient.ply --landmarks lm.fcsv --labels chin,mand_r,mand_l
   o3dreg model fit model.h5 patient.ply --landmarks lm.csv --truth truth.csv --json"""
 
 
@@ -109,8 +123,9 @@ def add_parser(subparsers: Any) -> None:
         "--landmarks",
         metavar="TEMPLATE_FILE",
         help="start each registration from landmarks: TEMPLATE_FILE on the template, and per "
-        "patient PATIENT.mrk.json or PATIENT.csv beside PATIENT's mesh (same stem)",
+        "patient PATIENT.mrk.json, PATIENT.fcsv or PATIENT.csv beside PATIENT's mesh (same stem)",
     )
+    add_labels_option(build, "TEMPLATE_FILE and the patients' files")
     build.add_argument(
         "--keep-flagged",
         action="store_true",
@@ -178,6 +193,7 @@ def add_parser(subparsers: Any) -> None:
         help="landmarks on the model's template (a model folder) or on its mean shape, in the "
         "model's frame (a .h5 file) (.mrk.json, .fcsv, .csv, .pp; LPS)",
     )
+    add_labels_option(fit, "--landmarks")
     fit.add_argument("--truth", help="true landmarks on the patient, to report errors")
     fit.add_argument(
         "-o", "--output", help="write predicted landmarks (.mrk.json, .fcsv, .csv, .pp; LPS)"
@@ -230,7 +246,12 @@ def run_build(args: argparse.Namespace) -> int:
     _check_model_folder(args.output, args.overwrite)
     # model.py writes OUT/template.ply: a template file there would be replaced by its copy.
     check_inputs_outside(args.output, [args.template], "TEMPLATE")
+    if args.labels and not args.landmarks:
+        raise ValueError("--labels chooses landmarks of --landmarks: give --landmarks")
     template = read_triangle_mesh(args.template, name="TEMPLATE")
+    if args.landmarks:
+        with named_as("--landmarks"):
+            _warn_far_template_landmarks(args.landmarks, template, args.labels)
     # The library names the patient files `targets` and the landmark files `landmarks`,
     # `source` (the template's) and `target` (a patient's): the user typed TARGET and --landmarks.
     with (
@@ -247,9 +268,10 @@ def run_build(args: argparse.Namespace) -> int:
             executor=executor,
             force=args.force,
             overwrite=args.overwrite,
-            progress=not (args.json or args.quiet) and sys.stderr.isatty(),
+            progress=not (args.json or args.quiet),
             settings=settings_from_args(args, template),
             landmarks=args.landmarks,
+            landmark_labels=args.labels,
             keep_flagged=args.keep_flagged,
             scaling=args.scaling,
             slide=args.slide,
@@ -306,6 +328,16 @@ def run_build(args: argparse.Namespace) -> int:
         )
         code = 1
     return code
+
+
+def _warn_far_template_landmarks(path: str, template: Any, labels: list[str] | None) -> None:
+    """Name the landmarks of ``path`` (those of ``labels``) off the template's surface, as
+    ``o3dreg register --landmarks`` does: they steer every patient's start all the same."""
+    available = read_landmarks(path)[0]
+    used = [available[k] for k in select_labels(available, labels, repr(path))]
+    far = far_landmarks(path, template, used)
+    for line in far_landmark_warnings([("template", *far)], used):
+        logger.warning("build-model: %s", line)
 
 
 def _check_model_folder(output: str, overwrite: bool) -> None:
@@ -435,14 +467,24 @@ def run_fit(args: argparse.Namespace) -> int:
         model.check_template(template, "MODEL/template.ply")
     try:
         with named_as("--landmarks"):
-            landmarks = load_template_landmarks(args.landmarks, template)
-    except ValueError as exc:
+            landmarks = load_template_landmarks(args.landmarks, template, labels=args.labels)
+    except OffTemplateError as exc:
+        far = ", ".join(f"{label} ({d:.3g})" for label, d in zip(exc.far, exc.distances))
+        where = "template" if not _is_statismo(args.model_dir) else "model's mean shape"
+        message = (
+            f"--landmarks {args.landmarks!r}: landmarks off the {where} (farther than "
+            f"{exc.max_distance:.3g} from its surface, {LANDMARK_REACH:.0%} of its size): {far}"
+        )
+        if exc.near:
+            raise ValueError(
+                f"{message}; choose the landmarks on it with --labels {','.join(exc.near)}"
+            ) from None
         if not _is_statismo(args.model_dir):
-            raise
+            raise ValueError(f"{message}; are they placed on this template?") from None
         centre = np.asarray(template.vertices).mean(axis=0)
         raise ValueError(
-            f"{exc}; a .h5 model holds no template: its landmarks go on its mean shape, in the "
-            f"model's frame (centred at {np.round(centre, 3).tolist()}): place them on "
+            f"{message}; a .h5 model holds no template: its landmarks go on its mean shape, in "
+            f"the model's frame (centred at {np.round(centre, 3).tolist()}): place them on "
             "`o3dreg model modes` mean.ply, or use the model folder, whose template.ply is in "
             "the patients' frame"
         ) from None

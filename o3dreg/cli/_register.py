@@ -7,28 +7,24 @@ import logging
 import os
 import sys
 import time
-import warnings
-from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
 from .._validation import named_as
 from ..app.explorer import write_registration_explorer
-from ..io.landmark_files import read_landmarks
 from ..io.mesh import (
     SEMILANDMARK_SUFFIXES,
     check_semilandmark_suffix,
     read_triangle_mesh,
     write_triangle_mesh,
 )
-from ..registration.distance import SurfaceDistanceQuery
 from ..registration.landmark_start import registration_landmarks
 from ..registration.options import default_levels
 from ..registration.result import ElasticRegistrationResult, LevelReport
-from ..shape.landmark_transfer import LANDMARK_REACH
 from ._common import (
     add_json_option,
+    add_labels_option,
     add_overwrite_option,
     all_or_nothing,
     check_outputs,
@@ -36,7 +32,12 @@ from ._common import (
     emit_json,
     write_json,
 )
-from ._registration_options import add_registration_options, settings_from_args
+from ._registration_options import (
+    add_registration_options,
+    far_landmark_warnings,
+    far_landmarks,
+    settings_from_args,
+)
 
 logger = logging.getLogger("o3dreg")
 
@@ -86,6 +87,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="start from corresponding landmarks (CSV label,x,y,z, Slicer .mrk.json or .fcsv, "
         "paired by label): a rigid fit, a similarity with --with-scaling; replaces the rigid search",
     )
+    add_labels_option(p, "both --landmarks files")
     p.add_argument("--project", action="store_true", help="move vertices onto the target surface")
     p.add_argument("--deformation", help="also write the deformation (.npz)")
     p.add_argument("--report", help="also write a JSON report")
@@ -133,30 +135,6 @@ def report_dict(result: ElasticRegistrationResult, **extra) -> dict:
     }
 
 
-def _off_surface(path: str, mesh: Any, side: str, used: tuple[str, ...]) -> list[str]:
-    """A sentence naming the paired landmarks of ``path`` farther from ``mesh`` than
-    :data:`~o3dreg.shape.landmark_transfer.LANDMARK_REACH` of its size (anatomy the mesh does not
-    show: they steer the start all the same)."""
-    with warnings.catch_warnings():  # the file's own warnings were given when it was read
-        warnings.simplefilter("ignore")
-        labels, points = read_landmarks(path)
-    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-    limit = LANDMARK_REACH * float(np.linalg.norm(np.ptp(vertices, axis=0)))
-    # A handful of points: no tree of the whole patient (the registration builds its own).
-    distance = SurfaceDistanceQuery(vertices, faces).closest_few(np.asarray(points))[0]
-    far = [
-        f"{label} ({d:.3g})" for label, d in zip(labels, distance) if label in used and d > limit
-    ]
-    if not far:
-        return []
-    return [
-        f"{side} landmarks far from the {side} surface (more than {limit:.3g}, "
-        f"{LANDMARK_REACH:.0%} of its size): "
-        f"{', '.join(far)}; they steer the start all the same: leave out landmarks of anatomy "
-        "the meshes do not show"
-    ]
-
-
 def run(args: argparse.Namespace) -> int:
     # The registered template is a semilandmark mesh: its vertex order must survive the file.
     if args.output.lower().endswith(".stl"):
@@ -185,6 +163,16 @@ def run(args: argparse.Namespace) -> int:
     settings_from_args(args)  # the options checked before any file is read
     if args.landmarks and args.no_rigid:
         raise ValueError("--landmarks and --no-rigid: choose one start")
+    if args.labels and not args.landmarks:
+        raise ValueError("--labels chooses landmarks of --landmarks: give --landmarks")
+    # The landmark files and --labels checked before the meshes are read.
+    fit = None
+    if args.landmarks:
+        # The library names the two files `source` and `target`: the user typed --landmarks.
+        with named_as(LANDMARK_FILES[0], "source"), named_as(LANDMARK_FILES[1], "target"):
+            fit = registration_landmarks(
+                *args.landmarks, with_scaling=args.with_scaling, labels=args.labels
+            )
     source = read_triangle_mesh(args.source, name="SOURCE")
     settings = settings_from_args(args, source)
     levels = settings.levels or default_levels(source)
@@ -194,8 +182,8 @@ def run(args: argparse.Namespace) -> int:
         f"target {args.target}: {len(target.vertices)} vertices",
         args,
     )
-    # The progress bar on a terminal only (as build-model): a log file gets no bar, and the
-    # per-level lines through the logger (-v).
+    # The progress bar on a terminal only: one registration takes seconds, so a log file gets
+    # no per-level lines unless asked for (-v, through the logger).
     show = not args.quiet and not args.json and sys.stderr.isatty()
     bar = None
     if show:
@@ -216,20 +204,20 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     init = None
     landmark_start = None
-    if args.landmarks:
-        # The library names the two files `source` and `target`: the user typed --landmarks.
-        with named_as(LANDMARK_FILES[0], "source"), named_as(LANDMARK_FILES[1], "target"):
-            fit = registration_landmarks(*args.landmarks, with_scaling=args.with_scaling)
+    if fit is not None:
         emit(
             f"start from {len(fit.labels)} landmark pairs: residual rms {fit.rms:.3g}, "
             f"max {float(fit.residuals.max()):.3g}, scale {fit.scale:.4g}",
             args,
         )
         init = fit.transformation
-        far = [
-            *_off_surface(args.landmarks[0], source, "template", fit.labels),
-            *_off_surface(args.landmarks[1], target, "patient", fit.labels),
-        ]
+        far = far_landmark_warnings(
+            [
+                ("template", *far_landmarks(args.landmarks[0], source, fit.labels)),
+                ("patient", *far_landmarks(args.landmarks[1], target, fit.labels)),
+            ],
+            fit.labels,
+        )
         for line in far:
             logger.warning("register: %s", line)
         landmark_start = {

@@ -10,10 +10,16 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import warnings
+from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
+
 from ..app.settings import RegistrationSettings
+from ..io.landmark_files import read_landmarks
+from ..registration.distance import SurfaceDistanceQuery
 from ..registration.options import (
     DistanceEstimation,
     ElasticCriteria,
@@ -21,6 +27,7 @@ from ..registration.options import (
     default_levels,
     paper_levels,
 )
+from ..shape.landmark_transfer import LANDMARK_REACH
 from ._common import float_list, int_list
 
 #: DistanceEstimation fields set by the options below (option dest -> field).
@@ -203,3 +210,38 @@ def settings_from_args(args: argparse.Namespace, template: Any = None) -> Regist
         parts=args.parts or "joint",
         start=start,
     )
+
+
+# -- the landmark start (register --landmarks, build-model --landmarks) ---------------------------
+def far_landmarks(path: str, mesh: Any, used: Sequence[str]) -> tuple[dict[str, float], float]:
+    """The landmarks of ``path`` among ``used`` farther from ``mesh`` than
+    :data:`~o3dreg.shape.landmark_transfer.LANDMARK_REACH` of its size (anatomy the mesh does
+    not show), with their distances, and that limit."""
+    with warnings.catch_warnings():  # the file's own warnings were given when it was read
+        warnings.simplefilter("ignore")
+        labels, points = read_landmarks(path)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    limit = LANDMARK_REACH * float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    # A handful of points: no tree of the whole mesh (the registration builds its own).
+    distance = SurfaceDistanceQuery(vertices, faces).closest_few(np.asarray(points))[0]
+    far = {label: float(d) for label, d in zip(labels, distance) if label in used and d > limit}
+    return far, limit
+
+
+def far_landmark_warnings(
+    sides: Sequence[tuple[str, dict[str, float], float]], used: Sequence[str]
+) -> list[str]:
+    """One sentence per side (``(name, far landmarks, limit)`` of :func:`far_landmarks`) with
+    landmarks off its surface; it names the ``--labels`` that leave them out when 3 pairs
+    remain."""
+    off = {label for _, far, _ in sides for label in far}
+    near = [label for label in used if label not in off]
+    hint = f" (--labels {','.join(near)})" if len(near) >= 3 else ""
+    return [
+        f"{side} landmarks far from the {side} surface (more than {limit:.3g}, "
+        f"{LANDMARK_REACH:.0%} of its size): "
+        f"{', '.join(f'{label} ({d:.3g})' for label, d in far.items())}; they steer the start "
+        f"all the same: leave out landmarks of anatomy the meshes do not show{hint}"
+        for side, far, limit in sides
+        if far
+    ]

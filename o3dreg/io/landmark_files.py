@@ -35,6 +35,7 @@ import io
 import json
 import os
 import warnings
+from collections.abc import Iterable, Sequence
 from typing import Any
 from xml.etree import ElementTree
 from xml.sax.saxutils import quoteattr
@@ -66,6 +67,44 @@ def check_landmark_suffix(path: str, name: str) -> str:
         if low.endswith(suffix):
             return suffix
     raise ValueError(f"`{name}` must end with one of {', '.join(LANDMARK_SUFFIXES)}, got {path!r}")
+
+
+def select_labels(
+    available: Sequence[str], labels: Any, where: str, name: str = "labels"
+) -> list[int]:
+    """Indices into ``available`` (a file's landmark labels) of the chosen ``labels``, in their
+    order; every index when ``labels`` is ``None``.
+
+    ``where`` names the file in the messages (``"'lm.fcsv'"``), ``name`` the parameter.
+    ``TypeError`` unless ``labels`` is ``None`` or a sequence of str; ``ValueError`` for no
+    label, a repeated label, or a label the file does not hold (naming the file's labels and
+    the ones received).
+    """
+    if labels is None:
+        return list(range(len(available)))
+    if isinstance(labels, (str, bytes)) or not isinstance(labels, Iterable):
+        raise TypeError(
+            f"`{name}` must be a sequence of landmark labels, got {type(labels).__name__}"
+            + (f" {labels!r} (write [{labels!r}])" if isinstance(labels, str) else "")
+        )
+    chosen = list(labels)
+    wrong = [type(lab).__name__ for lab in chosen if not isinstance(lab, str)]
+    if wrong:
+        raise TypeError(f"`{name}` must be landmark labels (str), got {', '.join(wrong)}")
+    if not chosen:
+        raise ValueError(f"`{name}` must name at least one landmark, got none")
+    repeated = sorted({lab for lab in chosen if chosen.count(lab) > 1})
+    if repeated:
+        raise ValueError(f"`{name}` repeats {repeated}")
+    unknown = [lab for lab in chosen if lab not in available]
+    if unknown:
+        raise ValueError(
+            f"`{name}` must name landmarks of {where}, which holds {', '.join(available)}; "
+            f"got {', '.join(chosen)}: {', '.join(map(repr, unknown))} "
+            f"{'is' if len(unknown) == 1 else 'are'} not in it"
+        )
+    index = {lab: k for k, lab in enumerate(available)}
+    return [index[lab] for lab in chosen]
 
 
 def _system(value: Any, name: str, *, allow_none: bool = False) -> str:

@@ -17,7 +17,7 @@ import numpy as np
 
 from .._geometry import apply_transformation
 from .._validation import as_points, check_bool
-from ..io.landmark_files import read_landmarks
+from ..io.landmark_files import read_landmarks, select_labels
 
 __all__ = ["LandmarkRegistrationResult", "registration_landmarks"]
 
@@ -154,9 +154,29 @@ def _as_landmarks(value: Any, name: str) -> tuple[tuple[str, ...] | None, np.nda
     return None, as_points(value, name)
 
 
-def _pair(source: Any, target: Any) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+def _choose(
+    labels: tuple[str, ...], points: np.ndarray, chosen: Any, name: str, value: Any
+) -> tuple[tuple[str, ...], np.ndarray]:
+    """The landmarks of ``chosen`` (the ``labels`` argument) of one side, in its order."""
+    repeated = sorted({lab for lab in labels if labels.count(lab) > 1})
+    if repeated:
+        raise ValueError(f"`{name}` repeats landmark labels {repeated}")
+    path = f" {os.fspath(value)!r}" if isinstance(value, (str, os.PathLike)) else ""
+    kept = select_labels(labels, chosen, f"`{name}`{path}")
+    return tuple(labels[k] for k in kept), points[kept]
+
+
+def _pair(
+    source: Any, target: Any, chosen: Any = None
+) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
     ls, ps = _as_landmarks(source, "source")
     lt, pt = _as_landmarks(target, "target")
+    if chosen is not None:
+        if ls is None or lt is None:
+            bare = " and ".join(n for n, lab in (("`source`", ls), ("`target`", lt)) if lab is None)
+            raise ValueError(f"`labels` chooses labelled landmarks, but {bare} holds bare points")
+        ls, ps = _choose(ls, ps, chosen, "source", source)
+        lt, pt = _choose(lt, pt, chosen, "target", target)
     if ls is None or lt is None:
         if ps.shape != pt.shape:
             raise ValueError(
@@ -188,7 +208,7 @@ def _pair(source: Any, target: Any) -> tuple[tuple[str, ...], np.ndarray, np.nda
 
 
 def registration_landmarks(
-    source: Any, target: Any, *, with_scaling: bool = False
+    source: Any, target: Any, *, with_scaling: bool = False, labels: Any = None
 ) -> LandmarkRegistrationResult:
     """The rigid or similarity transformation best mapping source landmarks onto target ones.
 
@@ -205,6 +225,10 @@ def registration_landmarks(
     with_scaling : bool, optional
         Also estimate a uniform scale (a similarity: e.g. a template of another size, or
         landmarks in other units). Default ``False``.
+    labels : sequence of str, optional
+        The pairs to use, by label (labelled landmarks only): each must be on both sides, and
+        the others are left out (e.g. landmarks of anatomy a mesh does not show). Default:
+        every landmark.
 
     Returns
     -------
@@ -215,8 +239,9 @@ def registration_landmarks(
     Raises
     ------
     ValueError
-        Fewer than 3 pairs, labels that do not match, repeated labels, or landmarks on one
-        line (or in one point): the rotation about that line is undetermined.
+        Fewer than 3 pairs, labels that do not match, repeated labels, a label of ``labels``
+        missing on a side (naming that side's labels), or landmarks on one line (or in one
+        point): the rotation about that line is undetermined.
 
     References
     ----------
@@ -234,10 +259,11 @@ def registration_landmarks(
     (2.0, True)
     """
     with_scaling = check_bool(with_scaling, "with_scaling")
-    labels, ps, pt = _pair(source, target)
+    paired, ps, pt = _pair(source, target, labels)
     if ps.shape[0] < 3:
         raise ValueError(
             f"`source` and `target` must hold at least 3 landmark pairs, got {ps.shape[0]}"
+            + ("" if labels is None else f" (`labels` chooses {', '.join(paired)})")
         )
     for name, pts in (("source", ps), ("target", pt)):
         with np.errstate(over="ignore", invalid="ignore"):
@@ -258,7 +284,7 @@ def registration_landmarks(
     t = _umeyama(ps, pt, with_scaling)
     residuals = np.linalg.norm(apply_transformation(t, ps) - pt, axis=1)
     scale = float(np.cbrt(np.linalg.det(t[:3, :3])))
-    warnings = _fit_findings(labels, ps, pt, residuals, with_scaling)
+    warnings = _fit_findings(paired, ps, pt, residuals, with_scaling)
     for line in warnings:
         logger.warning("registration_landmarks: %s", line)
-    return LandmarkRegistrationResult(t, tuple(labels), residuals, scale, warnings)
+    return LandmarkRegistrationResult(t, tuple(paired), residuals, scale, warnings)

@@ -35,7 +35,12 @@ from .._validation import (
     check_positive,
     check_referenced,
 )
-from ..io.landmark_files import check_landmark_suffix, read_landmarks, write_landmarks
+from ..io.landmark_files import (
+    check_landmark_suffix,
+    read_landmarks,
+    select_labels,
+    write_landmarks,
+)
 from ..registration.distance import SurfaceDistanceQuery
 from ..registration.elastic import registration_elastic
 from ..registration.options import default_levels
@@ -59,6 +64,36 @@ logger = logging.getLogger("o3dreg")
 #: the anatomy it shows (refused by :meth:`TemplateLandmarks.from_points`; named by ``o3dreg
 #: register --landmarks``, where they still steer the start).
 LANDMARK_REACH = 0.05
+
+
+class OffTemplateError(ValueError):
+    """Landmarks too far from the template surface (:meth:`TemplateLandmarks.from_points`).
+
+    Attributes
+    ----------
+    far : tuple of str
+        The labels of the landmarks off the template, in the order given.
+    distances : tuple of float
+        Their distances from the template surface.
+    near : tuple of str
+        The labels of the others (on the template), in the order given.
+    max_distance : float
+        The distance they were refused beyond.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        far: tuple[str, ...],
+        distances: tuple[float, ...],
+        near: tuple[str, ...],
+        max_distance: float,
+    ) -> None:
+        super().__init__(message)
+        self.far = far
+        self.distances = distances
+        self.near = near
+        self.max_distance = max_distance
 
 
 @dataclass(frozen=True, eq=False)
@@ -197,9 +232,10 @@ class TemplateLandmarks:
             Positions in template coordinates. Not modified.
         labels : sequence of str, optional
         max_distance : float, optional
-            Points farther than this from the template surface raise ``ValueError`` (landmarks
-            outside the template). Default :data:`LANDMARK_REACH` (5 %) of the template's
-            bounding-box diagonal.
+            Points farther than this from the template surface raise
+            :class:`OffTemplateError` (a ``ValueError`` naming them: landmarks outside the
+            template). Default :data:`LANDMARK_REACH` (5 %) of the template's bounding-box
+            diagonal.
         on_surface : bool, optional
             Move each landmark onto its foot point (offset 0). Default ``False``: landmarks
             keep their depth.
@@ -216,9 +252,13 @@ class TemplateLandmarks:
         labels_ = _labels(labels, pts.shape[0])
         if far.any():
             which = ", ".join(f"{labels_[i]} ({dist[i]:.3g})" for i in np.flatnonzero(far))
-            raise ValueError(
+            raise OffTemplateError(
                 f"`points` must lie within {max_distance:.3g} of the template surface "
-                f"(landmarks outside the template): {which}"
+                f"(landmarks outside the template): {which}",
+                tuple(labels_[i] for i in np.flatnonzero(far)),
+                tuple(float(dist[i]) for i in np.flatnonzero(far)),
+                tuple(labels_[i] for i in np.flatnonzero(~far)),
+                float(max_distance),
             )
         tri = face.astype(np.int64)
         bary = barycentric(v[f[tri]], closest)
@@ -447,6 +487,7 @@ def load_template_landmarks(
     path: str | os.PathLike[str],
     template: Any,
     *,
+    labels: Any = None,
     max_distance: float | None = None,
     on_surface: bool = False,
 ) -> TemplateLandmarks:
@@ -458,6 +499,49 @@ def load_template_landmarks(
     converts them to LPS, the template's system) are attached to the nearest template surface
     point and keep their offset from it, unless ``on_surface`` (see
     :meth:`TemplateLandmarks.from_points`).
+
+    Parameters
+    ----------
+    path : str or path-like
+        The landmark file.
+    template : open3d.geometry.TriangleMesh or (vertices, faces)
+        The surface the landmarks are placed on. Not modified.
+    labels : sequence of str, optional
+        The file's landmarks to use, in this order (e.g. ``['chin', 'mand_r', 'mand_l']``
+        from a file that also holds landmarks off the template's anatomy). Default: every
+        landmark of the file, in its order.
+    max_distance : float, optional
+        As in :meth:`TemplateLandmarks.from_points`, for positions.
+    on_surface : bool, optional
+        As in :meth:`TemplateLandmarks.from_points`, for positions.
+
+    Returns
+    -------
+    TemplateLandmarks
+        The chosen landmarks, labelled as in the file.
+
+    Raises
+    ------
+    OffTemplateError
+        A ``ValueError``: positions farther than ``max_distance`` from the template surface,
+        named, with the ``labels`` of the others to choose.
+    ValueError
+        A label of ``labels`` the file does not hold (naming the file's labels), repeated
+        labels, or malformed rows.
+
+    Examples
+    --------
+    A file with a landmark off the template (``far``), the others chosen:
+
+    >>> import os, tempfile
+    >>> import numpy as np
+    >>> from o3dreg import load_template_landmarks, write_landmarks
+    >>> template = (np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0]]), np.array([[0, 1, 2]]))
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     path = os.path.join(folder, "lm.csv")
+    ...     _ = write_landmarks(path, ["a", "far", "b"], [[1, 1, 0], [0, 0, 90], [5, 2, 0]])
+    ...     load_template_landmarks(path, template, labels=["b", "a"]).labels
+    ('b', 'a')
     """
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"`path` must be a path, got {type(path).__name__}")
@@ -478,9 +562,14 @@ def load_template_landmarks(
                 f"`path`: {path!r} is not UTF-8 text (byte {exc.object[exc.start]:#04x} at "
                 f"{exc.start}): save it as UTF-8"
             ) from None
-        if rows:
-            keys = set(rows[0])
+        keys = set(rows[0]) if rows else set()
+        if "vertex" in keys or {"triangle", "b0", "b1", "b2"} <= keys:
             lab = [str(r.get("label") or f"L{k + 1}").strip() for k, r in enumerate(rows)]
+            repeated = _repeated(tuple(lab))
+            if repeated:
+                raise ValueError(f"`path`: {path!r} repeats landmark labels {repeated}")
+            chosen = select_labels(lab, labels, repr(path))
+            rows, lab = [rows[k] for k in chosen], [lab[k] for k in chosen]
             try:
                 if "vertex" in keys:
                     idx = np.array([int(r["vertex"]) for r in rows])
@@ -493,13 +582,28 @@ def load_template_landmarks(
                 if isinstance(exc, ValueError) and "template" in str(exc):
                     raise
                 raise ValueError(f"`path`: {path!r} has malformed landmark rows: {exc}") from exc
-    labels, points = read_landmarks(path)
-    repeated = _repeated(tuple(labels))
+    available, points = read_landmarks(path)
+    repeated = _repeated(tuple(available))
     if repeated:
         raise ValueError(f"`path`: {path!r} repeats landmark labels {repeated}")
-    return TemplateLandmarks.from_points(
-        template, points, labels, max_distance=max_distance, on_surface=on_surface
-    )
+    chosen = select_labels(available, labels, repr(path))
+    try:
+        return TemplateLandmarks.from_points(
+            template,
+            points[chosen],
+            [available[k] for k in chosen],
+            max_distance=max_distance,
+            on_surface=on_surface,
+        )
+    except OffTemplateError as exc:
+        hint = (
+            f"; choose the landmarks on the template with `labels` (labels={list(exc.near)})"
+            if exc.near
+            else "; none lies on it: are the landmarks placed on this template, in its frame?"
+        )
+        raise OffTemplateError(
+            f"`path`: {path!r}: {exc}{hint}", exc.far, exc.distances, exc.near, exc.max_distance
+        ) from None
 
 
 # -- prediction -------------------------------------------------------------------------------------

@@ -238,3 +238,16 @@ def test_settings_with_a_term_holding_arrays_describe_themselves_as_json():
     text = json.dumps(settings.as_dict())
     described = json.loads(text)["estimation_method"]["more_terms"][0]
     assert described == {"vertices": [1, 2], "points": [[0.0, 0.0, 0.0]] * 2}
+
+
+def test_progress_off_a_terminal_is_a_line_per_patient(small, tmp_path, capsys):
+    # A bar redraws with carriage returns: in a log or a CI job it reads as nothing until the
+    # end. There each finished patient is a line (skipped ones count as done from the start).
+    template, targets, _poses = small
+    out = tmp_path / "out"
+    register_batch(template, targets[:1], out, levels=FAST)
+    capsys.readouterr()  # pytest's capture is no terminal
+    result = register_batch(template, targets[:2], out, levels=FAST, progress=True)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("patients")]
+    assert len(lines) == 1 and "\r" not in lines[0]
+    assert lines[0].startswith(f"patients 2/2: patient001 ({result.records[1].verdict}) (")

@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 from _helpers import population
 
-from o3dreg import read_triangle_mesh, write_landmarks, write_triangle_mesh
+from o3dreg import (
+    read_triangle_mesh,
+    registration_landmarks,
+    write_landmarks,
+    write_triangle_mesh,
+)
 from o3dreg.app.model_folder import build_model_folder, patient_landmark_file
 from o3dreg.app.population import population_findings
 from o3dreg.app.settings import RegistrationSettings
@@ -41,6 +46,51 @@ def test_landmark_file_naming_rule(tmp_path):
     assert patient_landmark_file(mesh) == str(tmp_path / "case01.fcsv")  # Slicer's own
     (tmp_path / "case01.mrk.json").write_text("{}")
     assert patient_landmark_file(str(mesh)) == str(tmp_path / "case01.mrk.json")
+
+
+def test_landmark_labels_choose_the_pairs_of_every_patient(tmp_path):
+    # The template's file also holds a landmark the patients' files lack: the labels chosen are
+    # paired, in every file; one the template's file lacks is refused before any work.
+    (tv, tf), targets, truths, _, poses = population(2, seed=3)
+    picks = [0, 40, 80]
+    write_triangle_mesh(tmp_path / "template.ply", (tv, tf))
+    template = read_triangle_mesh(tmp_path / "template.ply")
+    write_landmarks(tmp_path / "template.csv", ["a", "b", "c", "skull"], tv[[*picks, 120]])
+    paths = []
+    for i, target in enumerate(targets):
+        write_triangle_mesh(tmp_path / f"p{i}.ply", target)
+        truth = truths[i][picks] @ poses[i][:3, :3].T + poses[i][:3, 3]
+        write_landmarks(tmp_path / f"p{i}.csv", ["a", "b", "c"], truth)
+        paths.append(str(tmp_path / f"p{i}.ply"))
+    settings = RegistrationSettings(levels=(ElasticLevel(2),))
+    start = settings.landmark_start(
+        tmp_path / "template.csv", tmp_path / "p0.csv", labels=["a", "b", "c"]
+    )
+    own = registration_landmarks((["a", "b", "c"], tv[picks]), tmp_path / "p0.csv")
+    np.testing.assert_allclose(start, own.transformation)  # the 3 pairs chosen, no more
+    with pytest.raises(ValueError, match=r"\['skull'\] only in `source`"):
+        settings.landmark_start(tmp_path / "template.csv", tmp_path / "p0.csv")
+    with pytest.raises(
+        ValueError,
+        match=r"`landmark_labels` must name landmarks of '.*template.csv', which holds a, b, c, "
+        r"skull; got a, nose: 'nose' is not in it",
+    ):
+        build_model_folder(
+            template, paths, str(tmp_path / "bad"), settings=settings,
+            landmarks=tmp_path / "template.csv", landmark_labels=["a", "nose"],
+        )  # fmt: skip
+    assert not (tmp_path / "bad").exists()
+    with pytest.raises(ValueError, match="`landmark_labels` chooses landmarks of `landmarks`"):
+        build_model_folder(template, paths, str(tmp_path / "bad"), landmark_labels=["a"])
+    folder = build_model_folder(
+        template,
+        paths,
+        str(tmp_path / "model"),
+        settings=settings,
+        landmarks=tmp_path / "template.csv",
+        landmark_labels=["a", "b", "c"],
+    )
+    assert len(folder.batch.registered) == 2
 
 
 def test_a_patient_in_other_units_is_flagged_and_left_out(tmp_path, capsys):

@@ -94,6 +94,38 @@ def test_bad_pairs_are_refused():
         registration_landmarks(POINTS * 1e306, POINTS)
 
 
+def test_labels_choose_the_pairs(tmp_path):
+    # A file holding landmarks of anatomy the other side lacks (or placed elsewhere): `labels`
+    # pairs only those chosen; each must be on both sides.
+    truth = similarity(angle=60.0)
+    target = POINTS @ truth[:3, :3].T + truth[:3, 3]
+    target[4] += (0.0, 300.0, 0.0)  # 'vertex' placed on something else on the patient
+    write_landmarks(tmp_path / "t.fcsv", [*LABELS, "skull"], np.vstack([POINTS, [0, 0, 900]]))
+    chosen = ["chin", "nasion", "left orbit", "right orbit"]
+    result = registration_landmarks(tmp_path / "t.fcsv", (LABELS, target), labels=chosen)
+    assert result.labels == tuple(chosen) and result.rms < 1e-9 and result.warnings == ()
+    np.testing.assert_allclose(result.transformation, truth, atol=1e-9)
+    with pytest.raises(ValueError, match=r"\['skull'\] only in `source`"):
+        registration_landmarks(tmp_path / "t.fcsv", (LABELS, target))
+    # A label one side lacks: the side, its labels and what was asked for are named.
+    with pytest.raises(
+        ValueError,
+        match=r"`labels` must name landmarks of `target`, which holds nasion, left orbit, "
+        r"right orbit, chin, vertex; got chin, nasion, skull: 'skull' is not in it",
+    ):
+        registration_landmarks(
+            tmp_path / "t.fcsv", (LABELS, target), labels=["chin", "nasion", "skull"]
+        )
+    with pytest.raises(ValueError, match=r"`source` '.*t.fcsv', which holds .*skull; got tip"):
+        registration_landmarks(tmp_path / "t.fcsv", (LABELS, target), labels=["tip"])
+    with pytest.raises(ValueError, match=r"at least 3 landmark pairs, got 2 \(`labels` chooses"):
+        registration_landmarks((LABELS, POINTS), (LABELS, target), labels=["chin", "nasion"])
+    with pytest.raises(ValueError, match="`labels` chooses labelled landmarks, but `target`"):
+        registration_landmarks((LABELS, POINTS), target, labels=chosen)
+    with pytest.raises(TypeError, match="`labels` must be a sequence of landmark labels, got str"):
+        registration_landmarks((LABELS, POINTS), (LABELS, target), labels="chin")
+
+
 def test_a_landmark_file_with_nan_names_the_file(tmp_path):
     path = tmp_path / "bad.csv"
     path.write_text("label,x,y,z\nA,nan,0,0\nB,1,0,0\nC,0,1,0\n")
@@ -175,7 +207,43 @@ def test_landmarks_off_the_meshes_are_named(turned, tmp_path):
     found = json.loads((tmp_path / "r.json").read_text())["landmark_start"]["warnings"]
     assert len(found) == 2  # the template's side and the patient's
     assert all("far from the" in w and "skull (" in w for w in found)
-    assert all(lab not in w for w in found for lab in labels)
+    # Only the far landmark is named far, and the option that leaves it out is given.
+    named, hint = zip(*(w.split("; they steer") for w in found))
+    assert all(lab not in w for w in named for lab in labels)
+    assert all(w.endswith(f"(--labels {','.join(labels)})") for w in hint)
+    # With --labels the pairs are those chosen, and nothing is far.
+    code = main(
+        [
+            "register", str(folder / "template.ply"), str(folder / "patient.ply"),
+            "-o", str(tmp_path / "out.ply"), "--levels", "2", "--report", str(tmp_path / "r.json"),
+            "--landmarks", str(tmp_path / "t.csv"), str(tmp_path / "p.csv"), "-q", "--overwrite",
+            "--labels", ",".join(labels[:4]),
+        ]
+    )  # fmt: skip
+    start = json.loads((tmp_path / "r.json").read_text())["landmark_start"]
+    assert code in (0, 1) and start["labels"] == list(labels[:4]) and start["warnings"] == []
+
+
+def test_register_refuses_unknown_labels(turned, tmp_path, capsys):
+    folder, _ = turned
+    command = [
+        "register", str(folder / "template.ply"), str(folder / "patient.ply"),
+        "-o", str(tmp_path / "out.ply"), "--levels", "2",
+    ]  # fmt: skip
+    landmarks = ["--landmarks", str(folder / "template.csv"), str(folder / "patient.mrk.json")]
+    assert main([*command, *landmarks, "--labels", "chin,vertex,nose"]) == 2
+    err = capsys.readouterr().err
+    assert "`labels` (--labels) must name landmarks of `--landmarks TEMPLATE_FILE`" in err
+    assert "which holds nasion, left orbit, right orbit, chin, vertex" in err
+    assert "got chin, vertex, nose: 'nose' is not in it" in err
+    assert not (tmp_path / "out.ply").exists()
+    assert main([*command, "--labels", "chin,vertex,nasion"]) == 2
+    assert "--labels chooses landmarks of --landmarks: give --landmarks" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse's usage error
+        main([*command, *landmarks, "--labels", "chin,,vertex"])
+    assert "--labels: expected comma-separated landmark labels with no empty item" in (
+        capsys.readouterr().err
+    )
 
 
 SHARED = [

@@ -178,6 +178,56 @@ def test_files_roundtrip_csv_and_slicer(pop, tmp_path):
         read_landmarks(tmp_path / "lm.txt")
 
 
+def test_a_file_with_landmarks_off_the_template_is_read_for_the_labels_chosen(pop, tmp_path):
+    # A Slicer file of a mandible holds landmarks of the skull too: refused whole, naming them
+    # and the `labels` that leave them out; read when those are chosen, in their order.
+    (tv, tf), _, _, _, _ = pop
+    size = float(np.linalg.norm(np.ptp(tv, axis=0)))
+    far = tv[7] + [0.0, 0.0, size]
+    path = write_landmarks(
+        tmp_path / "lm.fcsv", ["a", "skull", "b", "c"], np.vstack([tv[3], far, tv[50], tv[90]])
+    )
+    with pytest.raises(
+        ValueError, match=r"skull \(.*\); choose .* `labels` \(labels=\['a', 'b', 'c'\]\)"
+    ):
+        load_template_landmarks(path, (tv, tf))
+    lm = load_template_landmarks(path, (tv, tf), labels=["c", "a"])
+    assert lm.labels == ("c", "a")
+    np.testing.assert_allclose(lm.positions(tv), tv[[90, 3]], atol=1e-9)
+    # Template vertices (CSV) are chosen the same way.
+    (tmp_path / "v.csv").write_text("label,vertex\nA,3\nB,50\nC,90\n")
+    lm = load_template_landmarks(tmp_path / "v.csv", (tv, tf), labels=("B",))
+    assert lm.labels == ("B",)
+    np.testing.assert_allclose(lm.positions(tv), tv[[50]])
+    # Every landmark off the template: no labels to suggest.
+    write_landmarks(tmp_path / "off.csv", ["x", "y"], np.vstack([far, far + 1.0]))
+    with pytest.raises(ValueError, match=r"x \(.*none lies on it") as refused:
+        load_template_landmarks(tmp_path / "off.csv", (tv, tf))
+    assert refused.value.far == ("x", "y") and refused.value.near == ()
+
+
+def test_labels_not_in_the_file_are_refused_naming_the_file_s_labels(pop, tmp_path):
+    (tv, tf), _, _, _, _ = pop
+    path = write_landmarks(tmp_path / "lm.mrk.json", ["chin", "mand_r"], tv[[3, 50]])
+    with pytest.raises(
+        ValueError,
+        match=r"`labels` must name landmarks of '.*lm.mrk.json', which holds chin, mand_r; "
+        r"got chin, Chin, nose: 'Chin', 'nose' are not in it",
+    ):
+        load_template_landmarks(path, (tv, tf), labels=["chin", "Chin", "nose"])
+    (tmp_path / "v.csv").write_text("label,vertex\nA,3\n")
+    with pytest.raises(ValueError, match=r"which holds A; got B: 'B' is not in it"):
+        load_template_landmarks(tmp_path / "v.csv", (tv, tf), labels=["B"])
+    with pytest.raises(TypeError, match=r"got str 'chin' \(write \['chin'\]\)"):
+        load_template_landmarks(path, (tv, tf), labels="chin")
+    with pytest.raises(TypeError, match=r"`labels` must be landmark labels \(str\), got int"):
+        load_template_landmarks(path, (tv, tf), labels=["chin", 1])
+    with pytest.raises(ValueError, match="`labels` must name at least one landmark, got none"):
+        load_template_landmarks(path, (tv, tf), labels=[])
+    with pytest.raises(ValueError, match=r"`labels` repeats \['chin'\]"):
+        load_template_landmarks(path, (tv, tf), labels=["chin", "chin"])
+
+
 def test_predict_landmarks_on_new_patient(pop):
     (tv, tf), targets, truths, _, poses = pop
     model = build_shape_model(truths[:9], tf)
@@ -351,3 +401,16 @@ def test_real_annotations_prediction_reads_landmarks_through_a_registration(shar
     before = landmark_errors(closest.positions, truth)
     assert err.mean() < 0.6 * before.mean(), (err, before)
     assert err.max() < 4.0, err
+
+
+def test_real_slicer_files_are_read_for_the_mandible_s_labels(shared_data):
+    # The PDDCA files hold odont_proc (C2) and occ_bone (occiput) beside the mandible's three:
+    # refused whole, naming those two and the labels to choose; read for the three chosen.
+    mesh, points = _mandible(shared_data, "0522c0001", template_vertices=3000)
+    path = shared_data / "mandibles" / "landmarks" / "0522c0001_Landmarks.fcsv"
+    with pytest.raises(ValueError, match=r"odont_proc \(.*occ_bone \(") as refused:
+        load_template_landmarks(path, mesh)
+    assert refused.value.near == ("chin", "mand_r", "mand_l")
+    assert refused.value.far == ("odont_proc", "occ_bone")
+    lm = load_template_landmarks(path, mesh, labels=["chin", "mand_r", "mand_l"])
+    np.testing.assert_allclose(lm.positions(mesh[0]), points, atol=1e-6)
