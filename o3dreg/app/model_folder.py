@@ -511,7 +511,11 @@ def build_model_folder(
                 ],
                 "sliding": None
                 if slid is None
-                else {"iterations": slid.iterations, "message": slid.message},
+                else {
+                    "criterion": slid.criterion,
+                    "iterations": slid.iterations,
+                    "message": slid.message,
+                },
             }
             atomic_write_text(
                 os.path.join(staging, "report.json"),

@@ -134,7 +134,13 @@ def add_parser(subparsers: Any) -> None:
     build.add_argument(
         "--scaling", action="store_true", help="similarity Procrustes (size removed)"
     )
-    build.add_argument("--slide", action="store_true", help="slide semilandmarks before the PCA")
+    build.add_argument(
+        "--slide",
+        action="store_true",
+        help="slide the semilandmarks along the patient surfaces before the PCA (least bending "
+        "energy from the mean; it moves them away from the registration's correspondences: "
+        "see docs/shape-model.md)",
+    )
     add_overwrite_option(
         build, "a folder that already holds a model (finished registrations are reused)"
     )

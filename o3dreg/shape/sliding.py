@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 
 from .._geometry import apply_transformation, turned_triangles
 from .._validation import as_faces, as_mesh_arrays, check_positive
@@ -89,6 +90,18 @@ def _bending_matrix(reference: np.ndarray) -> np.ndarray:
     big[:n, :n] = k
     big[:n, n:] = p
     big[n:, :n] = p.T
+    # L^-1 (3x faster than its pseudo-inverse), checked on a few columns; the pseudo-inverse
+    # where L is singular (points repeated, or all in one plane).
+    try:
+        inverse = np.linalg.inv(big)
+    except np.linalg.LinAlgError:
+        inverse = None
+    if inverse is not None:
+        cols = np.linspace(0, n + 3, 8).astype(int)
+        check = big @ inverse[:, cols]
+        check[cols, np.arange(cols.size)] -= 1.0
+        if np.all(np.isfinite(check)) and np.abs(check).max() < 1e-6:
+            return inverse[:n, :n]
     return np.linalg.pinv(big, hermitian=True)[:n, :n]
 
 
@@ -96,7 +109,7 @@ def slide_semilandmarks(
     shapes: Any,
     targets: Any,
     *,
-    criterion: str = "procrustes",
+    criterion: str = "bending",
     max_iteration: int = 5,
     tolerance: float = 1e-3,
     fixed: Any = None,
@@ -130,8 +143,12 @@ def slide_semilandmarks(
         Registered semilandmarks, each in its patient's coordinates. Not modified.
     targets : sequence of open3d.geometry.TriangleMesh or (vertices, faces)
         The patient surfaces, one per shape.
-    criterion : {'procrustes', 'bending'}, optional
-        Default ``'procrustes'``.
+    criterion : {'bending', 'procrustes'}, optional
+        Default ``'bending'``, as in geomorph's ``gpagen`` and Morpho's ``slider3d``: it keeps
+        each shape's deformation from the mean smooth and leaves the registered
+        correspondences close to where they were. ``'procrustes'`` removes every tangential
+        difference from the mean, genuine ones included: it moves points far from their
+        correspondents and, iterated, bunches them (see the shape-model guide).
     max_iteration : int, optional
         Default 5.
     tolerance : float, optional
@@ -299,8 +316,14 @@ def _bending_step(
     bey = (be @ shape)[idx]  # (I_3 (x) Be) Y, per coordinate
     rhs = -np.concatenate([(a1 * bey).sum(1), (a2 * bey).sum(1)])
     # A tiny ridge keeps the system definite (slides along affine null directions cost nothing).
+    # -lhs is positive semidefinite: the ridge makes it definite, and Cholesky solves it at half
+    # the cost of a general factorisation (2m unknowns, dense).
+    lhs *= -1.0
     lhs[np.diag_indices(2 * m)] += 1e-9 * max(float(np.trace(lhs)) / (2 * m), 1e-300)
-    t = np.linalg.solve(lhs, rhs)
+    try:
+        t = scipy.linalg.cho_solve(scipy.linalg.cho_factor(lhs), -rhs)
+    except np.linalg.LinAlgError:  # rounding left an eigenvalue below zero
+        t = np.linalg.solve(lhs, -rhs)
     step = np.zeros_like(shape)
     step[idx] = t[:m, None] * a1 + t[m:, None] * a2
     return step

@@ -110,3 +110,28 @@ def test_guarded_sliding_keeps_the_meshes_unfolded(registered):
     before = generalized_procrustes(shapes).residuals.mean()
     assert result.procrustes_distances[0] == pytest.approx(before)
     assert len(result.procrustes_distances) == result.iterations + 1
+
+
+def test_the_default_criterion_is_bending_energy(registered):
+    # As in geomorph's gpagen and Morpho's slider3d; the Procrustes criterion bunches points
+    # when iterated (docs/shape-model.md, benchmarks/bench_sliding.py).
+    _, targets, shapes = registered
+    assert slide_semilandmarks(shapes, targets, max_iteration=1).criterion == "bending"
+
+
+@pytest.mark.parametrize("planar", [False, True])
+def test_the_bending_matrix_gives_affine_maps_no_energy(planar):
+    # Be is the upper-left block of L^-1 for the kernel U(r) = r: Be P = 0 (an affine map bends
+    # nothing), Be symmetric and negative semidefinite. Points in a plane make L singular: the
+    # pseudo-inverse takes over and the same holds.
+    from o3dreg.shape.sliding import _bending_matrix
+
+    points = np.random.default_rng(3).normal(size=(60, 3)) * 20
+    if planar:
+        points[:, 2] = 0.0
+    be = _bending_matrix(points)
+    affine = np.hstack([np.ones((60, 1)), points])
+    scale = np.abs(be).max()
+    np.testing.assert_allclose(be @ affine, 0.0, atol=1e-9 * scale * 20)
+    np.testing.assert_allclose(be, be.T, atol=1e-12 * scale)
+    assert np.linalg.eigvalsh(be).max() < 1e-9 * scale
