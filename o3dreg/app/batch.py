@@ -372,12 +372,17 @@ def _default_names(targets: Sequence[Any]) -> list[str]:
 
 
 def _register_one(
-    template: tuple[np.ndarray, np.ndarray], target: Any, init: Any, settings: RegistrationSettings
+    template: tuple[np.ndarray, np.ndarray],
+    target: Any,
+    init: Any,
+    settings: RegistrationSettings,
+    name: str = "target",
 ) -> tuple[Any, float]:
-    """Worker: load (when a path) and register; returns (result, seconds). Runs anywhere."""
+    """Worker: load (when a path; errors name it ``name``) and register; returns (result,
+    seconds). Runs anywhere."""
     start = time.perf_counter()
     if isinstance(target, (str, os.PathLike)):
-        target = read_triangle_mesh(target, name="target")
+        target = read_triangle_mesh(target, name=name)
     result = settings.register(template, target, init=init)
     return result, time.perf_counter() - start
 
@@ -510,6 +515,7 @@ def register_batch(
     progress: bool = False,
     callback: Callable[[PatientRecord], Any] | None = None,
     settings: RegistrationSettings | None = None,
+    target_name: str = "target",
     **options: Any,
 ) -> BatchResult:
     """Register ``template`` elastically onto every target; save each patient as it finishes.
@@ -546,6 +552,10 @@ def register_batch(
     settings : RegistrationSettings, optional
         How each patient is registered (the same settings ``o3dreg register`` and
         ``o3dreg build-model`` take). Default ``RegistrationSettings()``.
+    target_name : str, optional
+        What the failure of a target file that cannot be read calls it (its record's message
+        and log line), e.g. the command-line argument that gave the files. Default
+        ``"target"``.
     **options
         ``init``: one ``(4, 4)`` transformation for every target, or one per target, shape
         ``(len(targets), 4, 4)`` (e.g. from landmarks, see
@@ -585,6 +595,8 @@ def register_batch(
         raise TypeError(f"`callback` must be callable, got {type(callback).__name__}")
     force = check_bool(force, "force")
     progress = check_bool(progress, "progress")
+    if not isinstance(target_name, str):
+        raise TypeError(f"`target_name` must be a str, got {type(target_name).__name__}")
     settings_ = resolve_settings(settings, {k: v for k, v in options.items() if k != "init"})
     if names is None:
         names_ = _default_names(targets)
@@ -640,6 +652,7 @@ def register_batch(
         progress,
         callback,
         settings_,
+        target_name,
     )
 
 
@@ -654,6 +667,7 @@ def _run_batch(
     progress: bool,
     callback: Callable[[PatientRecord], Any] | None,
     settings: RegistrationSettings,
+    target_name: str,
 ) -> BatchResult:
     records: dict[str, PatientRecord] = {}
     todo: list[int] = []
@@ -724,12 +738,15 @@ def _run_batch(
         if executor is None:
             for i in todo:
                 bar.current(names[i])
-                settle(
-                    i, functools.partial(_register_one, template, targets[i], inits[i], settings)
+                work = functools.partial(
+                    _register_one, template, targets[i], inits[i], settings, target_name
                 )
+                settle(i, work)
         else:
             futures = {
-                executor.submit(_register_one, template, targets[i], inits[i], settings): i
+                executor.submit(
+                    _register_one, template, targets[i], inits[i], settings, target_name
+                ): i
                 for i in todo
             }
             try:

@@ -248,10 +248,11 @@ def patient_landmark_file(mesh_path: str | os.PathLike[str]) -> str:
     raise OSError(f"no landmark file for patient {path!r}: expected {' or '.join(tried)}")
 
 
-def _check_distinct_patients(targets: Sequence[str]) -> None:
+def _check_distinct_patients(targets: Sequence[str], name: str = "target") -> None:
     """Before any work: the patient files hold at least 2 distinct meshes. Identical meshes give
     identical registrations, so a model of no variance. Files that cannot be read here are
-    counted as distinct (the batch reports them, or reads them where it runs)."""
+    counted as distinct (the batch reports them, or reads them where it runs); when too few are
+    left, the refusal gives the reader's reason for each (``name``: how it calls one file)."""
     given: dict[str, str] = {}
     for path in targets:
         real = os.path.realpath(path)
@@ -262,22 +263,24 @@ def _check_distinct_patients(targets: Sequence[str]) -> None:
             )
         given[real] = os.fspath(path)
     groups: dict[str, list[str]] = {}
-    unread = 0
+    unread: list[str] = []
     for path in targets:
         try:
-            mesh = read_triangle_mesh(path)
-        except (OSError, ValueError, RuntimeError):
-            unread += 1
+            mesh = read_triangle_mesh(path, name=name)
+        except (OSError, ValueError, RuntimeError) as exc:
+            unread.append(str(exc))
             continue
         digest = hashlib.sha256(np.asarray(mesh.vertices).tobytes())
         digest.update(np.asarray(mesh.triangles).tobytes())
         groups.setdefault(digest.hexdigest(), []).append(os.fspath(path))
     repeated = [" and ".join(paths) for paths in groups.values() if len(paths) > 1]
-    if len(groups) + unread < 2:
+    if len(groups) + len(unread) < 2:
         same = "".join(f"; {paths} hold the same mesh" for paths in repeated)
+        # The reader's message names the file and why it was not read (a typo, not a mesh).
+        why = "".join(f"; {text}" for text in unread)
         raise ValueError(
             f"`targets` must hold at least 2 distinct patient meshes to build a model, got "
-            f"{len(targets)} file(s) with {len(groups)} distinct mesh(es){same}"
+            f"{len(targets)} file(s) with {len(groups)} distinct mesh(es){same}{why}"
         )
     for paths in repeated:
         logger.warning("build_model_folder: %s hold the same mesh (counted twice)", paths)
@@ -299,6 +302,7 @@ def build_model_folder(
     levels: Sequence[ElasticLevel] | None = None,
     scaling: bool = False,
     slide: bool = False,
+    target_name: str = "target",
 ) -> ModelFolder:
     """Register ``template`` onto every patient file and write a model folder (resumable).
 
@@ -345,6 +349,9 @@ def build_model_folder(
         Similarity Procrustes (size removed).
     slide : bool, optional
         Slide the semilandmarks before the PCA.
+    target_name : str, optional
+        What the messages about a patient file that cannot be read call it (see
+        :func:`~o3dreg.app.batch.register_batch`). Default ``"target"``.
 
     Returns
     -------
@@ -385,7 +392,7 @@ def build_model_folder(
             select_labels(available, landmark_labels, repr(os.fspath(landmarks)), "landmark_labels")
     elif landmark_labels is not None:
         raise ValueError("`landmark_labels` chooses landmarks of `landmarks`: give `landmarks`")
-    _check_distinct_patients(targets)
+    _check_distinct_patients(targets, target_name)
     inits = None
     if landmarks is not None:
         starts = []
@@ -397,7 +404,10 @@ def build_model_folder(
                 raise ValueError(f"patient {os.fspath(t)!r} ({marks!r}): {exc}") from exc
         inits = np.stack(starts)
     out = output
-    os.makedirs(out, exist_ok=True)
+    try:
+        os.makedirs(out, exist_ok=True)
+    except OSError as exc:  # the system's message names only the path
+        raise OSError(f"`output`: cannot create folder {out!r}: {exc.strerror or exc}") from exc
     with _folder_lock(out):
         _refuse_a_model(output, overwrite)  # again: a build may have ended since
         # Staging folders of a build killed outright (SIGKILL, power loss): this build holds
@@ -422,6 +432,7 @@ def build_model_folder(
             force=force,
             progress=progress,
             settings=settings,
+            target_name=target_name,
             init=inits,
         )
         batch = check_population(batch)

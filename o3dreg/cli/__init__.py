@@ -10,6 +10,7 @@ import argparse
 import contextlib
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -27,7 +28,16 @@ _COMMANDS = (_register, _reconstruct, _model, _demo, _view)
 
 class _Parser(argparse.ArgumentParser):
     """An argument parser whose errors are one line: the command, the message and where the
-    help is (argparse prints the whole usage block first)."""
+    help is (argparse prints the whole usage block first); ``-1e9`` is a number, as ``-5``.
+
+    argparse reads an argument that starts with ``-`` as a value when it matches the parser's
+    negative-number pattern, which has no exponent (``--threshold -1e9`` was "expected one
+    argument"); no option of o3dreg looks like a number, so the wider pattern is safe.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
 
     def error(self, message: str) -> NoReturn:
         self.exit(
@@ -173,19 +183,30 @@ def _signals_and_streams(ending: bool = False) -> Iterator[None]:
             os.close(saved)
 
 
-def _with_flags(message: str, parser: argparse.ArgumentParser, args: argparse.Namespace) -> str:
-    """``message`` with each API parameter it names (```step_size```) followed by the command's
-    flag for it (``(--step-size)``): the errors come from the library, the user typed flags."""
-    flags: dict[str, str] = {}
+def _chosen(
+    parser: argparse.ArgumentParser, args: argparse.Namespace
+) -> list[argparse.ArgumentParser]:
+    """The parsers that read ``args``: ``parser``, its chosen sub-command's, and so on."""
+    found: list[argparse.ArgumentParser] = []
     current: argparse.ArgumentParser | None = parser
     while current is not None:
+        found.append(current)
         chosen = None
         for action in current._actions:  # argparse keeps its actions here (stable since 3.2)
             if isinstance(action, argparse._SubParsersAction):
                 chosen = action.choices.get(getattr(args, action.dest, None) or "")
-            elif action.option_strings and action.dest != "help":
-                flags.setdefault(action.dest, max(action.option_strings, key=len))
         current = chosen
+    return found
+
+
+def _with_flags(message: str, parser: argparse.ArgumentParser, args: argparse.Namespace) -> str:
+    """``message`` with each API parameter it names (```step_size```) followed by the command's
+    flag for it (``(--step-size)``): the errors come from the library, the user typed flags."""
+    flags: dict[str, str] = {}
+    for current in _chosen(parser, args):
+        for action in current._actions:
+            if action.option_strings and action.dest != "help":
+                flags.setdefault(action.dest, max(action.option_strings, key=len))
     for dest, flag in flags.items():
         message = message.replace(f"`{dest}`", f"`{dest}` ({flag})")
     for name, dest in API_NAMES.items():
@@ -269,7 +290,7 @@ def main(argv: Sequence[str] | None = None, *, ending: bool = False) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_BAD_INPUT
-    command = f"o3dreg {args.command}"
+    command = _chosen(parser, args)[-1].prog  # "o3dreg model fit", as the user typed it
     try:
         with _signals_and_streams(ending), warnings.catch_warnings():
             # The library's warnings are log lines here: one line each, hidden by --quiet.

@@ -165,9 +165,32 @@ def check_outputs(
             )
 
 
-def write_json(path: str, data: Any, *, overwrite: bool) -> str:
+def check_input_files(name: str, paths: Sequence[str]) -> None:
+    """Before any work: each of ``paths`` (the argument ``name``) is a file. ``OSError`` naming
+    those missing (a typo: said at once, not as a failed patient after the others' work), or a
+    folder."""
+    missing = [p for p in paths if not os.path.isfile(p) and not os.path.isdir(p)]
+    if missing:
+        files = "no such file" if len(missing) == 1 else "no such files"
+        raise OSError(f"`{name}`: {files} {', '.join(map(repr, missing))}")
+    for path in paths:
+        if os.path.isdir(path):
+            raise OSError(f"`{name}`: {path!r} is a folder, not a file")
+
+
+def make_folder(path: str, name: str) -> None:
+    """``os.makedirs(path, exist_ok=True)``; its error names the argument ``name`` that gave
+    ``path`` (the system's names only the path)."""
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"`{name}`: cannot create folder {path!r}: {exc.strerror or exc}") from exc
+
+
+def write_json(path: str, data: Any, *, overwrite: bool, name: str) -> str:
+    """``data`` as a JSON file (atomically); errors name the option ``name`` that gave ``path``."""
     return atomic_write_text(
-        path, json_text.dumps(data, indent=2) + "\n", overwrite=overwrite, name="report"
+        path, json_text.dumps(data, indent=2) + "\n", overwrite=overwrite, name=name
     )
 
 

@@ -41,9 +41,11 @@ from ._common import (
     add_labels_option,
     add_overwrite_option,
     all_or_nothing,
+    check_input_files,
     check_outputs,
     emit,
     int_list,
+    make_folder,
     positive_int,
     process_pool,
     standard_deviations,
@@ -255,6 +257,8 @@ def run_build(args: argparse.Namespace) -> int:
     if args.labels and not args.landmarks:
         raise ValueError("--labels chooses landmarks of --landmarks: give --landmarks")
     template = read_triangle_mesh(args.template, name="TEMPLATE")
+    if not args.scheduler:  # a Dask cluster's workers read the files: they may be theirs only
+        check_input_files("TARGET", args.targets)
     if args.landmarks:
         with named_as("--landmarks"):
             _warn_far_template_landmarks(args.landmarks, template, args.labels)
@@ -281,6 +285,7 @@ def run_build(args: argparse.Namespace) -> int:
             keep_flagged=args.keep_flagged,
             scaling=args.scaling,
             slide=args.slide,
+            target_name="TARGET",
         )
     batch, model = folder.batch, folder.model
     emit(batch.table(), args)
@@ -438,9 +443,14 @@ def run_modes(args: argparse.Namespace) -> int:
         check_outputs(
             {f"{where} {name}": os.path.join(folder, name) for name in names}, args.overwrite
         )
-    os.makedirs(folder, exist_ok=True)
+    given = "--output" if args.output else "MODEL"  # how the messages name the folder
+    make_folder(folder, given)
     # All the meshes or none (a full disk left mean.ply behind an exit status 2).
-    with all_or_nothing([os.path.join(folder, name) for name in names]):
+    with (
+        all_or_nothing([os.path.join(folder, name) for name in names]),
+        named_as(given),
+        named_as(given, "folder"),
+    ):
         written = model.write_meshes(
             folder, modes=range(count), standard_deviations=sds, overwrite=args.overwrite
         )
@@ -522,9 +532,10 @@ def run_fit(args: argparse.Namespace) -> int:
         truth_pts = truth[[index[lab] for lab in prediction.labels]]
         errors = landmark_errors(prediction.positions, truth_pts)
     if args.output:
-        write_landmarks(
-            args.output, prediction.labels, prediction.positions, overwrite=args.overwrite
-        )
+        with named_as("--output"):
+            write_landmarks(
+                args.output, prediction.labels, prediction.positions, overwrite=args.overwrite
+            )
     fit = prediction.fit
     if args.json:
         out: dict[str, Any] = {
@@ -634,13 +645,14 @@ def run_explore(args: argparse.Namespace) -> int:
         # destroyed the model).
         check_outputs({"--output": args.output}, args.overwrite, suffixes={"--output": (".html",)})
     folder = "" if _is_statismo(args.model_dir) else os.path.join(args.model_dir, "registrations")
-    written = write_model_explorer(
-        output,
-        model,
-        registrations=folder if folder and os.path.isdir(folder) else None,
-        up=args.up,
-        # A model folder's own page is rewritten; a page beside a statismo file may be anyone's.
-        overwrite=args.overwrite or (args.output is None and not _is_statismo(args.model_dir)),
-    )
+    with named_as("--output" if args.output else "MODEL"):
+        written = write_model_explorer(
+            output,
+            model,
+            registrations=folder if folder and os.path.isdir(folder) else None,
+            up=args.up,
+            # A model folder's own page is rewritten; a page beside a statismo file may be anyone's.
+            overwrite=args.overwrite or (args.output is None and not _is_statismo(args.model_dir)),
+        )
     emit(str(written), args)
     return 0

@@ -129,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
     if args.crop_box is not None or args.crop_plane is not None:
         box = np.reshape(args.crop_box, (2, 3)) if args.crop_box is not None else None
         plane = np.reshape(args.crop_plane, (2, 3)) if args.crop_plane is not None else None
-        mesh = crop_mesh(mesh, box=box, plane=plane)
+        with named_as("--crop-box", "box"), named_as("--crop-plane", "plane"):
+            mesh = crop_mesh(mesh, box=box, plane=plane)
     if args.min_component_vertices is not None:
         mesh = remove_small_components(mesh, args.min_component_vertices)
     if args.largest is not None:

@@ -238,7 +238,8 @@ def run(args: argparse.Namespace) -> int:
             args.output, mesh, overwrite=args.overwrite, semilandmarks=True, name="--output"
         )
         if args.deformation:
-            result.deformation.save(args.deformation, overwrite=args.overwrite)
+            with named_as("--deformation"):
+                result.deformation.save(args.deformation, overwrite=args.overwrite)
         report = report_dict(
             result,
             source=args.source,
@@ -248,22 +249,23 @@ def run(args: argparse.Namespace) -> int:
             landmark_start=landmark_start,
         )
         if args.report:
-            write_json(args.report, report, overwrite=args.overwrite)
+            write_json(args.report, report, overwrite=args.overwrite, name="--report")
         if args.html:
-            write_registration_explorer(
-                args.html,
-                source,
-                target,
-                result,
-                # The page lists the landmark fit's findings with the verdict's.
-                verdict={
-                    **report,
-                    "warnings": report["warnings"]
-                    + (landmark_start["warnings"] if landmark_start else []),
-                },
-                name=f"{os.path.basename(args.source)} -> {os.path.basename(args.target)}",
-                overwrite=args.overwrite,
-            )
+            with named_as("--html"):
+                write_registration_explorer(
+                    args.html,
+                    source,
+                    target,
+                    result,
+                    # The page lists the landmark fit's findings with the verdict's.
+                    verdict={
+                        **report,
+                        "warnings": report["warnings"]
+                        + (landmark_start["warnings"] if landmark_start else []),
+                    },
+                    name=f"{os.path.basename(args.source)} -> {os.path.basename(args.target)}",
+                    overwrite=args.overwrite,
+                )
     if args.json:
         emit_json(report)
     emit(result.distances.table(), args)

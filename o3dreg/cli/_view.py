@@ -8,6 +8,7 @@ import os
 import numpy as np
 import open3d as o3d
 
+from .._validation import named_as
 from ..app.render import BACKENDS, OPEN3D_TIME_LIMIT, render_mesh
 from ..io.mesh import read_triangle_mesh
 from ..registration.distance import SurfaceDistanceQuery
@@ -106,20 +107,23 @@ def run(args: argparse.Namespace) -> int:
             args,
         )
     if args.screenshot:
-        render_mesh(
-            meshes[0],
-            args.screenshot,
-            scalars=scalars,
-            title=os.path.basename(args.meshes[0])
-            + (
-                f": distance to {os.path.basename(args.distance_to)}" if scalars is not None else ""
-            ),
-            label="mm" if scalars is not None else None,
-            size=(args.size[0], args.size[1]),
-            backend=args.backend,
-            time_limit=args.time_limit,
-            overwrite=args.overwrite,
-        )
+        with named_as("--screenshot"):
+            render_mesh(
+                meshes[0],
+                args.screenshot,
+                scalars=scalars,
+                title=os.path.basename(args.meshes[0])
+                + (
+                    f": distance to {os.path.basename(args.distance_to)}"
+                    if scalars is not None
+                    else ""
+                ),
+                label="mm" if scalars is not None else None,
+                size=(args.size[0], args.size[1]),
+                backend=args.backend,
+                time_limit=args.time_limit,
+                overwrite=args.overwrite,
+            )
         emit(f"wrote {args.screenshot}", args)
         return 0
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):

@@ -275,20 +275,30 @@ def crop_mesh(mesh: Any, *, box: Any = None, plane: Any = None) -> o3d.geometry.
         if not np.linalg.norm(plane_arr[1]) > 0:
             raise ValueError(f"`plane` normal must be non-zero, got {plane_arr[1].tolist()}")
     vertices, faces = as_mesh_arrays(mesh, "mesh", drop_degenerate=True)
-    inside = np.ones(vertices.shape[0], dtype=bool)
+    regions: dict[str, tuple[np.ndarray, str]] = {}  # parameter: (vertices inside, as given)
     if box_arr is not None:
-        inside &= np.all((vertices >= box_arr[0]) & (vertices <= box_arr[1]), axis=1)
+        inside = np.all((vertices >= box_arr[0]) & (vertices <= box_arr[1]), axis=1)
+        regions["box"] = inside, f"{_xyz(box_arr[0])}..{_xyz(box_arr[1])}"
     if plane_arr is not None:
-        inside &= (vertices - plane_arr[0]) @ plane_arr[1] >= 0
-    keep = inside[faces].all(axis=1)
+        inside = (vertices - plane_arr[0]) @ plane_arr[1] >= 0
+        regions["plane"] = inside, f"(point {_xyz(plane_arr[0])}, normal {_xyz(plane_arr[1])})"
+    keep = np.logical_and.reduce([inside for inside, _ in regions.values()])[faces].all(axis=1)
     if not keep.any():
+        # The region that keeps nothing alone (else both), with its values: the one to change.
+        empty = [k for k, (inside, _) in regions.items() if not inside[faces].all(axis=1).any()]
+        given = " and ".join(f"`{k}` {regions[k][1]}" for k in empty[:1] or regions)
+        together = "" if empty else " together (each alone keeps some)"
         raise ValueError(
-            "crop_mesh removed every triangle: the mesh spans "
-            f"{vertices.min(axis=0).round(3).tolist()}..{vertices.max(axis=0).round(3).tolist()}"
+            f"{given} removed every triangle{together}: the mesh spans "
+            f"{_xyz(vertices.min(axis=0), 4)}..{_xyz(vertices.max(axis=0), 4)}"
         )
     out = _submesh(vertices, faces, keep)
     logger.info("cropped to %d of %d triangles", int(keep.sum()), faces.shape[0])
     return out
+
+
+def _xyz(point: np.ndarray, digits: int = 6) -> str:
+    return "[" + ", ".join(f"{float(v):.{digits}g}" for v in point) + "]"
 
 
 def smooth_taubin(

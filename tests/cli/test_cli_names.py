@@ -3,6 +3,7 @@ not the library parameter behind it (``path``, ``volume``, ``targets``, ``source
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import open3d as o3d
@@ -107,3 +108,120 @@ def test_model_names_model_and_landmarks(files, capsys):
     bad = str(files / "bad.csv")
     err = _error(["model", "fit", model, str(files / "a.ply"), "--landmarks", bad], capsys)
     assert f"`--landmarks`: {bad!r} must have a header" in err and "`path`" not in err
+
+
+def test_build_model_records_name_target_for_a_file_that_cannot_be_read(files, tmp_path, capsys):
+    # The batch reads each patient in its worker: the failure is a record, not an exception.
+    (tmp_path / "bad.ply").write_text("garbage")
+    argv = ["build-model", str(files / "a.ply"), str(files / "b.ply"), str(files / "c.ply"),
+            str(tmp_path / "bad.ply"), "-o", str(tmp_path / "m"), "--levels", "2"]  # fmt: skip
+    assert main(argv) == 1
+    out = capsys.readouterr().out
+    assert f"`TARGET`: {str(tmp_path / 'bad.ply')!r} is not a PLY file" in out
+    assert "`target`" not in out
+    record = (tmp_path / "m" / "registrations" / "bad.json").read_text()
+    assert "`TARGET`" in record and "`target`" not in record
+
+
+def test_library_batch_records_still_name_target(files, tmp_path):
+    from o3dreg import register_batch
+
+    (tmp_path / "bad.ply").write_text("garbage")
+    template = o3d.geometry.TriangleMesh.create_sphere(5.0, 10)
+    batch = register_batch(template, [str(tmp_path / "bad.ply")], tmp_path / "out")
+    assert batch.records[0].message.startswith("OSError: `target`: ")
+
+
+def test_build_model_names_a_missing_target_before_any_work(files, tmp_path, capsys):
+    missing, other = str(tmp_path / "missing.ply"), str(tmp_path / "other.ply")
+    out = tmp_path / "m"
+    err = _error(["build-model", str(files / "a.ply"), str(files / "b.ply"), missing,
+                  "-o", str(out)], capsys)  # fmt: skip
+    assert f"`TARGET`: no such file {missing!r}" in err and "distinct" not in err
+    err = _error(["build-model", str(files / "a.ply"), missing, other, "-o", str(out)], capsys)
+    assert f"`TARGET`: no such files {missing!r}, {other!r}" in err
+    assert not out.exists()
+
+
+def test_build_model_says_why_the_one_other_target_is_not_a_mesh(files, tmp_path, capsys):
+    bad = tmp_path / "bad.ply"
+    bad.write_text("garbage")
+    err = _error(["build-model", str(files / "a.ply"), str(bad), "-o", str(tmp_path / "m")],
+                 capsys)  # fmt: skip
+    assert "got 1 file(s) with 0 distinct mesh(es)" in err
+    assert f"`TARGET`: {str(bad)!r} is not a PLY file" in err
+
+
+@pytest.mark.parametrize("action", ["info", "modes", "fit", "explore"])
+def test_model_errors_name_the_action(files, action, capsys):
+    argv = ["model", action, str(files / "no_model")]
+    if action == "fit":
+        argv += [str(files / "a.ply"), "--landmarks", str(files / "a.csv")]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.startswith(f"o3dreg model {action}: error: MODEL: ")
+
+
+@pytest.mark.parametrize(
+    ("option", "expected"),
+    [
+        (["--crop-box", "1000", "1000", "1000", "2000", "2000", "2000"],
+         "`--crop-box` [1000, 1000, 1000]..[2000, 2000, 2000] removed every triangle"),
+        (["--crop-plane", "1000", "0", "0", "1", "0", "0"],
+         "`--crop-plane` (point [1000, 0, 0], normal [1, 0, 0]) removed every triangle"),
+    ],
+)  # fmt: skip
+def test_reconstruct_names_the_crop_that_removed_everything(files, option, expected, capsys):
+    err = _error(["reconstruct", str(PITCH), "-o", str(files / "o.ply"), "--threshold", "100",
+                  *option], capsys)  # fmt: skip
+    assert expected in err and "the mesh spans" in err and "crop_mesh" not in err
+
+
+# A folder that exists, passes the checks made before any work (root may write anywhere) and
+# refuses new files: writing there fails at write time, as a full disk would.
+REFUSING = "/proc/self/fd"
+needs_proc = pytest.mark.skipif(not os.path.isdir(REFUSING), reason="needs Linux /proc")
+
+
+@needs_proc
+@pytest.mark.parametrize(
+    ("option", "name"), [("--report", "r.json"), ("--deformation", "d.npz"), ("--html", "p.html")]
+)
+def test_register_outputs_failing_at_write_time_name_their_option(files, option, name, capsys):
+    path = f"{REFUSING}/{name}"
+    err = _error(["register", str(files / "a.ply"), str(files / "b.ply"), "-o",
+                  str(files / "reg.ply"), "--levels", "2", option, path], capsys)  # fmt: skip
+    assert f"`{option}`: cannot write {path!r}" in err
+    assert "`path`" not in err and "`report`" not in err
+    assert not (files / "reg.ply").exists()  # all the outputs or none
+
+
+STATISMO = DATA / "statismo" / "scalismo-asm-model.h5"
+
+
+@needs_proc
+@pytest.mark.parametrize("action", ["fit", "modes", "explore"])
+def test_model_outputs_failing_at_write_time_name_their_option(files, tmp_path, action, capsys):
+    argv = ["model", action, str(STATISMO)]
+    page = {"fit": "x.csv", "modes": "", "explore": "e.html"}[action]
+    written = {"fit": "x.csv", "modes": "mean.ply", "explore": "e.html"}[action]
+    if action == "fit":
+        from o3dreg.shape.statismo import read_statismo
+
+        mean = read_statismo(STATISMO).mesh()
+        write_triangle_mesh(tmp_path / "mean.ply", mean)
+        (tmp_path / "lm.csv").write_text(
+            "label,x,y,z\n"
+            + "".join(f"{k},{','.join(map(str, mean.vertices[i]))}\n" for k, i in
+                      (("a", 0), ("b", 10), ("c", 20)))
+        )  # fmt: skip
+        argv += [str(tmp_path / "mean.ply"), "--landmarks", str(tmp_path / "lm.csv"),
+                 "--onto", "closest"]  # fmt: skip
+    argv += ["-o", f"{REFUSING}/{page}".rstrip("/")]
+    err = _error(argv, capsys)
+    assert f"`--output`: cannot write {f'{REFUSING}/{written}'!r}" in err and "`path`" not in err
+
+
+def test_reconstruct_takes_a_negative_threshold_in_scientific_notation(files, capsys):
+    err = _error(["reconstruct", str(PITCH), "-o", str(files / "o.ply"), "--threshold", "-1e9"],
+                 capsys)  # fmt: skip
+    assert "--threshold must lie strictly between" in err and "got -1e+09" in err
