@@ -93,7 +93,7 @@ def test_build_model_pairs_the_labels_chosen(files, tmp_path, capsys, caplog):
     with caplog.at_level(logging.WARNING, logger="o3dreg"):
         assert main([*command, "-o", str(tmp_path / "m0")]) == 2
     err = capsys.readouterr().err
-    assert "['skull'] only in `source`" in err
+    assert "['skull'] only in `--landmarks`" in err
     # The template's landmark off its surface is named, with the --labels that leave it out.
     assert "template landmarks far from the template surface" in caplog.text
     assert "skull (" in caplog.text and "(--labels a,b,c)" in caplog.text
