@@ -10,7 +10,6 @@ import argparse
 import contextlib
 import logging
 import os
-import re
 import signal
 import sys
 import threading
@@ -28,18 +27,13 @@ _COMMANDS = (_register, _reconstruct, _model, _demo, _view)
 
 class _Parser(argparse.ArgumentParser):
     """An argument parser whose errors are one line: the command, the message and where the
-    help is (argparse prints the whole usage block first); ``-1e9`` is a number, as ``-5``.
-
-    argparse reads an argument that starts with ``-`` as a value when it matches the parser's
-    negative-number pattern, which has no exponent (``--threshold -1e9`` was "expected one
-    argument"); no option of o3dreg looks like a number, so the wider pattern is safe.
-    """
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
+    help is (argparse prints the whole usage block first)."""
 
     def error(self, message: str) -> NoReturn:
+        if "expected one argument" in message:
+            # argparse takes a value such as -1e9 for an option (its negative numbers have no
+            # exponent): after '=' it is a value.
+            message += " (a value starting with '-', such as -1e9, goes after '=': --option=-1e9)"
         self.exit(
             EXIT_BAD_INPUT,
             f"{self.prog}: error: {message} (see `{self.prog} --help`)\n",
