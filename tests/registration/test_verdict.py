@@ -345,3 +345,34 @@ def test_a_noisy_target_is_judged_beyond_its_noise(spheres):
     judged = assess_registration(moved, source, noisy)
     assert judged.status != "ok"
     assert any("parts of the target" in w for w in judged.warnings)
+
+
+def test_vertices_beyond_a_noisy_cut_are_not_counted_as_misplaced(spheres):
+    # The sphere's bottom 40%, under noise of 1% of the diagonal per axis. Noise tilts the
+    # triangles along the cut: a template vertex above it can find its closest point inside one
+    # of them, near the rim, and count as supported, far from the target. Here every vertex of
+    # the right registration (the template scaled by 1.1) is counted as supported: the far ones
+    # whose closest point lies within RIM_NOISE_BAND noise levels of the rim are taken as beyond
+    # the cut (all of them above it), the rest are close: ok. Moved by 7% of the diagonal, or
+    # pushed 3% of it off the surface (closest points inside the target, not at its rim), the
+    # result stays flagged.
+    from o3dreg.registration.distance import SurfaceDistanceQuery
+    from o3dreg.registration.verdict import DISTANCE_SUSPECT, _past_noisy_rim
+
+    source, (v, f), result = spheres
+    diagonal = np.linalg.norm(np.ptp(v, axis=0))
+    level = v[:, 2].min() + 0.4 * np.ptp(v[:, 2])
+    target = (
+        v + 0.01 * diagonal / np.sqrt(3) * np.random.default_rng(1).normal(size=v.shape),
+        f[v[f].mean(axis=1)[:, 2] <= level],
+    )
+    truth = 1.1 * source[0]
+    right = dataclasses.replace(result, vertices=truth, supported=np.ones(len(truth), bool))
+    assert assess_registration(right, source, target).status == "ok"
+    far = DISTANCE_SUSPECT * diagonal
+    past = _past_noisy_rim(truth, SurfaceDistanceQuery(*target).distance(truth), *target, far)
+    assert past.sum() > 0.05 * len(truth) and (truth[past, 2] > level).all()
+    outward = truth / np.linalg.norm(truth, axis=1, keepdims=True)
+    for moved in (truth + [0.07 * diagonal, 0.0, 0.0], truth + 0.03 * diagonal * outward):
+        judged = assess_registration(dataclasses.replace(right, vertices=moved), source, target)
+        assert judged.status != "ok"
