@@ -82,10 +82,17 @@ def _bending_matrix(reference: np.ndarray) -> np.ndarray:
     """Bending energy matrix ``Be`` (upper-left ``n x n`` block of ``L^-1``) of a 3D TPS.
 
     With the 3D kernel ``U(r) = r`` it is negative semidefinite: the bending energy is
-    ``-Y^T (I_3 (x) Be) Y``."""
+    ``-Y^T (I_3 (x) Be) Y``. Zero when an affine map fits any values at the points (at most 4
+    points, 3 in a plane)."""
     n = reference.shape[0]
-    k = np.linalg.norm(reference[:, None, :] - reference[None, :, :], axis=2)  # U(r) = r in 3D
+    # The affine maps' dimension at these points (centred: an offset origin does not hide it).
+    affine = np.linalg.matrix_rank(np.hstack([np.ones((n, 1)), reference - reference.mean(0)]))
+    if n <= affine:
+        # An affine map carries these points anywhere: no deformation of them bends, and an
+        # inverse would be rounding noise that the step's ridge blows up.
+        return np.zeros((n, n))
     p = np.hstack([np.ones((n, 1)), reference])
+    k = np.linalg.norm(reference[:, None, :] - reference[None, :, :], axis=2)  # U(r) = r in 3D
     big = np.zeros((n + 4, n + 4))
     big[:n, :n] = k
     big[:n, n:] = p
@@ -307,13 +314,17 @@ def _bending_step(
         return np.zeros_like(shape)
     a1, a2 = t1[idx], t2[idx]
     bff = be[np.ix_(idx, idx)]
+    if not bff.any():  # no slide of these points bends: every position is as good
+        return np.zeros_like(shape)
     # U^T (I_3 (x) Be) U in 2 x 2 blocks: (U_a^T (I_3 (x) Be) U_b)_ij = Be_ij (a_i . b_j).
     lhs = np.empty((2 * m, 2 * m))
     lhs[:m, :m] = bff * (a1 @ a1.T)
     lhs[:m, m:] = bff * (a1 @ a2.T)
     lhs[m:, :m] = lhs[:m, m:].T
     lhs[m:, m:] = bff * (a2 @ a2.T)
-    bey = (be @ shape)[idx]  # (I_3 (x) Be) Y, per coordinate
+    # (I_3 (x) Be) Y, per coordinate. Be annihilates constants, but not in rounding: a patient's
+    # offset origin (1e6 mm) would leave an error along the affine maps that the ridge amplifies.
+    bey = (be @ (shape - shape.mean(axis=0)))[idx]
     rhs = -np.concatenate([(a1 * bey).sum(1), (a2 * bey).sum(1)])
     # A tiny ridge keeps the system definite (slides along affine null directions cost nothing).
     # -lhs is positive semidefinite: the ridge makes it definite, and Cholesky solves it at half

@@ -135,3 +135,36 @@ def test_the_bending_matrix_gives_affine_maps_no_energy(planar):
     np.testing.assert_allclose(be @ affine, 0.0, atol=1e-9 * scale * 20)
     np.testing.assert_allclose(be, be.T, atol=1e-12 * scale)
     assert np.linalg.eigvalsh(be).max() < 1e-9 * scale
+
+
+def test_four_semilandmarks_do_not_slide():
+    # An affine map carries any 4 points anywhere: no slide of them bends, so none is made.
+    # (L^-1 was rounding noise there, and the ridge blew it up to moves of twice the radius.)
+    rng = np.random.default_rng(4)
+    _, targets, truths, _, _ = population(3, seed=4, template_resolution=8)
+    picks = [0, 30, 60, 90]
+    shapes = [t[picks] + rng.normal(size=(4, 3)) * 0.05 for t in truths]
+    result = slide_semilandmarks(shapes, targets)
+    for (v, f), given, slid in zip(targets, shapes, result.shapes):
+        # Only the projection onto the surface, whose distance is the noise added (~0.05).
+        np.testing.assert_allclose(slid, SurfaceDistanceQuery(v, f).closest(given)[2], atol=1e-9)
+    assert result.success and result.iterations == 1
+
+
+@pytest.mark.parametrize(("scale", "offset"), [(1.0, 1e6), (1.0, 1e3), (1e-6, 0.0), (1e4, 0.0)])
+def test_the_bending_step_does_not_depend_on_the_origin_or_the_unit(scale, offset):
+    # On a sphere every rotation slides all points along their tangent planes at no energy: the
+    # step's ridge amplifies any error along those directions ~1e9 times. A patient whose origin
+    # is 1e6 away, or a model in micrometres or metres, must get the same slide, scaled.
+    from o3dreg.shape.sliding import _bending_matrix, _bending_step, _tangent_bases
+
+    rng = np.random.default_rng(5)
+    mean = rng.normal(size=(200, 3))
+    mean *= 10.0 / np.linalg.norm(mean, axis=1, keepdims=True)
+    shape = mean + rng.normal(size=mean.shape) * 0.3
+    t1, t2 = _tangent_bases(mean / 10.0)
+    free = np.ones(200, dtype=bool)
+    reference = _bending_step(shape, t1, t2, _bending_matrix(mean), free)
+    step = _bending_step(shape * scale + offset, t1, t2, _bending_matrix(mean * scale), free)
+    # 1e-6 of the radius: far below any slide that matters, far above rounding.
+    np.testing.assert_allclose(step / scale, reference, atol=1e-5)
