@@ -376,3 +376,87 @@ def test_vertices_beyond_a_noisy_cut_are_not_counted_as_misplaced(spheres):
     for moved in (truth + [0.07 * diagonal, 0.0, 0.0], truth + 0.03 * diagonal * outward):
         judged = assess_registration(dataclasses.replace(right, vertices=moved), source, target)
         assert judged.status != "ok"
+
+
+def test_a_template_off_a_perforated_target_is_not_taken_as_beyond_a_cut():
+    # A noisy sphere with 30% of its triangles missing has open edges everywhere: the closest
+    # point of any template vertex lies near one. A template bulging 13% of the diagonal off
+    # the target over 10% of its vertices is off along the normal, not past a rim: it is
+    # failed, as on the whole target.
+    rng = np.random.default_rng(0)
+    sphere = synthetic_form("sphere", 10000)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.triangles)
+    radius = float(np.linalg.norm(v, axis=1).mean())
+    diagonal = float(np.linalg.norm(np.ptp(v, axis=0)))
+    noisy = v + rng.normal(size=v.shape) * 0.006 * diagonal
+    perforated = (noisy, f[rng.random(len(f)) > 0.3])
+    template = synthetic_form("sphere", 400)
+    tv, tf = np.asarray(template.vertices), np.asarray(template.triangles)
+    tv = tv * radius / np.linalg.norm(tv, axis=1).mean()
+    bulge = tv[:, 2] > np.percentile(tv[:, 2], 90)
+    moved = tv.copy()
+    moved[bulge] *= 1.0 + 0.13 * diagonal / radius
+    result = dataclasses.replace(
+        registration_elastic((tv, tf), perforated, init=np.eye(4), levels=LEVELS),
+        vertices=moved,
+        supported=np.ones(len(tv), dtype=bool),
+    )
+    for target in ((noisy, f), perforated):
+        judged = assess_registration(result, (tv, tf), target)
+        assert judged.status == "failed"
+        assert any("template vertices are far" in w for w in judged.warnings)
+
+
+def test_the_nearest_open_edge_is_found_as_by_a_full_table():
+    # The rim's distances come from a k-d tree of edge pieces; a full table of every point to
+    # every segment is the reference. Segments of very different lengths (a long one among
+    # short ones) and points beyond the reach (inf) included.
+    from o3dreg.registration.verdict import _nearest_on_segments
+
+    rng = np.random.default_rng(2)
+    start = rng.uniform(0, 100, size=(300, 3))
+    along = rng.normal(size=(300, 3)) * rng.choice(
+        [0.5, 2.0, 60.0], size=(300, 1), p=[0.6, 0.39, 0.01]
+    )
+    points = rng.uniform(-10, 110, size=(500, 3))
+    reach = 4.0
+    gap, nearest = _nearest_on_segments(points, start, along, reach)
+    offset = points[:, None] - start[None]
+    t = np.clip((offset * along).sum(2) / (along * along).sum(1), 0.0, 1.0)
+    table = np.linalg.norm(offset - t[..., None] * along, axis=2)
+    within = table.min(axis=1) <= reach
+    assert 20 < within.sum() < 480  # both kinds of point are tested
+    np.testing.assert_allclose(gap[within], table.min(axis=1)[within], rtol=1e-12, atol=1e-9)
+    foot = (
+        start[table.argmin(1)] + t[np.arange(500), table.argmin(1), None] * along[table.argmin(1)]
+    )
+    np.testing.assert_allclose(nearest[within], foot[within], atol=1e-9)
+    assert np.all(gap[~within] > reach)
+
+
+def test_the_rim_rule_costs_no_table_of_points_by_open_edges():
+    # A noisy plane with 5% of its triangles missing: ~12k open edges. A dense table of 256 far
+    # vertices by every open edge at a time takes ~75 MB per array (gigabytes on a 1M-triangle
+    # scan); the k-d tree of edge pieces needs a few MB.
+    import tracemalloc
+
+    from o3dreg.registration.distance import SurfaceDistanceQuery
+    from o3dreg.registration.verdict import _past_noisy_rim
+
+    rng = np.random.default_rng(0)
+    n = 200
+    grid = np.stack(np.meshgrid(np.arange(n), np.arange(n)), -1).reshape(-1, 2).astype(float)
+    vt = np.c_[grid, rng.normal(size=len(grid)) * 0.3]
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1))
+    a = (i * n + j).ravel()
+    ft = np.r_[np.c_[a, a + 1, a + n], np.c_[a + 1, a + n + 1, a + n]]
+    ft = ft[rng.random(len(ft)) > 0.05]
+    points = np.c_[rng.uniform(0, n - 1, size=(1024, 2)), np.full(1024, 30.0)]
+    distances = SurfaceDistanceQuery(vt, ft).distance(points)
+    tracemalloc.start()
+    try:
+        _past_noisy_rim(points, distances, vt, ft, 10.0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 60e6, f"{peak / 1e6:.0f} MB"
