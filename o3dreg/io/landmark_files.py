@@ -283,7 +283,7 @@ def _read_csv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
         labels, points, skipped = [], [], []
         for k, row in enumerate(reader):
             row = {key.strip().lower(): value for key, value in row.items() if key}
-            label = str(row.get("label") or f"L{k + 1}").strip()
+            label = str(row.get("label") or "").strip() or f"L{k + 1}"
             # Slicer's control point export writes defined = 0 for a point not placed (its
             # coordinates are zeros, not a position), and its import takes 0 as undefined.
             if _is_false(row.get("defined")):
@@ -399,7 +399,7 @@ def _read_pp(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
             continue
         xyz = [point.get(c) for c in ("x", "y", "z")]
         points.append(_numbers([v if v is not None else "" for v in xyz], path, f"point {k + 1}"))
-        labels.append(str(point.get("name") or f"L{k + 1}"))
+        labels.append(str(point.get("name") or "").strip() or f"L{k + 1}")
     if skipped:
         warnings.warn(f"{path!r}: {skipped} inactive point(s) skipped", UserWarning, stacklevel=4)
     return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), None
@@ -485,7 +485,7 @@ def _read_markups(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
         declared = str(markup.get("coordinateSystem") or "LPS").upper()
         labels, points, skipped = [], [], []
         for k, p in enumerate(control):
-            label = str(p.get("label") or f"L{k + 1}")
+            label = str(p.get("label") or "").strip() or f"L{k + 1}"
             status = str(p.get("positionStatus", "defined")).lower()
             # An unplaced point: "position" absent or "" (Slicer writes "" with
             # positionStatus "undefined"), or a status other than defined.

@@ -564,7 +564,7 @@ def load_template_landmarks(
             ) from None
         keys = set(rows[0]) if rows else set()
         if "vertex" in keys or {"triangle", "b0", "b1", "b2"} <= keys:
-            lab = [str(r.get("label") or f"L{k + 1}").strip() for k, r in enumerate(rows)]
+            lab = [str(r.get("label") or "").strip() or f"L{k + 1}" for k, r in enumerate(rows)]
             repeated = _repeated(tuple(lab))
             if repeated:
                 raise ValueError(f"`path`: {path!r} repeats landmark labels {repeated}")

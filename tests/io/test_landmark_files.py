@@ -325,3 +325,33 @@ def test_mrk_json_of_unknown_units_is_refused(tmp_path):
     )
     with pytest.raises(ValueError, match=r"coordinateUnits 'in'; a length unit \(mm, um, cm, m\)"):
         read_landmarks(path)
+
+
+def test_spaces_around_a_label_are_dropped_in_every_format(tmp_path):
+    # A hand-edited file's " chin " must pair with another file's "chin" and be chosen by
+    # --labels chin (which drops such spaces), whatever the format. A label of spaces only is no label (L<k>).
+    names = [" chin ", "\tmand r", "   "]
+    markups = {
+        "markups": [
+            {
+                "type": "Fiducial",
+                "coordinateSystem": "LPS",
+                "controlPoints": [
+                    {"label": n, "position": list(p), "positionStatus": "defined"}
+                    for n, p in zip(names, LPS)
+                ],
+            }
+        ]
+    }
+    (tmp_path / "lm.mrk.json").write_text(json.dumps(markups))
+    points = "".join(
+        f'<point x="{x}" y="{y}" z="{z}" active="1" name="{n}"/>\n'
+        for n, (x, y, z) in zip(names, LPS)
+    )
+    (tmp_path / "lm.pp").write_text(f"<PickedPoints>\n{points}</PickedPoints>\n")
+    for suffix in (".csv", ".fcsv"):
+        write_landmarks(tmp_path / f"lm{suffix}", names, LPS)
+    for suffix in (".csv", ".fcsv", ".mrk.json", ".pp"):
+        labels, read = read_landmarks(tmp_path / f"lm{suffix}", file_coordinate_system="LPS")
+        assert labels == ("chin", "mand r", "L3"), suffix
+        np.testing.assert_allclose(read, LPS, atol=1e-9)

@@ -139,7 +139,7 @@ def test_the_bending_matrix_gives_affine_maps_no_energy(planar):
 
 def test_four_semilandmarks_do_not_slide():
     # An affine map carries any 4 points anywhere: no slide of them bends, so none is made.
-    # (L^-1 was rounding noise there, and the ridge blew it up to moves of twice the radius.)
+    # (L^-1 is rounding noise there, which the ridge would blow up to moves of twice the radius.)
     rng = np.random.default_rng(4)
     _, targets, truths, _, _ = population(3, seed=4, template_resolution=8)
     picks = [0, 30, 60, 90]
