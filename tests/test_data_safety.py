@@ -1163,7 +1163,7 @@ def test_a_concurrent_writer_is_never_overwritten(tmp_path):
 def test_a_failing_later_output_removes_the_earlier_ones(meshes, capsys, monkeypatch):
     from o3dreg.cli import _register
 
-    def disk_full(path, data, *, overwrite):
+    def disk_full(path, data, *, overwrite, name="path"):
         raise OSError(f"--report: writing {path!r} failed: No space left on device")
 
     monkeypatch.setattr(_register, "write_json", disk_full)
@@ -1186,7 +1186,7 @@ def test_a_failed_overwrite_puts_the_earlier_outputs_back(meshes, capsys, monkey
     assert run_main(capsys, *args)[0] in (0, 1)
     before = {p.name: p.read_bytes() for p in meshes.iterdir()}
 
-    def disk_full(path, data, *, overwrite):
+    def disk_full(path, data, *, overwrite, name="path"):
         raise OSError(f"--report: writing {path!r} failed: No space left on device")
 
     monkeypatch.setattr(_register, "write_json", disk_full)
