@@ -10,6 +10,7 @@ import contextlib
 import importlib
 import logging
 import os
+import re
 import warnings
 from collections.abc import Iterator
 from typing import Any
@@ -397,9 +398,14 @@ def check_output_path(path: Any, name: str, *, overwrite: bool) -> str:
     return path
 
 
+#: A value quoted in a message (``repr`` of a str): quotes not inside a word ("the model's").
+_QUOTED = re.compile(r"""(?<!\w)('[^'\n]*'|"[^"\n]*")(?!\w)""")
+
+
 @contextlib.contextmanager
 def named_as(name: str, parameter: str = "path") -> Iterator[None]:
-    """Errors raised in the block name ``name`` where they name ```parameter```.
+    """Errors raised in the block name ``name`` where they name ```parameter``` (outside the
+    values they quote, such as a file's name).
 
     A reader's helpers name its ``path``; a caller passing ``name`` (a command line: the
     option or positional the user typed) gets its own name in their messages. Nothing changes
@@ -408,11 +414,17 @@ def named_as(name: str, parameter: str = "path") -> Iterator[None]:
     try:
         yield
     except (TypeError, ValueError, OSError, RuntimeError) as exc:
-        text, old = str(exc), f"`{parameter}`"
+        text = str(exc)
+        # Outside the quoted values only: a file the user named 'lm`path`.fcsv' keeps its name.
+        parts = _QUOTED.split(text)
+        new = "".join(
+            part if k % 2 else part.replace(f"`{parameter}`", f"`{name}`")
+            for k, part in enumerate(parts)
+        )
         # Only the built-in types are remade: a subclass may carry fields its message omits.
-        if name == parameter or old not in text or type(exc).__module__ != "builtins":
+        if name == parameter or new == text or type(exc).__module__ != "builtins":
             raise
-        renamed = type(exc)(text.replace(old, f"`{name}`"))
+        renamed = type(exc)(new)
         raise renamed.with_traceback(exc.__traceback__) from exc.__cause__
 
 

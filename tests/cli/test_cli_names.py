@@ -230,3 +230,27 @@ def test_a_negative_value_in_scientific_notation_is_shown_how_to_pass(files, cap
     assert usage.value.code == 2 and "expected one argument" in err and "--option=-1e9" in err
     err = _error([*argv[:-1], "--threshold=-1e9"], capsys)
     assert "--threshold must lie strictly between" in err and "got -1e+09" in err
+
+
+def test_a_file_whose_name_holds_the_library_name_keeps_its_name(files, tmp_path, capsys):
+    # Only the library's name of the parameter is replaced, never the user's value quoted in the
+    # message: --landmarks 'lm`path`.fcsv' read "no such file 'lm`--landmarks`.fcsv'".
+    (tmp_path / "lm`path`.csv").write_text("label,l,p,s\np,1,0,0\nq,0,1\n")  # a short row
+    for name in ("missing`path`.csv", "lm`path`.csv"):
+        err = _error(
+            ["register", str(files / "a.ply"), str(files / "b.ply"), "--landmarks",
+             str(tmp_path / name), str(files / "b.csv"), "-o", str(tmp_path / "out.ply")],
+            capsys,
+        )  # fmt: skip
+        assert f"{name}'" in err and "`--landmarks TEMPLATE_FILE`" in err, err
+
+
+def test_named_as_renames_outside_quoted_values_only():
+    from o3dreg._validation import named_as
+
+    with pytest.raises(OSError, match=r"^`INPUT`: no such file 'a`path`b' \(the model's\)$"):
+        with named_as("INPUT"):
+            raise OSError("`path`: no such file 'a`path`b' (the model's)")
+    with pytest.raises(ValueError, match='^`X` and "it\'s `path`" and `X`$'):
+        with named_as("X"):
+            raise ValueError('`path` and "it\'s `path`" and `path`')
