@@ -266,6 +266,7 @@ def run_build(args: argparse.Namespace) -> int:
     # `source` (the template's) and `target` (a patient's): the user typed TARGET and --landmarks.
     with (
         _executor(args) as executor,
+        named_as("TEMPLATE", "template"),
         named_as("TARGET", "targets"),
         named_as("--landmarks", "landmarks"),
         named_as("--landmarks", "source"),

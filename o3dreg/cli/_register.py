@@ -227,7 +227,8 @@ def run(args: argparse.Namespace) -> int:
             "scale": fit.scale,
             "warnings": list(fit.warnings) + far,
         }
-    result = settings.register(source, target, init=init, callback=progress)
+    with named_as("SOURCE", "source"), named_as("TARGET", "target"):
+        result = settings.register(source, target, init=init, callback=progress)
     seconds = time.perf_counter() - start
     if bar is not None:
         bar.close()

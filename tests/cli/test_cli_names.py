@@ -254,3 +254,20 @@ def test_named_as_renames_outside_quoted_values_only():
     with pytest.raises(ValueError, match='^`X` and "it\'s `path`" and `X`$'):
         with named_as("X"):
             raise ValueError('`path` and "it\'s `path`" and `path`')
+
+
+def test_a_template_with_a_stray_vertex_is_named_as_typed(files, tmp_path, capsys):
+    # The library checks the template as `source` (register) or `template` (build-model).
+    import numpy as np
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(5.0, 10)
+    stray = np.vstack([np.asarray(sphere.vertices), [[0.0, 0.0, 0.0]]])
+    write_triangle_mesh(tmp_path / "t.ply", (stray, np.asarray(sphere.triangles)))
+    t, a, b = str(tmp_path / "t.ply"), str(files / "a.ply"), str(files / "b.ply")
+    out = str(tmp_path / "out")
+    for argv, typed in (
+        (["register", t, a, "-o", f"{out}.ply", "--levels", "2"], "`SOURCE`"),
+        (["build-model", t, a, b, "-o", out, "--levels", "2"], "`TEMPLATE`"),
+    ):
+        err = _error(argv, capsys)
+        assert f"{typed} must have every vertex on a triangle" in err, err
