@@ -172,11 +172,9 @@ def main(argv=None) -> int:
     for curve in (comp, gen, spec):
         print(curve.table())
 
-    # 5. Sliding semilandmarks (towards the Procrustes mean), and the model it gives.
+    # 5. Sliding semilandmarks (least bending energy from the mean), and the model it gives.
     targets = [o3dreg.read_triangle_mesh(p) for p in paths[1:] if Path(p).stem in regnames]
-    slid = slide_semilandmarks(
-        shapes, targets, criterion="procrustes", max_iteration=5, faces=faces
-    )
+    slid = slide_semilandmarks(shapes, targets, faces=faces)
     slid_model = build_shape_model(slid.shapes, faces, names=regnames)
     slid_gen = generalization(slid.shapes, faces)
     print(slid)
@@ -222,6 +220,7 @@ def main(argv=None) -> int:
         "generalization": gen.as_dict(),
         "specificity": spec.as_dict(),
         "sliding": {
+            "criterion": slid.criterion,
             "iterations": slid.iterations,
             "procrustes_distances": slid.procrustes_distances.tolist(),
             "total_variance_before": model.total_variance,
