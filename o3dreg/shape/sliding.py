@@ -326,9 +326,9 @@ def _bending_step(
     # offset origin (1e6 mm) would leave an error along the affine maps that the ridge amplifies.
     bey = (be @ (shape - shape.mean(axis=0)))[idx]
     rhs = -np.concatenate([(a1 * bey).sum(1), (a2 * bey).sum(1)])
-    # A tiny ridge keeps the system definite (slides along affine null directions cost nothing).
-    # -lhs is positive semidefinite: the ridge makes it definite, and Cholesky solves it at half
-    # the cost of a general factorisation (2m unknowns, dense).
+    # -lhs is positive semidefinite (slides along affine null directions cost nothing): a tiny
+    # ridge makes it definite, and Cholesky solves it at half the cost of a general
+    # factorisation (2m unknowns, dense).
     lhs *= -1.0
     lhs[np.diag_indices(2 * m)] += 1e-9 * max(float(np.trace(lhs)) / (2 * m), 1e-300)
     try:
