@@ -33,7 +33,7 @@ from ..registration.options import ElasticLevel
 from ..shape.build import build_shape_model
 from ..shape.model import ShapeModel
 from ..shape.quality import QualityCurve, compactness, generalization, specificity
-from ..shape.sliding import SlidingResult, slide_semilandmarks
+from ..shape.sliding import SlidingResult, check_bending_size, slide_semilandmarks
 from ..shape.statismo import write_statismo
 from .batch import BatchResult, register_batch, stored_source, write_summary
 from .explorer import write_model_explorer
@@ -392,6 +392,8 @@ def build_model_folder(
             select_labels(available, landmark_labels, repr(os.fspath(landmarks)), "landmark_labels")
     elif landmark_labels is not None:
         raise ValueError("`landmark_labels` chooses landmarks of `landmarks`: give `landmarks`")
+    if slide:  # before any registration: the sliding's dense solve has a size limit
+        check_bending_size(len(np.asarray(template.vertices)), name="slide")
     _check_distinct_patients(targets, target_name)
     inits = None
     if landmarks is not None:

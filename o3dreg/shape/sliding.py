@@ -29,6 +29,12 @@ logger = logging.getLogger("o3dreg")
 
 CRITERIA = ("procrustes", "bending")
 
+#: The bending criterion solves a dense system of 2 unknowns per free point, beside the
+#: ``(n + 4)^2`` thin-plate matrix and its inverse: about ``90 n^2`` bytes at its peak (8000
+#: points: 5.8 GB; a 3000-vertex template: 0.8 GB). More points are refused before any work
+#: rather than left to exhaust the memory.
+BENDING_MAX_POINTS = 8000
+
 #: A move that turns a semilandmark triangle over is halved this many times for the vertices of
 #: the turned triangles, then dropped for them (they stay where they are).
 FOLD_HALVINGS = 6
@@ -206,8 +212,22 @@ def slide_semilandmarks(
         if idx.size and (idx.min() < 0 or idx.max() >= x.shape[1]):
             raise ValueError(f"`fixed` must index points in [0, {x.shape[1] - 1}]")
         free[idx] = False
+    check_bending_size(x.shape[1], criterion)
     tris = None if faces is None else as_faces(faces, x.shape[1], "faces")
     return _slide(x, surfaces, criterion, max_iteration, tolerance, free, scaling, tris)
+
+
+def check_bending_size(points: int, criterion: str = "bending", name: str = "criterion") -> None:
+    """Refuse ``criterion='bending'`` on more than :data:`BENDING_MAX_POINTS` points (its dense
+    solve would take ``90 n^2`` bytes), naming the cures; ``name``: what the caller calls the
+    choice."""
+    if criterion == "bending" and points > BENDING_MAX_POINTS:
+        raise ValueError(
+            f"`{name}`: sliding by bending energy solves a dense system over all {points} "
+            f"points (about {90 * points**2 / 1e9:.0f} GB); it takes at most "
+            f"{BENDING_MAX_POINTS}: use a template of fewer vertices, or "
+            + ("criterion='procrustes'" if name == "criterion" else "do without sliding")
+        )
 
 
 def _slide(

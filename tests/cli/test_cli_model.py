@@ -331,3 +331,19 @@ def test_build_model_slides_by_bending_energy(files, tmp_path):
     # (a fraction of a millimetre on this ~30 mm shape).
     moved = np.linalg.norm(means[True] - means[False], axis=1)
     assert 1e-3 < moved.mean() < 3.0
+
+
+def test_build_model_refuses_a_slide_too_large_before_registering(
+    files, tmp_path, capsys, monkeypatch
+):
+    # Sliding's dense solve has a size limit (BENDING_MAX_POINTS): a template past it is
+    # refused before any registration, naming --slide, rather than after all of them.
+    import o3dreg.shape.sliding as sliding
+
+    patients = [str(files / f"p{i}.ply") for i in (0, 2, 3)]
+    out = tmp_path / "big"
+    monkeypatch.setattr(sliding, "BENDING_MAX_POINTS", 10)
+    code = build_model(files, patients, out, "--levels", "2", "--slide")
+    err = capsys.readouterr().err
+    assert code == 2 and "`slide` (--slide)" in err and "at most 10" in err
+    assert not (out / "registrations").exists()

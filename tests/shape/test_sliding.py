@@ -168,3 +168,20 @@ def test_the_bending_step_does_not_depend_on_the_origin_or_the_unit(scale, offse
     step = _bending_step(shape * scale + offset, t1, t2, _bending_matrix(mean * scale), free)
     # 1e-6 of the radius: far below any slide that matters, far above rounding.
     np.testing.assert_allclose(step / scale, reference, atol=1e-5)
+
+
+def test_bending_on_too_many_points_is_refused_before_any_work(monkeypatch):
+    # The dense solve takes about 90 n^2 bytes: past BENDING_MAX_POINTS the call is refused
+    # with its size and the cures, before any sliding.
+    from o3dreg.shape import sliding
+
+    monkeypatch.setattr(sliding, "BENDING_MAX_POINTS", 10)
+    shapes = np.zeros((2, 11, 3))
+    surface = (np.eye(3), np.array([[0, 1, 2]]))
+    with pytest.raises(
+        ValueError, match=r"`criterion`: .* all 11 points .* at most 10: .*'procrustes'"
+    ):
+        slide_semilandmarks(shapes + np.arange(11)[None, :, None], [surface, surface])
+    with pytest.raises(ValueError, match=r"`slide`: .* do without sliding"):
+        sliding.check_bending_size(11, name="slide")
+    sliding.check_bending_size(11, criterion="procrustes")  # no dense solve: any size
