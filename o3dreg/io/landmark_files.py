@@ -78,7 +78,7 @@ def select_labels(
     ``where`` names the file in the messages (``"'lm.fcsv'"``), ``name`` the parameter.
     ``TypeError`` unless ``labels`` is ``None`` or a sequence of str; ``ValueError`` for no
     label, a repeated label, or a label the file does not hold (naming the file's labels and
-    the ones received).
+    the ones received), or a chosen label the file holds twice.
     """
     if labels is None:
         return list(range(len(available)))
@@ -102,6 +102,13 @@ def select_labels(
             f"`{name}` must name landmarks of {where}, which holds {', '.join(available)}; "
             f"got {', '.join(chosen)}: {', '.join(map(repr, unknown))} "
             f"{'is' if len(unknown) == 1 else 'are'} not in it"
+        )
+    # A label the file holds twice is ambiguous only where it is chosen.
+    twice = sorted({lab for lab in chosen if list(available).count(lab) > 1})
+    if twice:
+        raise ValueError(
+            f"`{name}` must name landmarks {where} holds once; got {', '.join(chosen)}: "
+            f"{', '.join(map(repr, twice))} {'is' if len(twice) == 1 else 'are'} there twice"
         )
     index = {lab: k for k, lab in enumerate(available)}
     return [index[lab] for lab in chosen]

@@ -157,10 +157,8 @@ def _as_landmarks(value: Any, name: str) -> tuple[tuple[str, ...] | None, np.nda
 def _choose(
     labels: tuple[str, ...], points: np.ndarray, chosen: Any, name: str, value: Any
 ) -> tuple[tuple[str, ...], np.ndarray]:
-    """The landmarks of ``chosen`` (the ``labels`` argument) of one side, in its order."""
-    repeated = sorted({lab for lab in labels if labels.count(lab) > 1})
-    if repeated:
-        raise ValueError(f"`{name}` repeats landmark labels {repeated}")
+    """The landmarks of ``chosen`` (the ``labels`` argument) of one side, in its order (a label
+    the side holds twice is refused where it is chosen)."""
     path = f" {os.fspath(value)!r}" if isinstance(value, (str, os.PathLike)) else ""
     kept = select_labels(labels, chosen, f"`{name}`{path}")
     return tuple(labels[k] for k in kept), points[kept]

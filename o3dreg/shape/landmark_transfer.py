@@ -565,7 +565,7 @@ def load_template_landmarks(
         keys = set(rows[0]) if rows else set()
         if "vertex" in keys or {"triangle", "b0", "b1", "b2"} <= keys:
             lab = [str(r.get("label") or "").strip() or f"L{k + 1}" for k, r in enumerate(rows)]
-            repeated = _repeated(tuple(lab))
+            repeated = _repeated(tuple(lab)) if labels is None else []
             if repeated:
                 raise ValueError(f"`path`: {path!r} repeats landmark labels {repeated}")
             chosen = select_labels(lab, labels, repr(path))
@@ -583,7 +583,7 @@ def load_template_landmarks(
                     raise
                 raise ValueError(f"`path`: {path!r} has malformed landmark rows: {exc}") from exc
     available, points = read_landmarks(path)
-    repeated = _repeated(tuple(available))
+    repeated = _repeated(tuple(available)) if labels is None else []
     if repeated:
         raise ValueError(f"`path`: {path!r} repeats landmark labels {repeated}")
     chosen = select_labels(available, labels, repr(path))

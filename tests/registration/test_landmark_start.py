@@ -124,6 +124,13 @@ def test_labels_choose_the_pairs(tmp_path):
         registration_landmarks((LABELS, POINTS), target, labels=chosen)
     with pytest.raises(TypeError, match="`labels` must be a sequence of landmark labels, got str"):
         registration_landmarks((LABELS, POINTS), (LABELS, target), labels="chin")
+    # A label one side holds twice is ambiguous only where it is chosen.
+    twice = ([*LABELS, "chin"], np.vstack([target, target[3]]))
+    result = registration_landmarks((LABELS, POINTS), twice, labels=chosen[1:])
+    assert result.labels == tuple(chosen[1:]) and result.rms < 1e-9
+    with pytest.raises(ValueError, match=r"landmarks `target` holds once; got chin, nasion, .*: "
+                       r"'chin' is there twice"):  # fmt: skip
+        registration_landmarks((LABELS, POINTS), twice, labels=chosen)
 
 
 def test_a_landmark_file_with_nan_names_the_file(tmp_path):

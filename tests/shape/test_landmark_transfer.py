@@ -414,3 +414,22 @@ def test_real_slicer_files_are_read_for_the_mandible_s_labels(shared_data):
     assert refused.value.far == ("odont_proc", "occ_bone")
     lm = load_template_landmarks(path, mesh, labels=["chin", "mand_r", "mand_l"])
     np.testing.assert_allclose(lm.positions(mesh[0]), points, atol=1e-6)
+
+
+def test_a_label_the_file_holds_twice_is_refused_only_where_it_is_chosen(pop, tmp_path):
+    # Two points named 'x' (placed twice by hand): ambiguous if 'x' is used, by default or by
+    # `labels`; the other landmarks of the file can still be chosen.
+    (tv, tf), _, _, _, _ = pop
+    for name in ("lm.fcsv", "v.csv"):
+        if name == "v.csv":
+            (tmp_path / name).write_text("label,vertex\nchin,3\nx,10\nmand_r,50\nx,60\n")
+        else:
+            write_landmarks(tmp_path / name, ["chin", "x", "mand_r", "x"], tv[[3, 10, 50, 60]])
+        chosen = load_template_landmarks(tmp_path / name, (tv, tf), labels=["mand_r", "chin"])
+        assert chosen.labels == ("mand_r", "chin")
+        np.testing.assert_allclose(chosen.positions(tv), tv[[50, 3]], atol=1e-9)
+        with pytest.raises(ValueError, match=r"repeats landmark labels \['x'\]"):
+            load_template_landmarks(tmp_path / name, (tv, tf))
+        with pytest.raises(ValueError, match=r"`labels` must name landmarks .* holds once; "
+                           r"got chin, x: 'x' is there twice"):  # fmt: skip
+            load_template_landmarks(tmp_path / name, (tv, tf), labels=["chin", "x"])
