@@ -444,7 +444,8 @@ def run_modes(args: argparse.Namespace) -> int:
         check_outputs(
             {f"{where} {name}": os.path.join(folder, name) for name in names}, args.overwrite
         )
-    given = "--output" if args.output else "MODEL"  # how the messages name the folder
+    # How the messages name the folder: the option, also when its default is written.
+    given = "--output" if args.output else "--output (its default)"
     make_folder(folder, given)
     # All the meshes or none (a full disk left mean.ply behind an exit status 2).
     with (
@@ -646,7 +647,7 @@ def run_explore(args: argparse.Namespace) -> int:
         # destroyed the model).
         check_outputs({"--output": args.output}, args.overwrite, suffixes={"--output": (".html",)})
     folder = "" if _is_statismo(args.model_dir) else os.path.join(args.model_dir, "registrations")
-    with named_as("--output" if args.output else "MODEL"):
+    with named_as("--output" if args.output else "--output (its default)"):
         written = write_model_explorer(
             output,
             model,

@@ -271,3 +271,14 @@ def test_a_template_with_a_stray_vertex_is_named_as_typed(files, tmp_path, capsy
     ):
         err = _error(argv, capsys)
         assert f"{typed} must have every vertex on a triangle" in err, err
+
+
+def test_a_default_output_failing_names_the_option_that_sets_it(tmp_path, capsys):
+    # Without -o the page goes beside a .h5 model (MODEL_explorer.html): a folder of that name
+    # there cannot be written over, and the message names the option that chooses another
+    # place, not MODEL (which names the model read).
+    model = tmp_path / "m.h5"
+    model.write_bytes(STATISMO.read_bytes())
+    (tmp_path / "m_explorer.html").mkdir()
+    err = _error(["model", "explore", str(model)], capsys)
+    assert "`--output (its default)`" in err and "MODEL" not in err
