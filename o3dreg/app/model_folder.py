@@ -28,7 +28,7 @@ from .._geometry import turned_triangles
 from .._validation import check_bool
 from ..io import json_text
 from ..io.landmark_files import read_landmarks, select_labels
-from ..io.mesh import atomic_write_text, read_triangle_mesh, write_triangle_mesh
+from ..io.mesh import atomic_write_text, make_folder, read_triangle_mesh, write_triangle_mesh
 from ..registration.options import ElasticLevel
 from ..shape.build import build_shape_model
 from ..shape.model import ShapeModel
@@ -406,10 +406,7 @@ def build_model_folder(
                 raise ValueError(f"patient {os.fspath(t)!r} ({marks!r}): {exc}") from exc
         inits = np.stack(starts)
     out = output
-    try:
-        os.makedirs(out, exist_ok=True)
-    except OSError as exc:  # the system's message names only the path
-        raise OSError(f"`output`: cannot create folder {out!r}: {exc.strerror or exc}") from exc
+    make_folder(out, "output")
     with _folder_lock(out):
         _refuse_a_model(output, overwrite)  # again: a build may have ended since
         # Staging folders of a build killed outright (SIGKILL, power loss): this build holds

@@ -178,15 +178,6 @@ def check_input_files(name: str, paths: Sequence[str]) -> None:
             raise OSError(f"`{name}`: {path!r} is a folder, not a file")
 
 
-def make_folder(path: str, name: str) -> None:
-    """``os.makedirs(path, exist_ok=True)``; its error names the argument ``name`` that gave
-    ``path`` (the system's names only the path)."""
-    try:
-        os.makedirs(path, exist_ok=True)
-    except OSError as exc:
-        raise OSError(f"`{name}`: cannot create folder {path!r}: {exc.strerror or exc}") from exc
-
-
 def write_json(path: str, data: Any, *, overwrite: bool, name: str) -> str:
     """``data`` as a JSON file (atomically); errors name the option ``name`` that gave ``path``."""
     return atomic_write_text(

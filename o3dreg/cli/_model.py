@@ -21,7 +21,7 @@ from ..app.explorer import write_model_explorer
 from ..app.model_folder import build_model_folder, check_inputs_outside, existing_model_files
 from ..io import json_text
 from ..io.landmark_files import LANDMARK_SUFFIXES, select_labels
-from ..io.mesh import read_triangle_mesh
+from ..io.mesh import make_folder, read_triangle_mesh
 from ..registration.options import ElasticLevel
 from ..shape.landmark_transfer import (
     LANDMARK_REACH,
@@ -45,7 +45,6 @@ from ._common import (
     check_outputs,
     emit,
     int_list,
-    make_folder,
     positive_int,
     process_pool,
     standard_deviations,
@@ -345,9 +344,9 @@ def run_build(args: argparse.Namespace) -> int:
 def _warn_far_template_landmarks(path: str, template: Any, labels: list[str] | None) -> None:
     """Name the landmarks of ``path`` (those of ``labels``) off the template's surface, as
     ``o3dreg register --landmarks`` does: they steer every patient's start all the same."""
-    available = read_landmarks(path)[0]
-    used = [available[k] for k in select_labels(available, labels, repr(path))]
-    far = far_landmarks(path, template, used)
+    landmarks = read_landmarks(path)
+    used = [landmarks[0][k] for k in select_labels(landmarks[0], labels, repr(path))]
+    far = far_landmarks(landmarks, template, used)
     for line in far_landmark_warnings([("template", *far)], used):
         logger.warning("build-model: %s", line)
 

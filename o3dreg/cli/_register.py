@@ -36,6 +36,7 @@ from ._registration_options import (
     add_registration_options,
     far_landmark_warnings,
     far_landmarks,
+    read_quietly,
     settings_from_args,
 )
 
@@ -213,8 +214,8 @@ def run(args: argparse.Namespace) -> int:
         init = fit.transformation
         far = far_landmark_warnings(
             [
-                ("template", *far_landmarks(args.landmarks[0], source, fit.labels)),
-                ("patient", *far_landmarks(args.landmarks[1], target, fit.labels)),
+                ("template", *far_landmarks(read_quietly(args.landmarks[0]), source, fit.labels)),
+                ("patient", *far_landmarks(read_quietly(args.landmarks[1]), target, fit.labels)),
             ],
             fit.labels,
         )

@@ -213,13 +213,21 @@ def settings_from_args(args: argparse.Namespace, template: Any = None) -> Regist
 
 
 # -- the landmark start (register --landmarks, build-model --landmarks) ---------------------------
-def far_landmarks(path: str, mesh: Any, used: Sequence[str]) -> tuple[dict[str, float], float]:
-    """The landmarks of ``path`` among ``used`` farther from ``mesh`` than
+def read_quietly(path: str) -> tuple[tuple[str, ...], np.ndarray]:
+    """``read_landmarks(path)`` without its warnings: they were given when the file was first
+    read (by the registration's landmark start)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return read_landmarks(path)
+
+
+def far_landmarks(
+    landmarks: tuple[Sequence[str], np.ndarray], mesh: Any, used: Sequence[str]
+) -> tuple[dict[str, float], float]:
+    """The ``(labels, points)`` among ``used`` farther from ``mesh`` than
     :data:`~o3dreg.shape.landmark_transfer.LANDMARK_REACH` of its size (anatomy the mesh does
     not show), with their distances, and that limit."""
-    with warnings.catch_warnings():  # the file's own warnings were given when it was read
-        warnings.simplefilter("ignore")
-        labels, points = read_landmarks(path)
+    labels, points = landmarks
     vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
     limit = LANDMARK_REACH * float(np.linalg.norm(np.ptp(vertices, axis=0)))
     # A handful of points: no tree of the whole mesh (the registration builds its own).

@@ -59,6 +59,15 @@ def check_mesh_suffix(path: str, name: str) -> str:
     return suffix
 
 
+def make_folder(path: str | os.PathLike[str], name: str) -> None:
+    """``os.makedirs(path, exist_ok=True)``; its error names the argument ``name`` that gave
+    ``path`` (the system's names only the path)."""
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"`{name}`: cannot create folder {path!r}: {exc.strerror or exc}") from exc
+
+
 def atomic_write_text(
     path: str | os.PathLike[str], text: str, *, overwrite: bool = False, name: str = "path"
 ) -> str:
