@@ -10,6 +10,7 @@ import argparse
 import contextlib
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -31,9 +32,9 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         if "expected one argument" in message:
-            # argparse takes a value such as -1e9 for an option (its negative numbers have no
-            # exponent): after '=' it is a value.
-            message += " (a value starting with '-', such as -1e9, goes after '=': --option=-1e9)"
+            # argparse takes a value starting with '-' (other than a number) for an option:
+            # after '=' it is a value.
+            message += " (a value starting with '-' goes after '=': --output=-name.ply)"
         self.exit(
             EXIT_BAD_INPUT,
             f"{self.prog}: error: {message} (see `{self.prog} --help`)\n",
@@ -268,11 +269,33 @@ def _warning_to_log(
     logging.getLogger("o3dreg").warning("%s", message)
 
 
+_NUMBER = r"(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+# A negative number, or a comma list starting with one, as the options take them: -1e9, -1,0,0.
+_NEGATIVE_NUMBERS = re.compile(rf"-{_NUMBER}(?:,-?{_NUMBER})*")
+# What argparse itself reads as a value: left as typed.
+_PLAIN_NEGATIVE = re.compile(r"-\d+|-\d*\.\d+")
+
+
+def _numbers_as_values(argv: Sequence[str]) -> list[str]:
+    """``argv`` with each negative number (list) marked as a value: argparse reads a token
+    starting with '-' as an option unless it is a plain negative number such as -3, so
+    ``--up -1,0,0`` or ``--threshold -1e9`` would be refused. A leading space makes it a value
+    (no option of ours starts with '-' and a digit; the converters strip it). Plain negative
+    numbers and the tokens after ``--`` are left as they are."""
+    out = list(argv)
+    for k, token in enumerate(out):
+        if token == "--":
+            break
+        if _NEGATIVE_NUMBERS.fullmatch(token) and not _PLAIN_NEGATIVE.fullmatch(token):
+            out[k] = " " + token
+    return out
+
+
 def main(argv: Sequence[str] | None = None, *, ending: bool = False) -> int:
     """Run one command line (``argv``; default ``sys.argv[1:]``) and return its exit status
     (``ending``: the process ends with it, see :func:`console`)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_numbers_as_values(sys.argv[1:] if argv is None else argv))
     if args.quiet and args.verbose:  # one before the command, one after it: argparse lets both
         parser.error("-q/--quiet and -v/--verbose ask for opposite things: give one")
     level = (

@@ -21,6 +21,7 @@ from ..io.mesh import HOST, atomic_write_text
 
 
 def _number_list(text: str, convert: type, kind: str, minimum: float) -> list:
+    text = text.strip()
     items = text.split(",")
     if any(not v.strip() for v in items):
         # "2,,4" or "2,4,": a value left out is a typo, not a shorter list.
@@ -71,6 +72,7 @@ def add_labels_option(parser: argparse.ArgumentParser, files: str) -> None:
 
 def finite_float(text: str) -> float:
     """A finite number, for argparse ``type=`` (``nan`` and ``inf`` are refused)."""
+    text = text.strip()
     try:
         value = float(text)
     except ValueError:
@@ -82,6 +84,7 @@ def finite_float(text: str) -> float:
 
 def positive_int(text: str) -> int:
     """An integer >= 1, for argparse ``type=``."""
+    text = text.strip()
     try:
         value = int(text)
     except ValueError:

@@ -600,6 +600,7 @@ def run_fit(args: argparse.Namespace) -> int:
 
 
 def _vector3(text: str) -> list[float]:
+    text = text.strip()
     try:
         values = [float(v) for v in text.split(",")]
     except ValueError:
@@ -632,7 +633,7 @@ def _add_explore(sub: Any) -> None:
         type=_vector3,
         default=[0.0, 0.0, 1.0],
         metavar="X,Y,Z",
-        help="world direction shown upwards at first (default 0,0,1; write --up=0,0,-1)",
+        help="world direction shown upwards at first (default 0,0,1)",
     )
     add_overwrite_option(explore, "an existing page")
     explore.set_defaults(func=run_explore)

@@ -10,7 +10,7 @@ import open3d as o3d
 import pytest
 
 from o3dreg import write_triangle_mesh
-from o3dreg.cli import main
+from o3dreg.cli import _numbers_as_values, build_parser, main
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 PITCH = DATA / "pitch" / "CT_pitch.nii.gz"  # values 0-255
@@ -221,15 +221,39 @@ def test_model_outputs_failing_at_write_time_name_their_option(files, tmp_path, 
     assert f"`--output`: cannot write {f'{REFUSING}/{written}'!r}" in err and "`path`" not in err
 
 
-def test_a_negative_value_in_scientific_notation_is_shown_how_to_pass(files, capsys):
-    # argparse reads -1e9 as an option; the message says to write it after '=', which works.
+def test_negative_numbers_in_scientific_notation_or_lists_are_values(files, capsys):
+    # argparse reads -1e9 and -1,0,0 as options (its negative numbers are plain ones such as -3):
+    # they are values here, checked like any other.
     argv = ["reconstruct", str(PITCH), "-o", str(files / "o.ply"), "--threshold"]
+    for value in ("-1e9", "--threshold=-1e9"):
+        err = _error([*argv, value] if value == "-1e9" else [*argv[:-1], value], capsys)
+        assert "--threshold must lie strictly between" in err and "got -1e+09" in err
+    args = build_parser().parse_args(
+        _numbers_as_values(["model", "explore", "m/", "--up", "-1,0,0"])
+    )
+    assert args.up == [-1.0, 0.0, 0.0]
+    args = build_parser().parse_args(
+        _numbers_as_values([
+            "reconstruct", "in.nrrd", "-o", "o.ply", "--threshold", "1", "--crop-box", "-1e2", "-.5", "-3", "1E2", "5", "6",
+        ])
+    )  # fmt: skip
+    assert args.crop_box == [-100.0, -0.5, -3.0, 100.0, 5.0, 6.0]
+    with pytest.raises(SystemExit):  # a usage error: argparse exits
+        main(["model", "explore", "m/", "--up", "-1,0"])
+    assert "expected three numbers X,Y,Z, got '-1,0'" in capsys.readouterr().err  # as typed
+
+
+def test_a_value_starting_with_a_dash_is_shown_how_to_pass(files, capsys):
+    # A file name starting with '-' is an option to argparse: the message says to write it
+    # after '=', and tokens after '--' are never taken for numbers.
+    argv = ["reconstruct", str(PITCH), "-o", "-out.ply"]
     with pytest.raises(SystemExit) as usage:  # a usage error: argparse exits
-        main([*argv, "-1e9"])
+        main(argv)
     err = capsys.readouterr().err
-    assert usage.value.code == 2 and "expected one argument" in err and "--option=-1e9" in err
-    err = _error([*argv[:-1], "--threshold=-1e9"], capsys)
-    assert "--threshold must lie strictly between" in err and "got -1e+09" in err
+    assert usage.value.code == 2 and "expected one argument" in err and "--output=-name" in err
+    assert _numbers_as_values(["--up", "-1,0,0", "--", "-1,0,0"]) == [
+        "--up", " -1,0,0", "--", "-1,0,0",
+    ]  # fmt: skip
 
 
 def test_a_file_whose_name_holds_the_library_name_keeps_its_name(files, tmp_path, capsys):
