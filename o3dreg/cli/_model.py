@@ -18,7 +18,12 @@ import numpy as np
 
 from .._validation import named_as
 from ..app.explorer import write_model_explorer
-from ..app.model_folder import build_model_folder, check_inputs_outside, existing_model_files
+from ..app.model_folder import (
+    build_model_folder,
+    check_inputs_outside,
+    existing_model_files,
+    patient_landmark_file,
+)
 from ..io import json_text
 from ..io.landmark_files import LANDMARK_SUFFIXES, select_labels
 from ..io.mesh import make_folder, read_triangle_mesh
@@ -53,6 +58,7 @@ from ._registration_options import (
     add_registration_options,
     far_landmark_warnings,
     far_landmarks,
+    read_quietly,
     settings_from_args,
 )
 
@@ -70,7 +76,8 @@ the median; five patients or more) becomes 'suspect'. Only 'ok' patients enter t
 landmarks: with --landmarks TEMPLATE_FILE, patient PATH/NAME.EXT is started from the landmarks
 in PATH/NAME.mrk.json, PATH/NAME.fcsv or PATH/NAME.csv (the first that exists; labels paired
 with the template's: the same labels in every file, or those of --labels, which every file must
-hold). A patient without a landmark file stops the command before any registration.
+hold). A patient without a landmark file stops the command before any registration; landmarks
+far from their own mesh (another patient's file, RAS against LPS) are named before it.
 
 exit status: 0 every patient registered with verdict 'ok'; 1 a patient failed or was flagged
 (the model is built from the others), or fewer than 2 'ok' patients; 2 bad input."""
@@ -261,6 +268,8 @@ def run_build(args: argparse.Namespace) -> int:
     if args.landmarks:
         with named_as("--landmarks"):
             _warn_far_template_landmarks(args.landmarks, template, args.labels)
+        if not args.scheduler:
+            _warn_far_patient_landmarks(args.targets, args.labels)
     # The library names the patient files `targets` and the landmark files `landmarks`,
     # `source` (the template's) and `target` (a patient's): the user typed TARGET and --landmarks.
     with (
@@ -349,6 +358,34 @@ def _warn_far_template_landmarks(path: str, template: Any, labels: list[str] | N
     far = far_landmarks(landmarks, template, used)
     for line in far_landmark_warnings([("template", *far)], used):
         logger.warning("build-model: %s", line)
+
+
+def _warn_far_patient_landmarks(targets: list[str], labels: list[str] | None) -> None:
+    """Name each patient whose landmarks (those of ``labels``) lie off its own surface: its
+    start is placed by them, so the registration begins wrong (a landmark file of another
+    patient, or in other coordinates, RAS against the mesh's LPS). Files the build will refuse
+    are left to it, which names them."""
+    for target in targets:
+        try:
+            landmarks = read_quietly(patient_landmark_file(target))
+            used = [landmarks[0][k] for k in select_labels(landmarks[0], labels, "")]
+            far, limit = far_landmarks(landmarks, read_triangle_mesh(target), used)
+        except (OSError, ValueError):
+            continue
+        if far:
+            share = (
+                f"all {len(used)}" if len(far) == len(used) else f"{len(far)} of its {len(used)}"
+            )
+            logger.warning(
+                "build-model: TARGET %r: %s landmarks lie far from its surface (more than "
+                "%.3g, %.0f%% of its size): %s; they place its start all the same: check that its "
+                "landmark file is its own and in the mesh's coordinates",
+                target,
+                share,
+                limit,
+                100 * LANDMARK_REACH,
+                ", ".join(f"{label} ({d:.3g})" for label, d in far.items()),
+            )
 
 
 def _check_model_folder(output: str, overwrite: bool) -> None:

@@ -110,6 +110,27 @@ def test_build_model_pairs_the_labels_chosen(files, tmp_path, capsys, caplog):
     assert "far from the template surface" not in caplog.text
 
 
+def test_build_model_names_a_patient_whose_landmarks_are_off_its_surface(tmp_path, caplog):
+    # p1's file holds its landmarks with x and y negated (RAS written against an LPS mesh): a
+    # rotation by 180 degrees, which the landmark start fits exactly and places wrongly.
+    (tv, tf), targets, truths, _, poses = population(3, seed=3)
+    write_triangle_mesh(tmp_path / "template.ply", (tv, tf))
+    write_landmarks(tmp_path / "template.csv", ["a", "b", "c"], tv[PICKS])
+    for i in range(2):
+        write_triangle_mesh(tmp_path / f"p{i}.ply", targets[i])
+        pts = truths[i][PICKS] @ poses[i][:3, :3].T + poses[i][:3, 3]
+        write_landmarks(tmp_path / f"p{i}.fcsv", ["a", "b", "c"], pts * [1 - 2 * i, 1 - 2 * i, 1])
+    with caplog.at_level(logging.WARNING, logger="o3dreg"):
+        main([
+            "build-model", str(tmp_path / "template.ply"), str(tmp_path / "p0.ply"),
+            str(tmp_path / "p1.ply"), "--levels", "2", "--landmarks", str(tmp_path / "template.csv"),
+            "-o", str(tmp_path / "m"), "--json",
+        ])  # fmt: skip
+    far = [r.getMessage() for r in caplog.records if "lie far from its surface" in r.getMessage()]
+    assert len(far) == 1 and "p1.ply" in far[0] and "of its 3 landmarks" in far[0]
+    assert "in the mesh's coordinates" in far[0]
+
+
 def test_build_model_labels_need_landmarks(files, tmp_path, capsys):
     patient = str(files / "patient.ply")
     template = str(files / "model" / "template.ply")
