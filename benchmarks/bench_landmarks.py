@@ -1,32 +1,36 @@
-"""Correspondence judged on real annotated anatomy: landmark transfer and prediction on 8 mandibles.
+"""Correspondence judged on real annotated anatomy: landmark transfer and prediction on mandibles.
 
-The 8 development mandibles (PDDCA CT masks, research data in ``../shared/data/mandibles``) come
-with 3D Slicer annotations: ``chin`` and the two condyles ``mand_r`` / ``mand_l`` on the bone,
-placed on voxel centres 0.6-4 mm inside the marching-cubes surface. Each mask becomes a surface
-(marching cubes at 0.5, largest component, 30 Taubin iterations for the 2.5-3 mm slice staircase);
-a template is that surface decimated to ``--template-vertices``.
+The PDDCA CT masks of ``--data`` (default: the 8 development mandibles, research data in
+``../shared/data/mandibles``) come with 3D Slicer annotations: ``chin`` and the two condyles
+``mand_r`` / ``mand_l`` on the bone, placed on voxel centres 0.6-4 mm inside the marching-cubes
+surface. Each mask becomes a surface (marching cubes at 0.5, largest component, 30 Taubin
+iterations for the 2.5-3 mm slice staircase); a template is that surface decimated to
+``--template-vertices``. A patient serves when its mask gives one mandible surface and its
+landmark file places each of the three labels once, on it (``_mandibles.py``); any other is left
+out with a line naming it and why. Below, N is the number of patients that serve (at least 3).
 
-* **Transfer**: every template (8) onto every other patient (7): o3dreg with its default
+* **Transfer**: every template (N) onto every other patient (N - 1): o3dreg with its default
   settings (rigid start, default levels), the template's annotations carried by the
   deformation's map of space (``result.transform``); trimesh's ``nricp_amberg`` (default steps,
   unit-diagonal coordinates) from o3dreg's rigid start, the annotations attached to the template
   surface with their depth (``TemplateLandmarks.from_points``) and read off its moved vertices.
   The error is the distance to the patient's own annotation. Its **systematic** part is, per
-  template and landmark, the length of the mean error vector over the 7 patients (the template's
-  own annotation differing from the others'); the rest is the **random** part. Each method also
-  carries **consensus** landmarks: for a pair, the mean of the template's annotation and those
-  of the 6 patients outside the pair, read back onto the template through the method's own
-  registrations onto them (``TemplateLandmarks.from_annotated_shapes``); the patient's own
-  annotation is never used. It averages out the template annotator's placement, most of the
-  systematic part. Averaging over templates the other way: each patient's landmarks estimated
-  as the mean of what the templates carry there (per patient, with every template chosen).
+  template and landmark, the length of the mean error vector over the N - 1 patients (the
+  template's own annotation differing from the others'); the rest is the **random** part. Each
+  method also carries **consensus** landmarks: for a pair, the mean of the template's annotation
+  and those of the N - 2 patients outside the pair, read back onto the template through the
+  method's own registrations onto them (``TemplateLandmarks.from_annotated_shapes``); the
+  patient's own annotation is never used. It averages out the template annotator's placement,
+  most of the systematic part. Averaging over templates the other way: each patient's landmarks
+  estimated as the mean of what the templates carry there (per patient, with every template
+  chosen).
 * **Prediction** (the paper's goal): for every template and every held-out patient, a shape model
-  of the other 6 patients' semilandmark meshes (the transfer's registrations),
+  of the other N - 2 patients' semilandmark meshes (the transfer's registrations),
   :func:`~o3dreg.predict_landmarks` of the template's annotations (with their depth) on the
   held-out patient, read on the fitted instance registered onto the patient surface (the
   default), on it with every vertex moved to its closest patient point (``onto='closest'``) and
   on the instance itself; the same fit read with the landmarks snapped onto the surface, and with the
-  landmarks averaged from the annotations of the template and the model's 6 patients
+  landmarks averaged from the annotations of the template and the model's N - 2 patients
   (``TemplateLandmarks.from_annotated_shapes``); with a rigid model (size kept, the paper) and a
   similarity model (``build_shape_model(scaling=True)``). With ``--cut f`` the held-out
   patient's surface loses its top ``f`` of its height (z) first: a partial patient, whose
@@ -39,25 +43,28 @@ a template is that surface decimated to ``--template-vertices``.
   the normal plus that voxel error in the tangent plane); and a fit of ``e_ab = o_a - o_b +
   r_ab``, one offset ``o`` per annotation (the same whichever patient it is carried to or from),
   which splits the error into what the annotations explain and what is left to each
-  registration (with all 8 templates: with fewer, the offsets explain everything).
+  registration (it needs 2 or more templates: with one, the offsets explain every error and
+  the fit says so instead).
 * **Inverse-consistent transfer** (``--inverse-consistent``): the pair's registration the other
   way round as well (the patient's surface decimated like a template, registered onto the
-  template's surface; with all 8 templates it is another pair's forward registration), the
+  template's surface; with every template it is another pair's forward registration), the
   template's annotation carried backwards through it (``result.inverse_transform``: the point
   that map sends onto the annotation), and the mean of the forward and backward estimates. A
   bias that both directions make the same way (a protrusion the map does not quite reach) has
   opposite signs in the two estimates and cancels in the mean. Its time per pair counts both
   registrations.
 
-    python benchmarks/bench_landmarks.py                       # 8 x 7 pairs, both methods
+    python benchmarks/bench_landmarks.py                       # N x (N - 1) pairs, both methods
     python benchmarks/bench_landmarks.py --templates 2 --skip-peer --skip-prediction
+    python benchmarks/bench_landmarks.py --data OTHER/mandibles --templates 0522c0001,0522c0002
     python benchmarks/bench_landmarks.py --skip-peer --barycentre-weighting uniform
     python benchmarks/bench_landmarks.py --skip-peer --skip-prediction --decompose
     python benchmarks/bench_landmarks.py --skip-peer --skip-prediction --inverse-consistent
     python benchmarks/bench_landmarks.py --skip-peer --cut 0.2     # predict on partial patients
 
 Prints the figures and the ratios against the peer measured in the same run; skips with a message
-where the data are absent. Nothing derived from the masks is written.
+where the data are absent or fewer than 3 patients serve. Nothing derived from the masks is
+written.
 """
 
 from __future__ import annotations
@@ -67,42 +74,89 @@ import logging
 import os
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
 ROOT = Path(__file__).resolve().parents[1]
 LABELS = ("chin", "mand_r", "mand_l")
+#: Patients the benchmark needs: a template and 2 patients, so that its error over them has a
+#: systematic and a random part.
+MIN_PATIENTS = 3
 
 
 def data_dir() -> Path:
+    """The default mandible folder: ``$O3DREG_SHARED_DATA/mandibles``, else
+    ``../shared/data/mandibles`` beside the repository."""
     env = os.environ.get("O3DREG_SHARED_DATA")
     base = Path(env) if env else ROOT.parent / "shared" / "data"
     return base / "mandibles"
 
 
-def load(template_vertices: int) -> dict:
-    """Per patient: the surface, the template decimated from it and the 3 annotations (LPS)."""
-    import o3dreg
+def load(template_vertices: int, folder: Path | None = None) -> dict:
+    """Per patient that serves: the surface, the template decimated from it and the 3
+    annotations (LPS); a line printed for each patient left out (``_mandibles.load_patients``).
 
-    out = {}
-    for mask in sorted((data_dir() / "masks").glob("*.nrrd")):
-        pid = mask.name.split("_")[0]
-        volume = o3dreg.read_volume(str(mask))
-        mesh = o3dreg.isosurface(volume, 0.5)
-        mesh = o3dreg.smooth_taubin(o3dreg.keep_largest_components(mesh, 1), 30)
-        template = o3dreg.decimate(mesh, template_vertices)
-        labels, points = o3dreg.read_landmarks(
-            str(data_dir() / "landmarks" / f"{pid}_Landmarks.fcsv")
-        )
-        index = {lab: k for k, lab in enumerate(labels)}
-        out[pid] = {
-            "spacing": np.asarray(volume.spacing, dtype=float)[::-1],  # x, y, z
-            "surface": (np.asarray(mesh.vertices), np.asarray(mesh.triangles)),
-            "template": (np.asarray(template.vertices), np.asarray(template.triangles)),
-            "landmarks": points[[index[lab] for lab in LABELS]],
-        }
-    return out
+    Parameters
+    ----------
+    template_vertices : int
+    folder : Path, optional
+        Holding ``masks/`` and ``landmarks/``. Default :func:`data_dir`.
+    """
+    from _mandibles import load_patients
+
+    return load_patients(folder or data_dir(), LABELS, template_vertices)
+
+
+def chosen_templates(spec: str | None, ids: Sequence[str]) -> list[str]:
+    """The patients ``--templates`` chooses as templates.
+
+    Parameters
+    ----------
+    spec : str or None
+        Comma-separated entries, each a patient id or an index into ``ids`` (an id first);
+        ``None`` chooses every patient.
+    ids : sequence of str
+        The patients that serve, sorted.
+
+    Returns
+    -------
+    list of str
+        The ids, in the order given.
+
+    Raises
+    ------
+    ValueError
+        An entry that names no patient of ``ids``, or a patient named twice.
+    """
+    if spec is None:
+        return list(ids)
+    chosen: list[str] = []
+    for entry in (part.strip() for part in spec.split(",")):
+        if entry in ids:
+            pid = entry
+        elif entry.isdigit() and int(entry) < len(ids):
+            pid = ids[int(entry)]
+        else:
+            raise ValueError(
+                f"`--templates` must list indices 0-{len(ids) - 1} or ids of the {len(ids)} "
+                f"patients that serve ({', '.join(ids)}), got {entry!r} in {spec!r}"
+            )
+        if pid in chosen:
+            raise ValueError(
+                f"`--templates` must name each template once, got {pid} twice in {spec!r}"
+            )
+        chosen.append(pid)
+    return chosen
+
+
+def ordinal(n: int) -> str:
+    """``1st``, ``2nd``, ``3rd``, ``4th``, ..., ``11th``, ``21st``."""
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
 
 
 def amberg(template: tuple, rigid: np.ndarray, surface: tuple) -> np.ndarray:
@@ -145,6 +199,61 @@ def consensus_landmarks(
     )
 
 
+class Underdetermined(ValueError):
+    """The offset fit cannot split the error: too few pairs for the offsets."""
+
+
+def offset_fit(
+    pairs: Sequence[tuple[int, int]], errors: np.ndarray, count: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fit ``e_ab = o_a - o_b + r_ab``: one offset per annotation, least squares with sum(o) = 0.
+
+    Parameters
+    ----------
+    pairs : sequence of (a, b)
+        Each pair's template and patient, as indices of their annotations.
+    errors : (p, l, 3) ndarray
+        Each pair's error vectors ``e_ab``.
+    count : int
+        The number of annotations.
+
+    Returns
+    -------
+    explained : (p, l, 3) ndarray
+        ``o_a - o_b`` of each pair.
+    rest : (p, l, 3) ndarray
+        ``r_ab``.
+
+    Raises
+    ------
+    Underdetermined
+        When an annotation is in no pair with the others (its offset is not fitted), or there
+        are no more pair errors than free offsets (one template: the offsets explain every
+        error and leave no rest).
+    """
+    design = np.zeros((len(pairs), count))
+    for k, (a, b) in enumerate(pairs):
+        design[k, a], design[k, b] = 1.0, -1.0
+    # The pairs fix the offsets up to a common shift (the sum fixes it): the differences they
+    # determine are the rank of their rows, count - 1 when every annotation is tied in.
+    free = int(np.linalg.matrix_rank(design)) if len(pairs) else 0
+    if free < count - 1:
+        raise Underdetermined(
+            f"the {len(pairs)} pairs tie only {free + 1} of the {count} annotations together; "
+            "the others' offsets are not determined"
+        )
+    if len(pairs) <= free:
+        raise Underdetermined(
+            f"{len(pairs)} pair errors for {free} free offsets: the offsets would explain every "
+            "error exactly and leave no rest"
+        )
+    stacked = np.vstack([errors.reshape(len(pairs), -1), np.zeros((1, errors[0].size))])
+    full = np.vstack([design, np.ones((1, count))])
+    offsets = np.linalg.lstsq(full, stacked, rcond=None)[0].reshape(count, *errors.shape[1:])
+    explained = np.stack([offsets[a] - offsets[b] for a, b in pairs])
+    return explained, errors - explained
+
+
 def decompose(vectors: np.ndarray) -> tuple[float, float]:
     """Systematic and random parts of error vectors ``(templates, patients, landmarks, 3)``."""
     mean = vectors.mean(axis=1, keepdims=True)
@@ -177,7 +286,8 @@ def decomposition(data: dict, vectors: np.ndarray, chosen: list[str]) -> None:
         "voxel grid alone": [],
         "floor: depth + voxel": [],
     }
-    pairs = []
+    pairs: list[tuple[int, int]] = []
+    errors: list[np.ndarray] = []
     for a, tid in enumerate(chosen):
         for b, pid in enumerate(p for p in ids if p != tid):
             e = vectors[a, b]
@@ -200,31 +310,45 @@ def decomposition(data: dict, vectors: np.ndarray, chosen: list[str]) -> None:
             flat = grid - (grid * normal).sum(axis=-1, keepdims=True) * normal
             floor = np.linalg.norm(gap[:, None] * normal + flat, axis=-1).mean(axis=0)
             rows["floor: depth + voxel"].append(floor)
-            pairs.append((ids.index(tid), ids.index(pid), e))
-    # e_ab = o_a - o_b + r_ab: one offset per annotation, least squares with sum(o) = 0.
-    design = np.zeros((len(pairs) + 1, len(ids)))
-    for k, (ia, ib, _) in enumerate(pairs):
-        design[k, ia], design[k, ib] = 1.0, -1.0
-    design[-1] = 1.0
-    stacked = np.vstack([np.stack([e.ravel() for *_, e in pairs]), np.zeros((1, 3 * len(LABELS)))])
-    offsets = np.linalg.lstsq(design, stacked, rcond=None)[0].reshape(len(ids), len(LABELS), 3)
-    explained = np.stack([offsets[ia] - offsets[ib] for ia, ib, _ in pairs])
-    rest = np.stack([e for *_, e in pairs]) - explained
-    rows["offsets o_a - o_b"] = list(np.linalg.norm(explained, axis=-1))
-    rows["rest r_ab"] = list(np.linalg.norm(rest, axis=-1))
+            pairs.append((ids.index(tid), ids.index(pid)))
+            errors.append(e)
+    try:
+        explained, rest = offset_fit(pairs, np.stack(errors), len(ids))
+    except Underdetermined as exc:
+        unfitted = (
+            f"offsets o_a - o_b and rest r_ab not fitted, underdetermined ({len(chosen)} "
+            f"template{'s' if len(chosen) != 1 else ''} x {len(ids) - 1} patients): {exc}; "
+            "2 or more templates give the fit more pair errors than offsets"
+        )
+    else:
+        unfitted = ""
+        rows["offsets o_a - o_b"] = list(np.linalg.norm(explained, axis=-1))
+        rows["rest r_ab"] = list(np.linalg.norm(rest, axis=-1))
     print("\ndecomposition of o3dreg's transfer error (mean of |.|, mm)")
     print(f"{'part':<26}{'all':>7}" + "".join(f"{lab:>8}" for lab in LABELS))
     for name, found in rows.items():
         x = np.array(found)
         print(f"{name:<26}{x.mean():>7.2f}" + "".join(f"{c:>8.2f}" for c in x.mean(axis=0)))
+    if unfitted:
+        print(unfitted)
 
 
-def main() -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
+    parser.add_argument(
+        "--data",
+        metavar="FOLDER",
+        help="the mandible folder: masks/<id>_Mandible.nrrd and landmarks/<id>_Landmarks.fcsv "
+        "(default: $O3DREG_SHARED_DATA/mandibles, else ../shared/data/mandibles)",
+    )
     parser.add_argument("--template-vertices", type=int, default=3000)
-    parser.add_argument("--templates", help="comma-separated template indices (default all)")
+    parser.add_argument(
+        "--templates",
+        help="comma-separated templates: patient ids, or indices into the patients that serve, "
+        "sorted by id (default all)",
+    )
     parser.add_argument("--skip-peer", action="store_true")
     parser.add_argument("--skip-prediction", action="store_true")
     parser.add_argument(
@@ -248,9 +372,14 @@ def main() -> int:
         help="also carry each annotation backwards through the patient-onto-template "
         "registration, and average the two estimates (see above)",
     )
-    args = parser.parse_args()
-    folder = data_dir()
+    args = parser.parse_args(argv)
+    folder = Path(args.data) if args.data else data_dir()
     if not (folder / "masks").is_dir() or not (folder / "landmarks").is_dir():
+        if args.data:
+            parser.error(
+                f"--data {folder} must hold masks/ (<id>_Mandible.nrrd) and landmarks/ "
+                "(<id>_Landmarks.fcsv)"
+            )
         print(f"skip: no mandible masks and landmarks in {folder} (research data, not shipped)")
         return 0
     import igl
@@ -259,14 +388,23 @@ def main() -> int:
     from o3dreg import TemplateLandmarks, build_shape_model, predict_landmarks
 
     logging.getLogger("o3dreg").setLevel(logging.ERROR)
-    data = load(args.template_vertices)
+    data = load(args.template_vertices, folder)
+    if len(data) < MIN_PATIENTS:
+        print(
+            f"skip: {len(data)} patient(s) of {folder} serve, at least {MIN_PATIENTS} needed (a "
+            "template and 2 patients to carry its landmarks to)"
+        )
+        return 0
     estimation = (
         None
         if args.barycentre_weighting is None
         else o3dreg.DistanceEstimation(barycentre_weighting=args.barycentre_weighting)
     )
     ids = sorted(data)
-    chosen = ids if args.templates is None else [ids[int(k)] for k in args.templates.split(",")]
+    try:
+        chosen = chosen_templates(args.templates, ids)
+    except ValueError as exc:
+        parser.error(str(exc))
     both = ["o3dreg backward", "o3dreg mean"] if args.inverse_consistent else []
     methods = ["o3dreg"] + both + ([] if args.skip_peer else ["nricp_amberg"])
     vectors = {m: np.zeros((len(chosen), len(ids) - 1, len(LABELS), 3)) for m in methods}
@@ -317,7 +455,7 @@ def main() -> int:
     if args.inverse_consistent:
         seconds["o3dreg mean"] = seconds["o3dreg"] + seconds["o3dreg backward"]
     # The template annotator's placement averaged out: for every pair, the template's landmarks
-    # from its own annotation and those of the 6 patients other than the pair's (read back
+    # from its own annotation and those of the N - 2 patients other than the pair's (read back
     # through the method's registrations onto them), carried by the pair's registered vertices.
     # No registration is added; the patient's own annotation is not used.
     for m, moved in (("o3dreg", shapes), ("nricp_amberg", peer_shapes)):
@@ -411,10 +549,18 @@ def main() -> int:
 
     if args.skip_prediction:
         return 0
+    if len(ids) < 4:
+        # build_shape_model needs 2 shapes: the patients other than the template and the held-out.
+        print(
+            f"\nprediction skipped: its model is built of the patients other than the template "
+            f"and the held-out one, 2 or more needed (4 patients); {len(ids)} serve"
+        )
+        return 0
+    held_out = ordinal(len(ids) - 1)
     print(
-        f"\nprediction: model of 6 patients' semilandmark meshes, predict_landmarks on the 7th "
-        f"({len(chosen) * (len(ids) - 1)} predictions), mm"
-        + (f"; the 7th without the top {args.cut:.0%} of its height" if args.cut > 0 else "")
+        f"\nprediction: model of {len(ids) - 2} patients' semilandmark meshes, predict_landmarks "
+        f"on the {held_out} ({len(chosen) * (len(ids) - 1)} predictions), mm"
+        + (f"; the {held_out} without the top {args.cut:.0%} of its height" if args.cut > 0 else "")
     )
     print(
         f"{'model':<12}{'landmarks':<15}{'read on':<11}{'mean':>7}"
@@ -456,7 +602,7 @@ def main() -> int:
                     for name, landmarks in (
                         ("template", attached),
                         ("snapped", attached.on_surface()),
-                        ("7 annotations", annotated),
+                        (f"{len(ids) - 1} annotations", annotated),
                     ):
                         found = landmarks.positions(mesh) - truth
                         rows.setdefault((name, where), []).append(found)
@@ -475,7 +621,8 @@ def main() -> int:
         "model: rigid = build_shape_model(scaling=False) (size kept, the paper), similarity = "
         "scaling=True (size removed, fitted with a scale); landmarks: the template's annotations "
         "with their depth, the same snapped onto the surface, the mean of the template's and the "
-        "6 model patients' annotations (TemplateLandmarks.from_annotated_shapes); read on: the "
+        f"{len(ids) - 2} model patients' annotations (TemplateLandmarks.from_annotated_shapes); "
+        "read on: the "
         "fitted instance registered onto the patient surface (predict_landmarks' default), its "
         "vertices moved to their closest patient points (onto='closest') or the instance itself "
         "(on_target=False)"

@@ -1,28 +1,31 @@
-"""A statistical shape model of 8 mandibles, from CT masks to modes (Berar et al. 2005, 3.3).
+"""A statistical shape model of mandibles, from CT masks to modes (Berar et al. 2005, 3.3).
 
 Pipeline: reconstruct each mask (marching cubes at 0.5, largest component, Taubin smoothing of
 the 2.5-3 mm slice staircase); take the first mandible, decimated to ~2500 vertices, as the
-template; register it elastically onto the other seven (parallel, resumable); align the
+template; register it elastically onto the others (parallel, resumable); align the
 semilandmark meshes by generalised Procrustes; PCA; report the variance table (the paper's
 Table 4), generalisation, specificity, the effect of sliding semilandmarks, leave-one-out
 landmark prediction; draw the first two modes at +-3 standard deviations (Figure 6).
 
 Usage::
 
-    python examples/mandible_model.py [OUTPUT_DIR] [--jobs N] [--docs]
+    python examples/mandible_model.py [OUTPUT_DIR] [--data FOLDER] [--jobs N] [--docs]
 
-Reads /work/shared/data/mandibles/masks (or $O3DREG_SHARED_DATA/mandibles/masks); exits with a
-message when the data are absent. ``--docs`` also writes the pictures to docs/images/.
-The masks are research data: nothing derived from them but figures and statistics is kept.
+Reads the PDDCA masks ``FOLDER/masks/<id>_Mandible.nrrd`` (default FOLDER:
+$O3DREG_SHARED_DATA/mandibles, else ../shared/data/mandibles: the 8 development mandibles);
+exits with a message when fewer than 3 masks give a mandible surface. A mask that is empty, in
+pieces or far from the others' size is left out with a line saying why. ``--docs`` also writes
+the pictures to docs/images/. The masks are research data: nothing derived from them but
+figures and statistics is kept.
 """
 
 from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
-import glob
 import json
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -45,24 +48,116 @@ from o3dreg import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
+MASK_SUFFIX = "_Mandible.nrrd"
+#: The share of a mask's surface area its largest component must hold (the mandible whole).
+LARGEST_SHARE = 0.9
+#: How far a mandible's size (bounding-box diagonal) may stray from the masks' median, as a factor.
+SIZE_FACTOR = 1.5
+
+
+class Unusable(ValueError):
+    """Why a mask gives no mandible surface: what was expected and what was found."""
 
 
 def data_dir() -> Path:
+    """The default mandible folder: ``$O3DREG_SHARED_DATA/mandibles``, else
+    ``../shared/data/mandibles`` beside the repository."""
     env = os.environ.get("O3DREG_SHARED_DATA")
     base = Path(env) if env else ROOT.parent / "shared" / "data"
-    return base / "mandibles" / "masks"
+    return base / "mandibles"
 
 
-def reconstruct(path: str, number_of_vertices: int | None = None):
-    """Mask -> smoothed surface (mm), with o3dreg's CT reconstruction functions."""
-    volume = o3dreg.read_volume(path)
-    mesh = o3dreg.isosurface(volume, 0.5)
+def patient_masks(folder: Path) -> tuple[list[tuple[str, Path]], list[str]]:
+    """The masks of ``folder`` named ``<id>_Mandible.nrrd`` (PDDCA's naming), by id.
+
+    Parameters
+    ----------
+    folder : Path
+
+    Returns
+    -------
+    masks : list of (id, Path)
+        Sorted by id; the id is everything before the suffix (matched in any case).
+    lines : list of str
+        One per file left aside: another name, or an id that is not a plain file name (the
+        registrations are stored under it).
+    """
+    masks, lines = [], []
+    for path in sorted(folder.iterdir()) if folder.is_dir() else []:
+        name = path.name
+        if name.startswith("."):  # system files (.DS_Store, ._ resource forks)
+            continue
+        if len(name) <= len(MASK_SUFFIX) or not name.lower().endswith(MASK_SUFFIX.lower()):
+            lines.append(f"ignored {name}: not named <id>{MASK_SUFFIX}")
+            continue
+        pid = name[: -len(MASK_SUFFIX)]
+        if re.fullmatch(r"[A-Za-z0-9_-][A-Za-z0-9._-]*", pid) is None:
+            lines.append(
+                f"left out {pid!r}: its id is not a plain file name (letters, digits, . _ -)"
+            )
+            continue
+        masks.append((pid, path))
+    return masks, lines
+
+
+def reconstruct(path: str | Path, number_of_vertices: int | None = None):
+    """Mask -> smoothed surface (mm), with o3dreg's CT reconstruction functions.
+
+    Raises
+    ------
+    Unusable
+        The mask cannot be read, is empty, gives no surface at 0.5, or is in pieces (its largest
+        component holds less than :data:`LARGEST_SHARE` of the surface area).
+    """
+    name = Path(path).name
+    try:
+        volume = o3dreg.read_volume(str(path))
+    except Exception as exc:  # any reader's failure: the mask is left out, the run goes on
+        raise Unusable(f"{name} cannot be read: {exc}") from None
+    if not (np.asarray(volume.array) > 0.5).any():
+        raise Unusable(f"{name} holds no voxel above 0.5 (an empty mask)")
+    try:
+        mesh = o3dreg.isosurface(volume, 0.5)
+    except (RuntimeError, ValueError) as exc:
+        raise Unusable(f"{name} gives no surface at 0.5: {exc}") from None
+    areas = o3dreg.connected_components(mesh).areas
+    if areas[0] < LARGEST_SHARE * areas.sum():
+        raise Unusable(
+            f"{name} is in pieces: its largest component holds {areas[0] / areas.sum():.0%} of "
+            f"the surface area ({len(areas)} components; the mandible's at least "
+            f"{LARGEST_SHARE:.0%} expected)"
+        )
     mesh = o3dreg.keep_largest_components(mesh, 1)
     # Thick slices (2.5-3 mm) leave a staircase: Taubin smoothing removes it, keeping volume.
     mesh = o3dreg.smooth_taubin(mesh, 30)
     if number_of_vertices is not None and len(mesh.vertices) > number_of_vertices:
         mesh = o3dreg.decimate(mesh, number_of_vertices)
     return mesh
+
+
+def size_outliers(diagonals: dict[str, float]) -> dict[str, str]:
+    """The surfaces not mandible-sized: a bounding-box diagonal more than :data:`SIZE_FACTOR`
+    from the median of all (a largest component that is another structure, or a fragment).
+
+    Parameters
+    ----------
+    diagonals : dict
+        ``{id: bounding-box diagonal (mm)}``.
+
+    Returns
+    -------
+    dict
+        ``{id: why}`` for each outlier.
+    """
+    median = float(np.median(list(diagonals.values()))) if diagonals else 0.0
+    return {
+        pid: (
+            f"its surface is {d:.0f} mm across (bounding-box diagonal), the masks' median "
+            f"{median:.0f} mm: not mandible-sized (within x{SIZE_FACTOR:g} of it expected)"
+        )
+        for pid, d in diagonals.items()
+        if not median / SIZE_FACTOR <= d <= median * SIZE_FACTOR
+    }
 
 
 def draw_modes(model, path: Path, modes=(0, 1), sds=(-3.0, 0.0, 3.0)) -> None:
@@ -106,39 +201,66 @@ def draw_modes(model, path: Path, modes=(0, 1), sds=(-3.0, 0.0, 3.0)) -> None:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("output", nargs="?", default="/tmp/o3dreg-mandible-model")
+    parser.add_argument(
+        "--data",
+        metavar="FOLDER",
+        help="the mandible folder, masks in FOLDER/masks/<id>_Mandible.nrrd (default: "
+        "$O3DREG_SHARED_DATA/mandibles, else ../shared/data/mandibles)",
+    )
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--template-vertices", type=int, default=2500)
     parser.add_argument("--target-vertices", type=int, default=40000)
     parser.add_argument("--docs", action="store_true", help="write pictures to docs/images/")
     args = parser.parse_args(argv)
 
-    masks = sorted(glob.glob(str(data_dir() / "*.nrrd")))
-    if len(masks) < 3:
+    folder = (Path(args.data) if args.data else data_dir()) / "masks"
+    found, lines = patient_masks(folder)
+    if len(found) < 3:
         print(
-            f"mandible masks not found under {data_dir()} (set O3DREG_SHARED_DATA); nothing to do"
+            f"{len(found)} mandible mask(s) <id>{MASK_SUFFIX} under {folder}, at least 3 needed "
+            "(set O3DREG_SHARED_DATA or --data); nothing to do"
         )
         return 0
+    for line in lines:
+        print(line)
     out = Path(args.output)
     (out / "surfaces").mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
 
-    # 1. Surfaces (cached in OUTPUT/surfaces).
-    names = [Path(m).name.split("_")[0] for m in masks]
-    paths = []
-    for name, mask in zip(names, masks):
+    # 1. Surfaces (cached in OUTPUT/surfaces); a mask without a mandible surface is left out.
+    surfaces: dict[str, Path] = {}
+    diagonals: dict[str, float] = {}
+    for name, mask in found:
         path = out / "surfaces" / f"{name}.ply"
         if not path.exists():
-            o3dreg.write_triangle_mesh(path, reconstruct(mask, args.target_vertices))
-        paths.append(str(path))
+            try:
+                o3dreg.write_triangle_mesh(path, reconstruct(mask, args.target_vertices))
+            except Unusable as exc:
+                print(f"left out {name}: {exc}")
+                continue
+        surfaces[name] = path
+        vertices = np.asarray(o3dreg.read_triangle_mesh(path).vertices)
+        diagonals[name] = float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    for name, why in size_outliers(diagonals).items():
+        print(f"left out {name}: {why}")
+        del surfaces[name]
+    if len(surfaces) < 3:
+        print(f"{len(surfaces)} of the {len(found)} masks give a mandible surface, 3 needed")
+        return 0
+    names = list(surfaces)
+    paths = [str(surfaces[name]) for name in names]
     template_path = out / "template.ply"
     if not template_path.exists():
-        o3dreg.write_triangle_mesh(template_path, reconstruct(masks[0], args.template_vertices))
+        template_mask = dict(found)[names[0]]
+        o3dreg.write_triangle_mesh(
+            template_path, reconstruct(template_mask, args.template_vertices)
+        )
     template = o3dreg.read_triangle_mesh(template_path)
     print(
         f"template {names[0]}: {len(template.vertices)} vertices; {time.perf_counter() - start:.0f} s"
     )
 
-    # 2. Batch registration onto the other seven (resumable: rerun skips finished patients).
+    # 2. Batch registration onto the others (resumable: rerun skips finished patients).
     executor = cf.ProcessPoolExecutor(args.jobs) if args.jobs > 1 else None
     try:
         batch = register_batch(

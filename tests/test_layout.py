@@ -98,6 +98,7 @@ ROOT_TESTS = {
     "test_geometry.py",
     "test_hostile.py",
     "test_layout.py",
+    "test_mandible_folders.py",
     "test_mesh_types.py",
     "test_packaging.py",
 }
