@@ -57,9 +57,12 @@ def topic(name: str) -> str:
     return TOPICS.get(short, "Other")
 
 
-def first_line(name: str) -> str:
+def summary(name: str) -> str:
+    """The first paragraph of the docstring of ``name``, on one line (a summary that a docstring
+    wraps over several lines stays whole)."""
     doc = inspect.getdoc(getattr(o3dreg, name)) or ""
-    line = doc.strip().splitlines()[0] if doc.strip() else ""
+    paragraph = doc.strip().split("\n\n")[0]
+    line = " ".join(part.strip() for part in paragraph.splitlines())
     # Sphinx roles read badly in a Markdown table: keep the name only.
     line = re.sub(r":\w+:`~?(?:o3dreg\.)?([^`]+)`", r"`\1`", line)
     return line.replace("``", "`").replace("|", "\\|")
@@ -79,7 +82,7 @@ def render() -> dict[str, str]:
             continue
         lines += [f"## {group}", "", "| name | summary |", "|---|---|"]
         for name in groups[group]:
-            lines.append(f"| [`{name}`]({name}.md) | {first_line(name)} |")
+            lines.append(f"| [`{name}`]({name}.md) | {summary(name)} |")
         lines.append("")
     pages["index.md"] = "\n".join(lines)
     return pages

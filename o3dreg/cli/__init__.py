@@ -295,7 +295,11 @@ def main(argv: Sequence[str] | None = None, *, ending: bool = False) -> int:
     """Run one command line (``argv``; default ``sys.argv[1:]``) and return its exit status
     (``ending``: the process ends with it, see :func:`console`)."""
     parser = build_parser()
-    args = parser.parse_args(_numbers_as_values(sys.argv[1:] if argv is None else argv))
+    args, unknown = parser.parse_known_args(
+        _numbers_as_values(sys.argv[1:] if argv is None else argv)
+    )
+    if unknown:  # named by the sub-command that was given them, with its --help
+        _chosen(parser, args)[-1].error(f"unrecognized arguments: {' '.join(unknown)}")
     if args.quiet and args.verbose:  # one before the command, one after it: argparse lets both
         parser.error("-q/--quiet and -v/--verbose ask for opposite things: give one")
     level = (

@@ -66,6 +66,24 @@ def test_a_bad_option_value_is_one_line_with_the_hint(files, capsys):
     assert "(see `o3dreg register --help`)" in err
 
 
+@pytest.mark.parametrize(
+    "argv, command",
+    [
+        (["register", "a.ply", "b.ply", "-o", "c.ply", "--lambda", "3"], "o3dreg register"),
+        (["model", "fit", "m/", "p.ply", "--landmarks", "l.csv", "--bogus"], "o3dreg model fit"),
+        (["--bogus"], "o3dreg"),
+    ],
+)
+def test_an_unknown_option_names_the_command_it_was_given_to(argv, command, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "usage:" not in err
+    assert err.startswith(f"{command}: error: unrecognized arguments: ")
+    assert f"(see `{command} --help`)" in err
+
+
 @pytest.mark.parametrize("value", ["2,,4", "2,4,", ",2"])
 def test_a_list_with_an_empty_item_is_refused(value, capsys):
     with pytest.raises(SystemExit) as exc:
