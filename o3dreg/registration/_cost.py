@@ -268,12 +268,16 @@ class LevelProblem:
     def _fold_samples(
         self, prior: Any, active: np.ndarray
     ) -> tuple[np.ndarray, list[sp.csr_matrix]]:
-        """Samples (8 per cell, at local coordinates 1/4 and 3/4) of every cell holding an active
-        point of the level; the Jacobian of the coarser levels there and the derivative
-        operators of the increment (``d u / d x_a = D_a U``)."""
+        """Samples of the map where the level moves the template: the active points themselves
+        and 8 samples (local coordinates 1/4 and 3/4) of every cell holding one; the Jacobian of
+        the coarser levels there and the derivative operators of the increment
+        (``d u / d x_a = D_a U``)."""
         lat = self.lattice
         f = self.free_nodes
-        pts = lat.cell_samples(lat.occupied_cells(self._points[active]))
+        moved = self._points[active]
+        # det(dT/dx) is a cubic inside a cell: positive at the 8 samples, it can still be
+        # negative at a template point between them (a fold the verdict then measures).
+        pts = np.vstack([lat.cell_samples(lat.occupied_cells(moved)), moved])
         base = np.broadcast_to(np.eye(3), (pts.shape[0], 3, 3)).copy()
         if prior is not None:
             base = prior.jacobian(pts)

@@ -119,8 +119,9 @@ class ElasticLevel:
         the result's ``distances`` always use the full target.
     min_jacobian_determinant : float or None
         Folding guard of the ``'lm'`` solver: a step after which the smallest Jacobian
-        determinant ``det(dT/dx)`` of the whole map (coarser levels included), sampled at 8
-        interior points (local coordinates 1/4 and 3/4) of every cell with a free corner, falls
+        determinant ``det(dT/dx)`` of the whole map (coarser levels included), sampled at the
+        level's template points and at 8 interior points (local coordinates 1/4 and 3/4) of
+        every cell holding one, falls
         below this value (and below its value before the step) is rejected like a step that
         increases the cost (the damping grows, so the next step is shorter and smoother).
         ``None`` disables the guard. Default 0.05. The SciPy solvers ignore it.
