@@ -36,8 +36,9 @@ the masks alone).
     python benchmarks/bench_robust.py --turned-parts  # the rigid step on turned noisy parts
 
 ``--mandibles``: the same 20% top cut on real anatomy, the PDDCA mandible masks (research data
-in ``../shared/data/mandibles``; skipped with a message where absent): each surface (marching
-cubes at 0.5, largest component, 30 Taubin iterations) decimated to a 3,000-vertex template,
+in ``../shared/data/mandibles``, or the PDDCA folder given as ``--data``; skipped with a
+message where absent; a mask that gives no mandible surface is left out with a line): each
+surface (marching cubes at 0.5, largest component, 30 Taubin iterations) decimated to a 3,000-vertex template,
 registered with the rigid step and the defaults onto the whole surface under the same 5% warp
 (seeds 1 and 2) and onto that target with its top 20% along z (superior) removed; the error over
 the template vertices whose true position lies below the cut, and its ratio to the whole
@@ -320,17 +321,36 @@ def plates_table() -> None:
     )
 
 
-def mandibles_table(count: int = 3, seeds: tuple[int, ...] = (1, 2)) -> None:
+def mandibles_table(
+    folder: Path | None = None, count: int = 3, seeds: tuple[int, ...] = (1, 2)
+) -> None:
+    """The 20% top cut on the first ``count`` usable masks of ``folder`` (a PDDCA folder holding
+    ``masks/<id>_Mandible.nrrd``; default ``$O3DREG_SHARED_DATA/mandibles``); a mask that gives
+    no mandible surface is left out with a line saying why."""
     import os
+
+    from _mandibles import Unusable, mask_surfaces, patient_files
 
     import o3dreg
     from o3dreg.app.synthetic import SmoothWarp
 
-    env = os.environ.get("O3DREG_SHARED_DATA")
-    base = Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data"
-    masks = sorted((base / "mandibles" / "masks").glob("*.nrrd"))[:count]
-    if not masks:
-        print(f"skip: no mandible masks in {base / 'mandibles' / 'masks'} (research data)")
+    if folder is None:
+        env = os.environ.get("O3DREG_SHARED_DATA")
+        base = Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data"
+        folder = base / "mandibles"
+    files, lines = patient_files(folder)
+    for line in lines:
+        print(line)
+    surfaces = []
+    for pid, (path, _) in files.items():
+        if len(surfaces) == count:
+            break
+        try:
+            surfaces.append((pid, mask_surfaces(path)[1]))
+        except Unusable as exc:
+            print(f"left out {pid}: {exc}")
+    if not surfaces:
+        print(f"skip: no usable mandible mask in {folder / 'masks'} (research data)")
         return
     bands = ((0.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, np.inf))
     print(
@@ -343,9 +363,7 @@ def mandibles_table(count: int = 3, seeds: tuple[int, ...] = (1, 2)) -> None:
         + f"{'s':>7}  target"
     )
     ratios = []
-    for path in masks:
-        mesh = o3dreg.isosurface(o3dreg.read_volume(str(path)), 0.5)
-        mesh = o3dreg.smooth_taubin(o3dreg.keep_largest_components(mesh, 1), 30)
+    for pid, mesh in surfaces:
         template = o3dreg.decimate(mesh, 3000)
         v, f = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
         for seed in seeds:
@@ -371,7 +389,7 @@ def mandibles_table(count: int = 3, seeds: tuple[int, ...] = (1, 2)) -> None:
                 for a, b in bands
             )
             print(
-                f"{path.name.split('_')[0]:<11}{seed:>5}{errors[0][kept].mean():>8.3f}"
+                f"{pid:<11}{seed:>5}{errors[0][kept].mean():>8.3f}"
                 f"{errors[1][kept].mean():>9.3f}{ratio:>7.2f}{errors[1][~kept].mean():>7.2f}"
                 f"{cells}{seconds:>7.1f}  {'ok' if ratio <= TARGETS['cut'] else 'FAIL'}"
             )
@@ -559,6 +577,12 @@ def main() -> None:
         "--mandibles", action="store_true", help="the 20%% top cut on CT mandibles only"
     )
     parser.add_argument(
+        "--data",
+        type=Path,
+        help="with --mandibles: a PDDCA folder holding masks/<id>_Mandible.nrrd "
+        "(default $O3DREG_SHARED_DATA/mandibles)",
+    )
+    parser.add_argument(
         "--noisy-cuts", action="store_true", help="the verdict on cuts under noise only"
     )
     parser.add_argument(
@@ -585,7 +609,7 @@ def main() -> None:
     elif args.plates:
         plates_table()
     elif args.mandibles:
-        mandibles_table()
+        mandibles_table(args.data)
     else:
         robustness_table(rigid=not args.identity)
 

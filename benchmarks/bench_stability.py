@@ -63,9 +63,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--tight", action="store_true", help="levels stop at 1e-5")
     args = parser.parse_args()
-    masks = sorted(glob.glob(str(data_dir() / "*.nrrd")))
+    masks = sorted(glob.glob(str(data_dir() / "masks" / "*.nrrd")))
     if not masks:
-        sys.exit(f"no mandible masks in {data_dir()} (research data, not in a fresh clone)")
+        sys.exit(
+            f"no mandible masks in {data_dir() / 'masks'} (research data, not in a fresh clone)"
+        )
     criteria = None
     if args.tight:
         criteria = o3dreg.ElasticCriteria(max_iteration=100, relative_cost=1e-5, relative_step=1e-5)
