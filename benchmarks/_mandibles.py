@@ -8,25 +8,28 @@ mandible surface and its landmark file places each label used once, on that surf
 
 from __future__ import annotations
 
+import sys
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
-MASK_SUFFIX = "_Mandible.nrrd"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+
+# The mask checks are the mandible example's: a patient serves the benchmarks when its mask
+# gives the example's surface.
+from mandible_model import (
+    LARGEST_SHARE,
+    MASK_SUFFIX,
+    SMOOTHING,
+    Unusable,
+    mask_isosurface,
+)
+
+__all__ = ["LARGEST_SHARE", "MASK_SUFFIX", "SMOOTHING", "Unusable"]
+
 LANDMARK_SUFFIX = "_Landmarks.fcsv"
-
-#: The share of the mask's surface area its largest component must hold: with more elsewhere the
-#: mandible is in pieces, and its largest piece alone is not the bone the annotations describe.
-LARGEST_SHARE = 0.9
-
-#: Taubin iterations that remove the staircase of 2.5-3 mm CT slices, keeping the volume.
-SMOOTHING = 30
-
-
-class Unusable(ValueError):
-    """Why a patient cannot serve: what was expected and what was found."""
 
 
 def patient_id(path: Path, suffix: str) -> str | None:
@@ -118,24 +121,7 @@ def mask_surfaces(path: Path):
     """
     import o3dreg
 
-    try:
-        volume = o3dreg.read_volume(str(path))
-    except Exception as exc:  # any reader's failure: the patient is left out, the run goes on
-        raise Unusable(f"{path.name} cannot be read: {exc}") from None
-    if not (np.asarray(volume.array) > 0.5).any():
-        raise Unusable(f"{path.name} holds no voxel above 0.5 (an empty mask)")
-    try:
-        whole = o3dreg.isosurface(volume, 0.5)
-    except (RuntimeError, ValueError) as exc:
-        raise Unusable(f"{path.name} gives no surface at 0.5: {exc}") from None
-    areas = o3dreg.connected_components(whole).areas
-    share = float(areas[0] / areas.sum())
-    if share < LARGEST_SHARE:
-        raise Unusable(
-            f"{path.name} is in pieces: its largest component holds {share:.0%} of the surface "
-            f"area, the next {areas[1] / areas.sum():.0%} ({len(areas)} components; the "
-            f"mandible's at least {LARGEST_SHARE:.0%} expected)"
-        )
+    whole, volume = mask_isosurface(path)
     surface = o3dreg.smooth_taubin(o3dreg.keep_largest_components(whole, 1), SMOOTHING)
     return whole, surface, np.asarray(volume.spacing, dtype=float)[::-1]
 

@@ -49,8 +49,11 @@ from o3dreg import (
 
 ROOT = Path(__file__).resolve().parents[1]
 MASK_SUFFIX = "_Mandible.nrrd"
-#: The share of a mask's surface area its largest component must hold (the mandible whole).
+#: The share of a mask's surface area its largest component must hold: with more elsewhere the
+#: mandible is in pieces, and its largest piece alone is not the bone.
 LARGEST_SHARE = 0.9
+#: Taubin iterations that remove the staircase of 2.5-3 mm CT slices, keeping the volume.
+SMOOTHING = 30
 #: How far a mandible's size (bounding-box diagonal) may stray from the masks' median, as a factor.
 SIZE_FACTOR = 1.5
 
@@ -100,8 +103,8 @@ def patient_masks(folder: Path) -> tuple[list[tuple[str, Path]], list[str]]:
     return masks, lines
 
 
-def reconstruct(path: str | Path, number_of_vertices: int | None = None):
-    """Mask -> smoothed surface (mm), with o3dreg's CT reconstruction functions.
+def mask_isosurface(path: str | Path):
+    """The marching-cubes surface of a mask at 0.5, every component, and the volume read.
 
     Raises
     ------
@@ -121,15 +124,23 @@ def reconstruct(path: str | Path, number_of_vertices: int | None = None):
     except (RuntimeError, ValueError) as exc:
         raise Unusable(f"{name} gives no surface at 0.5: {exc}") from None
     areas = o3dreg.connected_components(mesh).areas
-    if areas[0] < LARGEST_SHARE * areas.sum():
+    share = float(areas[0] / areas.sum())
+    if share < LARGEST_SHARE:
         raise Unusable(
-            f"{name} is in pieces: its largest component holds {areas[0] / areas.sum():.0%} of "
-            f"the surface area ({len(areas)} components; the mandible's at least "
-            f"{LARGEST_SHARE:.0%} expected)"
+            f"{name} is in pieces: its largest component holds {share:.0%} of the surface "
+            f"area, the next {areas[1] / areas.sum():.0%} ({len(areas)} components; the "
+            f"mandible's at least {LARGEST_SHARE:.0%} expected)"
         )
-    mesh = o3dreg.keep_largest_components(mesh, 1)
+    return mesh, volume
+
+
+def reconstruct(path: str | Path, number_of_vertices: int | None = None):
+    """Mask -> smoothed surface (mm), with o3dreg's CT reconstruction functions: the largest
+    component of :func:`mask_isosurface` (which raises :class:`Unusable`), smoothed, decimated
+    to ``number_of_vertices`` when given."""
+    mesh = o3dreg.keep_largest_components(mask_isosurface(path)[0], 1)
     # Thick slices (2.5-3 mm) leave a staircase: Taubin smoothing removes it, keeping volume.
-    mesh = o3dreg.smooth_taubin(mesh, 30)
+    mesh = o3dreg.smooth_taubin(mesh, SMOOTHING)
     if number_of_vertices is not None and len(mesh.vertices) > number_of_vertices:
         mesh = o3dreg.decimate(mesh, number_of_vertices)
     return mesh

@@ -32,7 +32,6 @@ from scipy.spatial import cKDTree
 from .._geometry import apply_transformation, bounds, corner_cross, face_cross, row_norms
 from .._validation import as_mesh_arrays
 from ..mesh.cleaning import mesh_components
-from ..mesh.edges import SortedEdges
 from ..mesh.noise import noise_level
 from .distance import SurfaceDistanceQuery
 from .result import RigidStart
@@ -346,7 +345,7 @@ def _distances(
         )
     else:
         p99 = float(np.percentile(forward[judged], 99))
-        if p99 > PART_DISTANCE_SUSPECT * diagonal and _closed(vt, ft):
+        if p99 > PART_DISTANCE_SUSPECT * diagonal and not SurfaceDistanceQuery(vt, ft).has_boundary:
             out.append(
                 (
                     "suspect",
@@ -378,11 +377,6 @@ def _distances(
             )
         )
     return out
-
-
-def _closed(vt: np.ndarray, ft: np.ndarray) -> bool:
-    """Whether the target has no open edge (every edge shared by two triangles or more)."""
-    return not SortedEdges(vt.shape[0], ft).open_edges()[0].any()
 
 
 def _past_noisy_rim(
