@@ -262,8 +262,15 @@ def decompose(vectors: np.ndarray) -> tuple[float, float]:
     )
 
 
-def decomposition(data: dict, vectors: np.ndarray, chosen: list[str]) -> None:
-    """Print where the transfer error lies (see the module docstring), per landmark and overall."""
+def decomposition(
+    data: dict, vectors: np.ndarray, chosen: list[str], peer: np.ndarray | None = None
+) -> None:
+    """Print where the transfer error lies (see the module docstring), per landmark and overall.
+
+    With ``peer`` (the same pairs' error vectors by another method), the offsets are fitted to
+    its errors as well: offsets that the two methods find alike belong to the annotations (or
+    the surfaces both read), not to either method's registration.
+    """
     from o3dreg import TemplateLandmarks
 
     ids = sorted(data)
@@ -324,6 +331,11 @@ def decomposition(data: dict, vectors: np.ndarray, chosen: list[str]) -> None:
         unfitted = ""
         rows["offsets o_a - o_b"] = list(np.linalg.norm(explained, axis=-1))
         rows["rest r_ab"] = list(np.linalg.norm(rest, axis=-1))
+        if peer is not None:
+            other = np.stack([peer[a, b] for a in range(len(chosen)) for b in range(len(ids) - 1)])
+            peer_explained, _ = offset_fit(pairs, other, len(ids))
+            rows["peer's offsets"] = list(np.linalg.norm(peer_explained, axis=-1))
+            rows["|offsets - peer's|"] = list(np.linalg.norm(explained - peer_explained, axis=-1))
     print("\ndecomposition of o3dreg's transfer error (mean of |.|, mm)")
     print(f"{'part':<26}{'all':>7}" + "".join(f"{lab:>8}" for lab in LABELS))
     for name, found in rows.items():
@@ -542,7 +554,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             row = err[a].mean(axis=0)
             print(f"  {tid}: {err[a].mean():.2f}  " + "  ".join(f"{e:.2f}" for e in row))
     if args.decompose:
-        decomposition(data, vectors["o3dreg"], chosen)
+        decomposition(data, vectors["o3dreg"], chosen, vectors.get("nricp_amberg"))
         if args.inverse_consistent:
             print("(o3dreg mean, forward and backward)", end="")
             decomposition(data, vectors["o3dreg mean"], chosen)

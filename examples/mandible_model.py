@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
+import hashlib
 import json
 import os
 import re
@@ -146,6 +147,24 @@ def reconstruct(path: str | Path, number_of_vertices: int | None = None):
     return mesh
 
 
+def cached_surface(path: Path, mask: str | Path, number_of_vertices: int | None) -> None:
+    """Write :func:`reconstruct` of ``mask`` to ``path`` unless ``path`` already holds it.
+
+    A key beside the mesh (``path`` with ``.json``: the mask's SHA-256 and the vertex count)
+    says what it was made from; a mesh without it, or made from another mask or count (an
+    output folder reused with other data or settings), is made again.
+    """
+    key = {
+        "mask": hashlib.sha256(Path(mask).read_bytes()).hexdigest(),
+        "vertices": number_of_vertices,
+    }
+    stamp = path.with_suffix(".json")
+    if path.exists() and stamp.exists() and json.loads(stamp.read_text()) == key:
+        return
+    o3dreg.write_triangle_mesh(path, reconstruct(mask, number_of_vertices), overwrite=True)
+    stamp.write_text(json.dumps(key))
+
+
 def size_outliers(diagonals: dict[str, float]) -> dict[str, str]:
     """The surfaces not mandible-sized: a bounding-box diagonal more than :data:`SIZE_FACTOR`
     from the median of all (a largest component that is another structure, or a fragment).
@@ -243,12 +262,11 @@ def main(argv=None) -> int:
     diagonals: dict[str, float] = {}
     for name, mask in found:
         path = out / "surfaces" / f"{name}.ply"
-        if not path.exists():
-            try:
-                o3dreg.write_triangle_mesh(path, reconstruct(mask, args.target_vertices))
-            except Unusable as exc:
-                print(f"left out {name}: {exc}")
-                continue
+        try:
+            cached_surface(path, mask, args.target_vertices)
+        except Unusable as exc:
+            print(f"left out {name}: {exc}")
+            continue
         surfaces[name] = path
         vertices = np.asarray(o3dreg.read_triangle_mesh(path).vertices)
         diagonals[name] = float(np.linalg.norm(np.ptp(vertices, axis=0)))
@@ -261,11 +279,7 @@ def main(argv=None) -> int:
     names = list(surfaces)
     paths = [str(surfaces[name]) for name in names]
     template_path = out / "template.ply"
-    if not template_path.exists():
-        template_mask = dict(found)[names[0]]
-        o3dreg.write_triangle_mesh(
-            template_path, reconstruct(template_mask, args.template_vertices)
-        )
+    cached_surface(template_path, dict(found)[names[0]], args.template_vertices)
     template = o3dreg.read_triangle_mesh(template_path)
     print(
         f"template {names[0]}: {len(template.vertices)} vertices; {time.perf_counter() - start:.0f} s"

@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
+import o3dreg
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
@@ -433,3 +435,23 @@ def test_the_example_stops_with_fewer_than_3_masks(tmp_path, capsys):
     assert mandible_model.main([str(tmp_path / "out"), "--data", str(tmp_path / "data")]) == 0
     assert "2 mandible mask(s) <id>_Mandible.nrrd under" in capsys.readouterr().out
     assert not (tmp_path / "out").exists()
+
+
+def test_the_example_makes_a_cached_surface_again_from_another_mask_or_count(tmp_path):
+    small = write_mask(tmp_path / "a_Mandible.nrrd")
+    large = write_mask(tmp_path / "b_Mandible.nrrd", boxes=(((5, 35), (5, 45), (5, 55)),))
+    path = tmp_path / "out" / "a.ply"
+    path.parent.mkdir()
+
+    def extent():
+        return float(np.ptp(np.asarray(o3dreg.read_triangle_mesh(path).vertices), axis=0).max())
+
+    mandible_model.cached_surface(path, small, None)
+    first, written = extent(), path.stat().st_mtime_ns
+    mandible_model.cached_surface(path, small, None)
+    assert path.stat().st_mtime_ns == written  # the same mask and count: reused
+    mandible_model.cached_surface(path, large, None)
+    # The larger box's extent (50 voxels of 1 mm against 40): a stale mesh would keep the first.
+    assert extent() > first + 5.0
+    mandible_model.cached_surface(path, large, 200)
+    assert len(o3dreg.read_triangle_mesh(path).vertices) <= 200
