@@ -48,9 +48,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 
 ROOT = Path(__file__).resolve().parents[1]
-MANDIBLES = ROOT.parent / "shared" / "data" / "mandibles" / "masks"
 
 METHODS = {
     "o3dreg": "symmetric distance (eq. 3), default levels 2-4-8-16 (lambda 0.1), init=identity",
@@ -96,13 +96,26 @@ def _warped_case(dense, magnitude: float, template_vertices: int, seed: int) -> 
 
 
 def _mandible_mesh(number_of_vertices: int):
+    """The first development mandible whose mask gives one surface, or ``None`` (a line says
+    why for each mask passed over, and where none was found)."""
+    from mandible_model import Unusable, data_dir, mask_isosurface, patient_masks
+
     import o3dreg
 
-    masks = sorted(MANDIBLES.glob("*.nrrd"))
-    volume = o3dreg.read_volume(str(masks[0]))
-    mesh = o3dreg.keep_largest_components(o3dreg.isosurface(volume, 0.5))
-    mesh = o3dreg.smooth_taubin(mesh, 10)
-    return o3dreg.decimate(mesh, number_of_vertices)
+    folder = data_dir() / "masks"
+    masks, lines = patient_masks(folder) if folder.is_dir() else ([], [])
+    for line in lines:
+        print(line)
+    for pid, path in masks:
+        try:
+            whole = mask_isosurface(path)[0]
+        except Unusable as exc:
+            print(f"passed over {pid}: {exc}")
+            continue
+        mesh = o3dreg.smooth_taubin(o3dreg.keep_largest_components(whole, 1), 10)
+        return o3dreg.decimate(mesh, number_of_vertices)
+    print(f"no mandible mask serves in {folder} (research data, not shipped)")
+    return None
 
 
 def build_case(name: str, seed: int = 1) -> dict | None:
@@ -119,10 +132,11 @@ def build_case(name: str, seed: int = 1) -> dict | None:
     elif name == "cone-medium":
         case = _warped_case(synthetic_form("cone", 30000), MAGNITUDES["medium"], 3000, seed)
     elif name == "mandible-medium":
-        if not MANDIBLES.is_dir() or not any(MANDIBLES.glob("*.nrrd")):
-            print(f"skip {name}: no masks in {MANDIBLES} (research data, not shipped)")
+        mandible = _mandible_mesh(30000)
+        if mandible is None:
+            print(f"skip {name}")
             return None
-        case = _warped_case(_mandible_mesh(30000), MAGNITUDES["medium"], 3000, seed)
+        case = _warped_case(mandible, MAGNITUDES["medium"], 3000, seed)
     else:
         raise ValueError(f"unknown case {name!r}")
     tv, tf, diag = case["target_vertices"], case["target_faces"], case["diagonal"]

@@ -78,13 +78,19 @@ def synthetic() -> None:
     compare("demo population (8)", shapes, [p.mesh for p in patients], faces, error)
 
 
-def mandibles(chosen: str) -> None:
-    if not (bench_landmarks.data_dir() / "masks").is_dir():
-        print(f"skip the mandibles: no masks in {bench_landmarks.data_dir()} (research data)")
+def mandibles(chosen: str, folder: Path) -> None:
+    if not (folder / "masks").is_dir() or not (folder / "landmarks").is_dir():
+        print(f"skip the mandibles: no masks and landmarks in {folder} (research data)")
         return
-    data = bench_landmarks.load(3000)
+    data = bench_landmarks.load(3000, folder)
     ids = sorted(data)
-    picked = ids if chosen == "all" else [ids[int(k)] for k in chosen.split(",")]
+    if len(ids) < 3:
+        print(f"skip the mandibles: {len(ids)} patient(s) of {folder} serve, at least 3 needed")
+        return
+    try:
+        picked = bench_landmarks.chosen_templates(None if chosen == "all" else chosen, ids)
+    except ValueError as exc:
+        sys.exit(f"bench_sliding.py: error: {exc}")
     for tid in picked:
         template = data[tid]["template"]
         attached = TemplateLandmarks.from_points(template, data[tid]["landmarks"])
@@ -106,14 +112,26 @@ def main() -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--templates", default="0,3,6", help="mandible template indices, or all")
+    parser.add_argument(
+        "--templates",
+        default="0,3,6",
+        help="comma-separated mandible templates: patient ids, or indices into the patients "
+        "that serve, sorted by id; or all",
+    )
+    parser.add_argument(
+        "--data",
+        metavar="FOLDER",
+        help="the mandible folder: masks/<id>_Mandible.nrrd and landmarks/<id>_Landmarks.fcsv "
+        "(default: $O3DREG_SHARED_DATA/mandibles, else ../shared/data/mandibles)",
+    )
     parser.add_argument("--skip-synthetic", action="store_true")
     args = parser.parse_args()
+    folder = Path(args.data) if args.data else bench_landmarks.data_dir()
     logging.getLogger("o3dreg").setLevel(logging.ERROR)
     print(f"{'data':<32}{'points':<12}{'error':>8}{'moved':>9}{'min edge':>10}{'its':>6}{'s':>8}")
     if not args.skip_synthetic:
         synthetic()
-    mandibles(args.templates)
+    mandibles(args.templates, folder)
     return 0
 
 
