@@ -76,11 +76,9 @@ see [the explorer](shape-model.md#explorer-in-the-browser).
 """
 
 
-def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            return dict(action.choices)
-    return {}
+def _subparsers(parser) -> dict:
+    """The sub-commands of an o3dreg parser (it records its ``add_subparsers`` action)."""
+    return {} if parser.subcommands is None else dict(parser.subcommands.choices)
 
 
 def render() -> str:

@@ -28,7 +28,45 @@ _COMMANDS = (_register, _reconstruct, _model, _demo, _view)
 
 class _Parser(argparse.ArgumentParser):
     """An argument parser whose errors are one line: the command, the message and where the
-    help is (argparse prints the whole usage block first)."""
+    help is (argparse prints the whole usage block first).
+
+    It records what is added to it through argparse's public calls: ``options``, every
+    argument (in groups too), and ``subcommands``, the action of :meth:`add_subparsers` (whose
+    parsers are of this class too), for the error messages that name a command's flags.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self.options: list[argparse.Action] = []
+        self.subcommands: Any = None
+        super().__init__(*args, **kwargs)
+
+    def add_argument(self, *args: Any, **kwargs: Any) -> argparse.Action:
+        action = super().add_argument(*args, **kwargs)
+        self.options.append(action)
+        return action
+
+    def add_argument_group(self, *args: Any, **kwargs: Any) -> Any:
+        return self._recorded(super().add_argument_group(*args, **kwargs))
+
+    def add_mutually_exclusive_group(self, **kwargs: Any) -> Any:
+        return self._recorded(super().add_mutually_exclusive_group(**kwargs))
+
+    def add_subparsers(self, **kwargs: Any) -> Any:
+        self.subcommands = super().add_subparsers(**kwargs)
+        return self.subcommands
+
+    def _recorded(self, group: Any) -> Any:
+        """``group`` with its arguments, and those of the groups made in it, recorded here."""
+        add_argument, add_group = group.add_argument, group.add_mutually_exclusive_group
+
+        def recorded_argument(*args: Any, **kwargs: Any) -> argparse.Action:
+            action = add_argument(*args, **kwargs)
+            self.options.append(action)
+            return action
+
+        group.add_argument = recorded_argument
+        group.add_mutually_exclusive_group = lambda **kw: self._recorded(add_group(**kw))
+        return group
 
     def error(self, message: str) -> NoReturn:
         if "expected one argument" in message:
@@ -41,7 +79,7 @@ class _Parser(argparse.ArgumentParser):
         )
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser() -> _Parser:
     parser = _Parser(
         prog="o3dreg",
         description="Elastic registration of surface meshes and statistical shape models.",
@@ -83,14 +121,13 @@ _EXAMPLES = {
 }
 
 
-def _walk(action: argparse._SubParsersAction) -> list[argparse.ArgumentParser]:
-    """Every sub-command parser, nested ones included."""
+def _walk(action: Any) -> list[_Parser]:
+    """Every sub-command parser of a :meth:`_Parser.add_subparsers` action, nested ones too."""
     found = []
     for child in action.choices.values():
         found.append(child)
-        for a in child._actions:
-            if isinstance(a, argparse._SubParsersAction):
-                found.extend(_walk(a))
+        if child.subcommands is not None:
+            found.extend(_walk(child.subcommands))
     return found
 
 
@@ -178,28 +215,23 @@ def _signals_and_streams(ending: bool = False) -> Iterator[None]:
             os.close(saved)
 
 
-def _chosen(
-    parser: argparse.ArgumentParser, args: argparse.Namespace
-) -> list[argparse.ArgumentParser]:
+def _chosen(parser: _Parser, args: argparse.Namespace) -> list[_Parser]:
     """The parsers that read ``args``: ``parser``, its chosen sub-command's, and so on."""
-    found: list[argparse.ArgumentParser] = []
-    current: argparse.ArgumentParser | None = parser
+    found: list[_Parser] = []
+    current: _Parser | None = parser
     while current is not None:
         found.append(current)
-        chosen = None
-        for action in current._actions:  # argparse keeps its actions here (stable since 3.2)
-            if isinstance(action, argparse._SubParsersAction):
-                chosen = action.choices.get(getattr(args, action.dest, None) or "")
-        current = chosen
+        sub = current.subcommands
+        current = None if sub is None else sub.choices.get(getattr(args, sub.dest, None) or "")
     return found
 
 
-def _with_flags(message: str, parser: argparse.ArgumentParser, args: argparse.Namespace) -> str:
+def _with_flags(message: str, parser: _Parser, args: argparse.Namespace) -> str:
     """``message`` with each API parameter it names (```step_size```) followed by the command's
     flag for it (``(--step-size)``): the errors come from the library, the user typed flags."""
     flags: dict[str, str] = {}
     for current in _chosen(parser, args):
-        for action in current._actions:
+        for action in current.options:
             if action.option_strings and action.dest != "help":
                 flags.setdefault(action.dest, max(action.option_strings, key=len))
     for dest, flag in flags.items():

@@ -9,6 +9,7 @@ import shutil
 import sys
 import tempfile
 import time
+from typing import Any
 
 from ..app.demo import run_demo
 from ..io.mesh import atomic_write_text, process_alive
@@ -27,7 +28,7 @@ examples:
   o3dreg demo -o out --patients 12 --jobs 2"""
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: Any) -> None:
     p = sub.add_parser(
         "demo",
         help="run the whole pipeline (CT -> shape model -> report) on bundled data",

@@ -7,6 +7,7 @@ import logging
 import os
 import sys
 import time
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -63,7 +64,7 @@ look at them); 2 bad input (nothing written). A level that stopped at --max-iter
 note on the "stopping criteria" line, not a verdict: the verdict judges the result."""
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: Any) -> None:
     p = sub.add_parser(
         "register",
         help="elastically register a template mesh onto a patient mesh",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -22,7 +23,7 @@ EPILOG = """examples:
 _PALETTE = [(0.85, 0.55, 0.2), (0.3, 0.55, 0.85), (0.5, 0.75, 0.4), (0.8, 0.4, 0.6)]
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: Any) -> None:
     p = sub.add_parser(
         "view",
         help="show meshes in Open3D's interactive viewer",
