@@ -178,6 +178,29 @@ def test_legacy_vtk_42_binary_int32_cells(tmp_path):
     np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
 
 
+@pytest.mark.parametrize("cells", ["POLYGONS", "CELLS"])
+def test_legacy_vtk_51_binary_vtkidtype_arrays_are_32_bit(tmp_path, cells):
+    # VTK's legacy writer stores a vtkIdType array as 32-bit ints (vtkDataWriter: "currently
+    # writing vtkIdType as int"), and its reader reads them so. PyVista 0.49 / VTK 9.7 write
+    # ``pv.PolyData.from_regular_faces(...).save("x.vtk")`` with "CONNECTIVITY vtkIdType":
+    # read as 64-bit, the file was refused ("binary data ends early", "unexpected keyword").
+    offsets, connectivity = np.array([0, 3, 6]), np.array([0, 1, 2, 0, 2, 3])
+    kind = b"POLYDATA" if cells == "POLYGONS" else b"UNSTRUCTURED_GRID"
+    data = (
+        b"# vtk DataFile Version 5.1\nvtk output\nBINARY\nDATASET " + kind + b"\n"
+        + b"POINTS 4 double\n" + SQUARE[:4].astype(">f8").tobytes() + b"\n"
+        + cells.encode() + b" 3 6\nOFFSETS vtktypeint64\n" + offsets.astype(">i8").tobytes()
+        + b"\nCONNECTIVITY vtkIdType\n" + connectivity.astype(">i4").tobytes() + b"\n"
+        + (b"CELL_TYPES 2\n" + np.array([5, 5], ">i4").tobytes() + b"\n" if cells == "CELLS" else b"")
+        + b"CELL_DATA 2\nSCALARS lab int\nLOOKUP_TABLE default\n" + np.array([7, 8], ">i4").tobytes()
+    )  # fmt: skip
+    path = tmp_path / "idtype.vtk"
+    path.write_bytes(data)
+    mesh = read_triangle_mesh(path)
+    np.testing.assert_array_equal(np.asarray(mesh.vertices), SQUARE[:4])
+    np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
+
+
 def _field_data(binary):
     """Dataset field data as VTK 9's legacy writer puts it before POINTS (PyVista's
     ``field_data``): each array ``name numComponents numTuples dataType``, its values, and in a
