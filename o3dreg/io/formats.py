@@ -24,7 +24,9 @@ correspondence), STL excepted, and text is written at full float64 precision:
   ``NOFF``, which Open3D writes).
 * **glTF**: read in the file's vertex order (Open3D's reader renumbers); written by o3dreg
   (positions float32, as glTF requires). Open3D 0.18-0.19 writes ``.glb`` files whose buffer
-  view lies outside the buffer, so no reader opens them.
+  view lies outside the buffer, so no reader opens them. Triangle lists, strips and fans,
+  sparse accessors and normalized (quantized) positions are read; Draco and meshopt
+  compression are refused (the vertices are not in the accessors).
 * **STL** stores each triangle's three corners separately. Corners with identical coordinates
   are merged on reading (STL writes float32, so shared corners are bit-identical); the vertex
   order is lost, so a semilandmark mesh is never written as STL. Written here, binary or ASCII,
@@ -1150,24 +1152,73 @@ def _gltf_document(path: str) -> tuple[dict[str, Any], list[bytes]]:
     return doc, buffers
 
 
+def _gltf_view(
+    doc: dict[str, Any], buffers: list[bytes], view_index: int, offset: int, size: int, path: str
+) -> tuple[bytes, int]:
+    """The buffer and start of ``size`` bytes from ``offset`` into buffer view
+    ``view_index``; ``OSError`` when they reach beyond the buffer (a truncated file)."""
+    view = doc["bufferViews"][view_index]
+    buffer = buffers[view["buffer"]]
+    start = int(view.get("byteOffset", 0)) + offset
+    if start + size > len(buffer):
+        raise OSError(
+            f"{path!r}: buffer view {view_index} reaches beyond its buffer (truncated file)"
+        )
+    return buffer, start
+
+
 def _gltf_accessor(doc: dict[str, Any], buffers: list[bytes], index: int, path: str) -> np.ndarray:
+    """The values of accessor ``index``: its buffer view (zeros without one), sparse
+    substitutions applied, normalized integers mapped to [0, 1] or [-1, 1] (glTF 2.0, 3.6)."""
     accessor = doc["accessors"][index]
     dtype = np.dtype("<" + _GLTF_COMPONENTS[accessor["componentType"]])
     width = _GLTF_WIDTH[accessor["type"]]
     count = int(accessor["count"])
     if "bufferView" not in accessor:
-        return np.zeros((count, width), dtype=dtype)  # all zeros, as the specification says
-    view = doc["bufferViews"][accessor["bufferView"]]
-    buffer = buffers[view["buffer"]]
-    start = int(view.get("byteOffset", 0)) + int(accessor.get("byteOffset", 0))
-    stride = int(view.get("byteStride", 0)) or dtype.itemsize * width
-    end = start + stride * (count - 1) + dtype.itemsize * width if count else start
-    if end > len(buffer):
-        raise OSError(f"{path!r}: accessor {index} reaches beyond its buffer (truncated file)")
-    rows = np.ndarray(
-        (count, width), dtype=dtype, buffer=buffer, offset=start, strides=(stride, dtype.itemsize)
-    )
-    return np.array(rows)
+        values = np.zeros((count, width), dtype=dtype)  # all zeros, as the specification says
+    else:
+        size = dtype.itemsize * width
+        offset = int(accessor.get("byteOffset", 0))
+        stride = int(doc["bufferViews"][accessor["bufferView"]].get("byteStride", 0)) or size
+        span = stride * (count - 1) + size if count else 0
+        try:
+            buffer, start = _gltf_view(doc, buffers, accessor["bufferView"], offset, span, path)
+        except OSError:
+            raise OSError(
+                f"{path!r}: accessor {index} reaches beyond its buffer (truncated file)"
+            ) from None
+        values = np.array(
+            np.ndarray(
+                (count, width),
+                dtype=dtype,
+                buffer=buffer,
+                offset=start,
+                strides=(stride, dtype.itemsize),
+            )
+        )
+    sparse = accessor.get("sparse")
+    if sparse is not None:
+        # Values at a few indices replace those of the base (or of the zeros): a tool's way to
+        # store a few moved vertices (morph targets, edits) without repeating the others.
+        n = int(sparse["count"])
+        kind = np.dtype("<" + _GLTF_COMPONENTS[sparse["indices"]["componentType"]])
+        buffer, start = _gltf_view(
+            doc, buffers, sparse["indices"]["bufferView"],
+            int(sparse["indices"].get("byteOffset", 0)), n * kind.itemsize, path,
+        )  # fmt: skip
+        where = np.frombuffer(buffer, kind, n, start).astype(np.int64)
+        buffer, start = _gltf_view(
+            doc, buffers, sparse["values"]["bufferView"],
+            int(sparse["values"].get("byteOffset", 0)), n * width * dtype.itemsize, path,
+        )  # fmt: skip
+        if n and (where.min() < 0 or where.max() >= count):
+            raise OSError(f"{path!r}: accessor {index} has sparse indices outside [0, {count})")
+        values[where] = np.frombuffer(buffer, dtype, n * width, start).reshape(n, width)
+    if accessor.get("normalized") and dtype.kind in "iu":
+        # KHR_mesh_quantization: integer positions that stand for [0, 1] or [-1, 1].
+        top = float(np.iinfo(dtype).max)
+        return np.maximum(values.astype(np.float64) / top, -1.0)
+    return values
 
 
 def _gltf_node_matrix(node: dict[str, Any]) -> np.ndarray:
@@ -1187,15 +1238,35 @@ def _gltf_node_matrix(node: dict[str, Any]) -> np.ndarray:
     return matrix
 
 
+#: glTF extensions whose data o3dreg cannot decode (the geometry is not in the accessors).
+_GLTF_COMPRESSION = {
+    "KHR_draco_mesh_compression",
+    "EXT_meshopt_compression",
+    "KHR_meshopt_compression",
+}
+
+
 def read_gltf(path: str) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and triangles of a glTF 2.0 file (``.gltf`` or ``.glb``), in the file's order.
 
-    Every triangle primitive (mode 4, indexed or not) of every mesh of the default scene, each
-    node's transformation applied; primitives follow each other in the order the scene lists
-    them. A one-primitive file (what o3dreg and most tools write) keeps its vertex order, so a
-    semilandmark mesh keeps its correspondence (Open3D's reader renumbers the vertices).
+    Every triangle primitive (mode 4, and strips and fans, modes 5 and 6; indexed or not) of
+    every mesh of the default scene, each node's transformation applied; primitives follow each
+    other in the order the scene lists them. Sparse accessors and normalized integer positions
+    (``KHR_mesh_quantization``) are decoded; Draco- or meshopt-compressed files are refused
+    (their vertices are not in the accessors). A one-primitive file (what o3dreg and most tools
+    write) keeps its vertex order, so a semilandmark mesh keeps its correspondence (Open3D's
+    reader renumbers the vertices).
     """
     doc, buffers = _gltf_document(path)
+    required = doc.get("extensionsRequired") if isinstance(doc, dict) else None
+    compressed = sorted(set(required or []) & _GLTF_COMPRESSION)
+    if compressed:
+        # Their accessors hold no data (Draco) or their buffers a placeholder (meshopt): read
+        # as they stand, every vertex would be at the origin.
+        raise OSError(
+            f"{path!r} is compressed with {', '.join(compressed)}, which o3dreg does not "
+            "decode: export it without mesh compression"
+        )
     try:
         scenes = doc.get("scenes") or [{"nodes": list(range(len(doc.get("nodes", []))))}]
         roots = scenes[int(doc.get("scene", 0))].get("nodes", [])
@@ -1212,17 +1283,39 @@ def read_gltf(path: str) -> tuple[np.ndarray, np.ndarray]:
             if "mesh" not in node:
                 continue
             for primitive in doc["meshes"][node["mesh"]]["primitives"]:
-                if primitive.get("mode", 4) != 4 or "POSITION" not in primitive["attributes"]:
-                    continue
+                mode = primitive.get("mode", 4)
+                if mode not in (4, 5, 6) or "POSITION" not in primitive["attributes"]:
+                    continue  # points and lines
+                position = doc["accessors"][primitive["attributes"]["POSITION"]]
+                draco = "KHR_draco_mesh_compression" in primitive.get("extensions", {})
+                if draco and "bufferView" not in position and "sparse" not in position:
+                    raise OSError(
+                        f"{path!r} holds a Draco-compressed primitive (KHR_draco_mesh_compression) "
+                        "without uncompressed data, which o3dreg does not decode: export it "
+                        "without mesh compression"
+                    )
                 points = _gltf_accessor(doc, buffers, primitive["attributes"]["POSITION"], path)
                 points = points.astype(np.float64)
                 if not np.allclose(world, np.eye(4)):
                     points = points @ world[:3, :3].T + world[:3, 3]
                 if "indices" in primitive:
-                    faces = _gltf_accessor(doc, buffers, primitive["indices"], path)
-                    faces = faces.reshape(-1, 3).astype(np.int64)
+                    corners = _gltf_accessor(doc, buffers, primitive["indices"], path)
+                    corners = corners.reshape(-1).astype(np.int64)
                 else:
-                    faces = np.arange(len(points) // 3 * 3, dtype=np.int64).reshape(-1, 3)
+                    corners = np.arange(len(points), dtype=np.int64)
+                k = np.arange(max(corners.size - 2, 0))
+                if mode == 4:  # a list of triangles (an index list that is not: refused)
+                    whole = corners.size if "indices" in primitive else corners.size // 3 * 3
+                    faces = corners[:whole].reshape(-1, 3)
+                elif mode == 5:  # a strip: every second triangle's first two corners swapped
+                    faces = np.stack([corners[k], corners[k + 1], corners[k + 2]], axis=1)
+                    faces[1::2, [0, 1]] = faces[1::2, [1, 0]]
+                elif k.size:  # a fan around the first corner
+                    faces = np.stack(
+                        [np.full(k.size, corners[0]), corners[k + 1], corners[k + 2]], 1
+                    )
+                else:
+                    faces = np.zeros((0, 3), dtype=np.int64)
                 vertex_parts.append(points)
                 face_parts.append(faces + base)
                 base += len(points)

@@ -8,6 +8,7 @@ appended data with its block header), independently of o3dreg's writers.
 from __future__ import annotations
 
 import base64
+import json
 import logging
 import struct
 import zlib
@@ -421,3 +422,108 @@ def test_obj_of_another_writer_keeps_its_order_and_its_polygons(tmp_path, caplog
     bad.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nf 1 2 x\n")
     with pytest.raises(OSError, match="malformed face"):
         read_triangle_mesh(bad)
+
+
+# -- glTF written by hand from the glTF 2.0 specification --------------------------------------
+
+
+def _gltf(tmp_path, positions, primitive, *, accessor=None, blobs=(), node=None, required=()):
+    """A .gltf of one primitive whose accessor 0 holds ``positions`` (bufferView 0; then one
+    buffer view per blob of ``blobs``), edited by ``accessor`` (``None``: key removed); its
+    path."""
+    positions = np.ascontiguousarray(positions)
+    data, views = b"", []
+    for blob in (positions.tobytes(), *blobs):
+        views.append({"buffer": 0, "byteOffset": len(data), "byteLength": len(blob)})
+        data += blob + b"\0" * ((-len(blob)) % 4)
+    position = {"bufferView": 0, "componentType": 5126, "count": len(positions), "type": "VEC3"}
+    position = {k: v for k, v in {**position, **(accessor or {})}.items() if v is not None}
+    doc = {
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, **(node or {})}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, **primitive}]}],
+        "buffers": [
+            {
+                "byteLength": len(data),
+                "uri": "data:application/octet-stream;base64," + base64.b64encode(data).decode(),
+            }
+        ],
+        "bufferViews": views,
+        "accessors": [position],
+    }
+    if required:
+        doc["extensionsUsed"] = doc["extensionsRequired"] = list(required)
+    path = tmp_path / "m.gltf"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+@pytest.mark.parametrize("required", [["KHR_draco_mesh_compression"], []])
+def test_gltf_compressed_with_draco_is_refused_not_read_as_zeros(tmp_path, required):
+    # A Draco primitive's accessors have no bufferView (the vertices are in the compressed
+    # stream): read as they stand, every vertex was at the origin and every triangle (0, 0, 0),
+    # with no error.
+    path = _gltf(
+        tmp_path,
+        SQUARE[:4].astype("<f4"),
+        {"extensions": {"KHR_draco_mesh_compression": {"bufferView": 0, "attributes": {}}}},
+        accessor={"bufferView": None},
+        required=required,
+    )
+    with pytest.raises(OSError, match="KHR_draco_mesh_compression"):
+        read_triangle_mesh(path)
+
+
+def test_gltf_sparse_accessor_and_strips_and_fans(tmp_path):
+    # Positions as a sparse accessor over zeros (vertices 1-3 given), a triangle strip (mode 5)
+    # and a fan (mode 6): every vertex where it is, every triangle facing +z.
+    where = np.array([1, 2, 3], dtype="<u2").tobytes()
+    values = SQUARE[1:4].astype("<f4").tobytes()
+    sparse = {
+        "count": 3,
+        "indices": {"bufferView": 1, "componentType": 5123},
+        "values": {"bufferView": 2},
+    }
+    for mode, corners in ((5, [0, 1, 3, 2]), (6, [0, 1, 2, 3])):
+        path = _gltf(
+            tmp_path,
+            np.zeros((4, 3), "<f4"),
+            {"mode": mode, "indices": 1},
+            accessor={"sparse": sparse},
+            blobs=(where, values, np.array(corners, dtype="<u4").tobytes()),
+        )
+        doc = json.loads(path.read_text())
+        doc["accessors"].append(
+            {"bufferView": 3, "componentType": 5125, "count": 4, "type": "SCALAR"}
+        )
+        path.write_text(json.dumps(doc))
+        mesh = read_triangle_mesh(path)
+        np.testing.assert_array_equal(np.asarray(mesh.vertices), SQUARE[:4])
+        assert len(mesh.triangles) == 2, (mode, np.asarray(mesh.triangles))
+        normals = np.asarray(mesh.compute_triangle_normals().triangle_normals)
+        np.testing.assert_allclose(normals, [[0, 0, 1]] * 2)
+
+
+def test_gltf_normalized_quantized_positions(tmp_path):
+    # KHR_mesh_quantization: int16 positions flagged normalized stand for [-1, 1], placed by the
+    # node's scale (gltfpack -vpn). Read as raw integers, the mesh was 32767 times too large.
+    quantized = np.zeros((4, 4), dtype="<i2")  # 8-byte stride: VEC3 of int16 padded
+    quantized[:, :3] = np.round(SQUARE[:4] * 32767)
+    path = _gltf(
+        tmp_path,
+        quantized,
+        {"indices": 1},
+        accessor={"componentType": 5122, "normalized": True},
+        blobs=(np.array([0, 1, 2, 0, 2, 3], dtype="<u2").tobytes(),),
+        node={"scale": [10.0, 10.0, 10.0]},
+        required=["KHR_mesh_quantization"],
+    )
+    doc = json.loads(path.read_text())
+    doc["bufferViews"][0]["byteStride"] = 8
+    doc["accessors"].append({"bufferView": 1, "componentType": 5123, "count": 6, "type": "SCALAR"})
+    path.write_text(json.dumps(doc))
+    mesh = read_triangle_mesh(path)
+    np.testing.assert_allclose(np.asarray(mesh.vertices), SQUARE[:4] * 10, atol=1e-9)
+    np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
