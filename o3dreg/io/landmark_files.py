@@ -20,6 +20,8 @@ format              how the file says its system
                     rows) says nothing: the points are taken as they are, with a warning
 ``.pp`` (MeshLab)   never (points are in the picked mesh's coordinates): taken as they are,
                     with a warning
+``.json`` (scalismo) never (a list of ``{"id", "coordinates"}``, in the mesh's coordinates):
+                    taken as they are, with a warning
 =================== ========================================================================
 
 ``file_coordinate_system`` tells the system of a file that does not say (and silences the
@@ -148,12 +150,14 @@ def read_landmarks(
         angles, curves, planes, ROIs) are ignored with a ``UserWarning``; a file with several
         point lists or none raises ``ValueError`` listing its markups (name, type, number of
         control points): the control points of a line or angle are its ends and vertex, not
-        landmarks, and point lists are not merged.
+        landmarks, and point lists are not merged. A ``.json`` holding a list of
+        ``{"id": ..., "coordinates": [x, y, z]}`` is scalismo's landmark file (its
+        ``LandmarkIO.writeLandmarksJson``, Scalismo UI's save), which does not say its system.
     coordinate_system : {'LPS', 'RAS'}, optional
         System of the points returned. Default ``'LPS'``, the system of o3dreg's meshes.
     file_coordinate_system : {'LPS', 'RAS'}, optional
-        System of a file that does not say which it is in (``x,y,z`` CSV, ``.pp``, ``.fcsv``
-        without a ``CoordinateSystem`` line). Default: such a file is taken to be in
+        System of a file that does not say which it is in (``x,y,z`` CSV, ``.pp``, scalismo's
+        ``.json``, ``.fcsv`` without a ``CoordinateSystem`` line). Default: such a file is taken to be in
         ``coordinate_system`` (an ``.fcsv``: RAS) and a ``UserWarning`` says so. A file that
         says otherwise raises ``ValueError``.
 
@@ -484,6 +488,8 @@ def _read_markups(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
             doc = json.load(fh)
     except json.JSONDecodeError as exc:
         raise ValueError(f"`path`: {path!r} is not a 3D Slicer markups file: {exc}") from exc
+    if isinstance(doc, list):
+        return _read_scalismo_json(doc, path)
     markup = _choose_point_list(doc, path)
     scale = _units_to_mm(markup, path)
     try:
@@ -516,6 +522,28 @@ def _read_markups(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
     if scale != 1.0:
         points_arr = points_arr * scale
     return tuple(labels), points_arr, declared
+
+
+def _read_scalismo_json(doc: list[Any], path: str) -> tuple[tuple[str, ...], np.ndarray, None]:
+    """scalismo's landmark file (``LandmarkIO.writeLandmarksJson``, what Scalismo UI saves): a
+    list of ``{"id": ..., "coordinates": [x, y, z]}`` (``description`` and ``uncertainty``
+    ignored), in the coordinates of the mesh it was placed on; the file does not say which
+    system that is."""
+    labels, points = [], []
+    for k, entry in enumerate(doc):
+        coordinates = entry.get("coordinates") if isinstance(entry, dict) else None
+        try:
+            position = [float(c) for c in coordinates]  # type: ignore[union-attr]
+        except (TypeError, ValueError):
+            position = []
+        if len(position) != 3:
+            raise ValueError(
+                f"`path`: {path!r} is a list, read as a scalismo landmark file; its entry {k + 1} "
+                f"is not {{'id': ..., 'coordinates': [x, y, z]}}: {str(entry)[:80]}"
+            )
+        points.append(position)
+        labels.append(str(entry.get("id") or "").strip() or f"L{k + 1}")
+    return tuple(labels), np.array(points, dtype=np.float64).reshape(-1, 3), None
 
 
 def write_landmarks(

@@ -1,5 +1,5 @@
-"""Landmark files as 3D Slicer (3, 4 and 5) and statismo write them: columns named by the
-``# columns`` line, unplaced points skipped with a warning naming them, a cut row refused."""
+"""Landmark files as 3D Slicer (3, 4 and 5), statismo and scalismo write them: columns named by
+the ``# columns`` line, unplaced points skipped with a warning naming them, a cut row refused."""
 
 from __future__ import annotations
 
@@ -129,6 +129,31 @@ def test_statismo_landmark_csv_without_a_header(tmp_path):
         read_landmarks(path, file_coordinate_system="LPS")
     bad = _write(tmp_path, "bad.csv", ["A,1,2,3", "B,1,2"])
     with pytest.raises(ValueError, match="line 2: label,x,y,z expected"):
+        read_landmarks(bad)
+
+
+def test_scalismo_landmark_json(tmp_path):
+    # scalismo's LandmarkIO.writeLandmarksJson (Scalismo UI's save): a list of id and
+    # coordinates, with optional description and uncertainty. It was refused as "not a 3D
+    # Slicer markups file (a non-empty `markups` list expected, got none)".
+    doc = [
+        {"id": "chin", "coordinates": [585.14, 490.43, -242.97]},
+        {
+            "id": "mand_r",
+            "coordinates": [1e2, -3.5, 0.0],
+            "description": "right condyle",
+            "uncertainty": {"stddevs": [1.0, 1.0, 1.0], "pcvectors": np.eye(3).tolist()},
+        },
+    ]
+    path = _write(tmp_path, "lm.json", [json.dumps(doc)])
+    with pytest.warns(UserWarning, match="coordinate system not stated"):
+        labels, points = read_landmarks(path)
+    assert labels == ("chin", "mand_r")
+    np.testing.assert_array_equal(points, [[585.14, 490.43, -242.97], [100.0, -3.5, 0.0]])
+    labels, points = read_landmarks(path, file_coordinate_system="RAS")
+    np.testing.assert_array_equal(points[0], np.array([585.14, 490.43, -242.97]) * FLIP)
+    bad = _write(tmp_path, "bad.json", [json.dumps([{"id": "A", "coordinates": [1, 2]}])])
+    with pytest.raises(ValueError, match="scalismo landmark file; its entry 1"):
         read_landmarks(bad)
 
 
