@@ -3,7 +3,10 @@ VTK (legacy ``.vtk``, XML ``.vtp`` and ``.vtu``), OBJ, OFF, ASCII PLY, glTF (``.
 ``.glb``) and STL. Open3D writes binary PLY and reads binary and ASCII PLY.
 
 Every format keeps the vertices in the order written (a semilandmark mesh keeps its
-correspondence), STL excepted, and text is written at full float64 precision:
+correspondence), STL excepted, and text is written at full float64 precision. A model 3D
+Slicer saved in RAS and marked so (``SPACE=RAS`` in the header of a ``.vtk``, ``.stl``,
+``.ply`` or ``.obj``, a ``SPACE`` field in a ``.vtp`` / ``.vtu``; Slicer's default is
+``SPACE=LPS``) is read in LPS, as Slicer reads it (see :func:`slicer_space`):
 
 * **VTK**, the format statismo, scalismo, ShapeWorks and 3D Slicer exchange. The triangle subset
   is read: polygons, quads and pixels (split into triangle fans, with a warning), triangles and
@@ -557,6 +560,8 @@ class _XmlArrays:
 
     def read(self, element: ElementTree.Element) -> np.ndarray:
         type_name = element.get("type", "")
+        if type_name == "String":  # NUL-terminated strings: read as their bytes
+            type_name = "UInt8"
         if type_name not in _XML_TYPES:
             raise OSError(f"{self.path!r}: DataArray type {type_name!r} is not supported")
         dtype = self.order + _XML_TYPES[type_name]
@@ -585,8 +590,16 @@ class _XmlArrays:
 def read_vtp(path: str) -> tuple[np.ndarray, np.ndarray]:
     """Read the triangles of a VTK XML ``PolyData`` file (``.vtp``).
 
-    Returns ``(vertices (n, 3) float64, faces (m, 3) int64)``.
+    Returns ``(vertices (n, 3) float64, faces (m, 3) int64)``, as the file holds them (3D
+    Slicer's ``SPACE`` field is not applied: :func:`read_mesh` does).
     """
+    vertices, faces, _ = _read_vtk_xml(path)
+    return vertices, faces
+
+
+def _read_vtk_xml(path: str) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """:func:`read_vtp`'s vertices and faces, and the coordinate system 3D Slicer wrote in the
+    file's field data (a string array ``SPACE``: ``"RAS"`` or ``"LPS"``; ``None`` without)."""
     with open(path, "rb") as fh:
         data = fh.read()
     appended = None
@@ -653,7 +666,13 @@ def read_vtp(path: str) -> tuple[np.ndarray, np.ndarray]:
         raise OSError(f"{path!r}: no points")
     vertices = np.concatenate(vertices_parts)
     faces = np.concatenate(triangle_parts) if triangle_parts else np.zeros((0, 3), np.int64)
-    return _check_mesh(vertices, faces.astype(np.int64), path)
+    space = None
+    for field in root.iter("FieldData"):
+        for array in field:
+            if array.get("Name") == "SPACE" and array.get("type") == "String":
+                text = bytes(arrays.read(array).astype(np.uint8)).split(b"\0", 1)[0]
+                space = text.decode("ascii", errors="replace").strip().upper()
+    return (*_check_mesh(vertices, faces.astype(np.int64), path), space)
 
 
 def _xml_array(name: str, type_name: str, values: np.ndarray, ascii: bool, ncomp: int) -> str:
@@ -1338,25 +1357,76 @@ OWN_SUFFIXES = (".vtk", ".vtp", ".vtu", ".obj", ".off", ".gltf", ".glb", ".stl")
 
 def read_mesh(path: str, suffix: str, name: str = "path") -> Any:
     """Read ``path`` as an ``open3d.geometry.TriangleMesh`` (empty when Open3D finds nothing;
-    ``name``: the parameter the path came from, for the OBJ reader's messages)."""
-
-    if suffix == ".vtk":
-        return to_open3d(*read_vtk(path))
+    ``name``: the parameter the path came from, for the OBJ reader's messages), in LPS where
+    3D Slicer wrote it in RAS and said so (see :func:`slicer_space`)."""
     if suffix in (".vtp", ".vtu"):
-        return to_open3d(*read_vtp(path))
-    if suffix == ".obj":
-        return to_open3d(*read_obj(path, name))
-    if suffix == ".off":
+        vertices, faces, space = _read_vtk_xml(path)
+        return _to_lps(to_open3d(vertices, faces), space, path)
+    if suffix == ".vtk":
+        mesh = to_open3d(*read_vtk(path))
+    elif suffix == ".obj":
+        mesh = to_open3d(*read_obj(path, name))
+    elif suffix == ".off":
         return to_open3d(*read_off(path, name))
-    if suffix in (".gltf", ".glb"):
+    elif suffix in (".gltf", ".glb"):
         return to_open3d(*read_gltf(path))
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        mesh = o3d.io.read_triangle_mesh(path)  # type: ignore[arg-type]  # stubs: PathLike only
-    if suffix == ".stl" and len(mesh.triangles):
-        vertices, faces = merge_identical_vertices(
-            np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-        )
-        mesh = to_open3d(vertices, faces)
+    else:
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            mesh = o3d.io.read_triangle_mesh(path)  # type: ignore[arg-type]  # stubs: PathLike
+        if suffix == ".stl" and len(mesh.triangles):
+            vertices, faces = merge_identical_vertices(
+                np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+            )
+            mesh = to_open3d(vertices, faces)
+    return _to_lps(mesh, slicer_space(path, suffix), path)
+
+
+#: 3D Slicer's mark of a model's coordinate system (``vtkMRMLModelStorageNode``, Slicer >= 4.11).
+_SLICER_SPACE = re.compile(rb"SPACE=(RAS|LPS)\b", re.IGNORECASE)
+
+
+def slicer_space(path: str, suffix: str) -> str | None:
+    """The coordinate system 3D Slicer wrote into a model file's header, ``"RAS"`` or
+    ``"LPS"``; ``None`` when the header has no such mark.
+
+    Slicer (``vtkMRMLModelStorageNode``, since 4.11) writes ``SPACE=LPS`` (its default) or
+    ``SPACE=RAS`` (chosen when saving or exporting segments) in the legacy ``.vtk`` title line,
+    the ``.stl`` header (``solid`` line), a ``.ply`` comment and an ``.obj`` comment line; in
+    ``.vtp`` / ``.vtu`` files, a field data string array ``SPACE`` (read with the file). A file
+    without the mark is taken as it is (LPS, as Slicer reads it).
+    """
+    if suffix not in (".vtk", ".stl", ".ply", ".obj"):
+        return None
+    with open(path, "rb") as fh:
+        head = fh.read(1 << 16)
+    if suffix == ".vtk":
+        lines = head.split(b"\n", 2)
+        texts = lines[1:2]  # the title
+    elif suffix == ".stl":
+        texts = [head[:80].split(b"\n", 1)[0]]  # the binary header, or the "solid" line
+    elif suffix == ".ply":
+        header = head.split(b"end_header", 1)[0]
+        texts = [line for line in header.split(b"\n") if line.startswith(b"comment")]
+    else:
+        texts = [line for line in head.split(b"\n") if line.lstrip().startswith(b"#")]
+    for text in texts:
+        match = _SLICER_SPACE.search(text)
+        if match:
+            return match.group(1).decode().upper()
+    return None
+
+
+def _to_lps(mesh: Any, space: str | None, path: str) -> Any:
+    """``mesh`` in LPS: x and y (and the normals') negated when ``space`` is ``"RAS"``."""
+    if space != "RAS":
+        return mesh
+    flip = np.array([-1.0, -1.0, 1.0])
+    mesh.vertices = o3d.utility.Vector3dVector(np.asarray(mesh.vertices) * flip)
+    if mesh.has_vertex_normals():
+        mesh.vertex_normals = o3d.utility.Vector3dVector(np.asarray(mesh.vertex_normals) * flip)
+    if mesh.has_triangle_normals():
+        mesh.triangle_normals = o3d.utility.Vector3dVector(np.asarray(mesh.triangle_normals) * flip)
+    _log.info("%s: written in RAS (SPACE=RAS, 3D Slicer's mark): converted to LPS", path)
     return mesh
 
 

@@ -92,7 +92,9 @@ def read_triangle_mesh(
         polydata or unstructured grid), ``.vtp`` (VTK XML polydata) or ``.vtu`` (VTK XML
         unstructured grid) file. Vertices keep the file's order; polygons (quads) are split
         into triangles, with a warning; volume cells are refused. STL corners with identical
-        coordinates are merged (STL stores each triangle's corners separately).
+        coordinates are merged (STL stores each triangle's corners separately). A model 3D
+        Slicer saved in RAS and marked ``SPACE=RAS`` is converted to LPS (x and y negated),
+        as Slicer reads it.
     name : str, optional
         The parameter name used in error messages.
 

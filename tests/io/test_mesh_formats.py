@@ -527,3 +527,57 @@ def test_gltf_normalized_quantized_positions(tmp_path):
     mesh = read_triangle_mesh(path)
     np.testing.assert_allclose(np.asarray(mesh.vertices), SQUARE[:4] * 10, atol=1e-9)
     np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
+
+
+# -- 3D Slicer's coordinate system mark --------------------------------------------------------
+
+
+def _slicer_model(suffix, space):
+    """The triangle 0-1-2 of SQUARE moved to (30, -40, 50), as 3D Slicer's
+    vtkMRMLModelStorageNode writes a model with its coordinate system marked ``SPACE=...``."""
+    points = SQUARE[:3] + [30.0, -40.0, 50.0]
+    rows = "\n".join(" ".join(f"{c:g}" for c in p) for p in points)
+    mark = f"3D Slicer output. SPACE={space}"
+    if suffix == ".vtk":  # the title line
+        text = f"# vtk DataFile Version 4.2\n{mark}\nASCII\nDATASET POLYDATA\n"
+        return (text + f"POINTS 3 float\n{rows}\nPOLYGONS 1 4\n3 0 1 2\n").encode()
+    if suffix == ".stl":  # the 80-byte header of a binary file
+        record = struct.pack("<12fH", 0, 0, 1, *points.ravel(), 0)
+        return mark.encode().ljust(80, b" ") + struct.pack("<I", 1) + record
+    if suffix == ".ply":  # a header comment
+        head = f"ply\nformat ascii 1.0\ncomment VTK generated PLY File\ncomment SPACE={space}\n"
+        head += "element vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+        head += "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+        return (head + rows + "\n3 0 1 2\n").encode()
+    if suffix == ".obj":  # vtkOBJExporter's comment line
+        body = "\n".join(f"v {r}" for r in rows.split("\n"))
+        return f"#  {mark}\n\nmtllib m.mtl\n\n{body}\nf 1 2 3\n".encode()
+    # .vtp: a field data string array SPACE (ASCII: its characters' codes and a 0)
+    codes = " ".join(str(b) for b in space.encode()) + " 0"
+    return (
+        '<?xml version="1.0"?>\n<VTKFile type="PolyData" version="1.0" '
+        'byte_order="LittleEndian"><PolyData><FieldData>'
+        f'<Array type="String" Name="SPACE" NumberOfTuples="1" format="ascii">{codes}</Array>'
+        '</FieldData><Piece NumberOfPoints="3" NumberOfPolys="1"><Points>'
+        '<DataArray type="Float32" NumberOfComponents="3" format="ascii">'
+        f"{rows}</DataArray></Points><Polys>"
+        '<DataArray type="Int64" Name="connectivity" format="ascii">0 1 2</DataArray>'
+        '<DataArray type="Int64" Name="offsets" format="ascii">3</DataArray>'
+        "</Polys></Piece></PolyData></VTKFile>\n"
+    ).encode()
+
+
+@pytest.mark.parametrize("suffix", [".vtk", ".stl", ".ply", ".obj", ".vtp"])
+def test_a_model_3d_slicer_wrote_in_ras_is_read_in_lps(tmp_path, suffix):
+    # Slicer (>= 4.11) marks the system of a model it saves: SPACE=LPS by default, SPACE=RAS when
+    # chosen on saving or exporting segments. A RAS model was read as if LPS: turned 180 degrees
+    # about the S axis against the CT and the landmarks (x and y negated), without a word.
+    lps = SQUARE[:3] + [30.0, -40.0, 50.0]
+    for space, expected in (("RAS", lps * [-1, -1, 1]), ("LPS", lps)):
+        path = tmp_path / f"model_{space}{suffix}"
+        path.write_bytes(_slicer_model(suffix, space))
+        mesh = read_triangle_mesh(path)
+        np.testing.assert_allclose(np.asarray(mesh.vertices), expected, atol=1e-5)
+        # Negating x and y is a rotation: the triangle still faces +z.
+        normals = np.asarray(mesh.compute_triangle_normals().triangle_normals)
+        np.testing.assert_allclose(normals, [[0, 0, 1]], atol=1e-9)
