@@ -790,7 +790,7 @@ def read_obj(path: str, name: str = "path") -> tuple[np.ndarray, np.ndarray]:
     the counts Open3D writes in its comments (``# number of vertices: N``).
     """
     with open(path, "rb") as fh:
-        lines = fh.read().splitlines()
+        lines = _obj_lines(fh.read())
     vertex_lines = [line[2:] for line in lines if line[:2] in (b"v ", b"v\t")]
     face_lines = [line[2:] for line in lines if line[:2] in (b"f ", b"f\t")]
     declared = {
@@ -811,6 +811,16 @@ def read_obj(path: str, name: str = "path") -> tuple[np.ndarray, np.ndarray]:
                 f"holds {held}"
             )
     return _check_mesh(vertices, faces, path)
+
+
+def _obj_lines(data: bytes) -> list[bytes]:
+    """The lines of an OBJ file as the format reads them: a line ending in a backslash goes on
+    on the next, leading whitespace and a comment after the data are dropped (comment lines
+    are kept whole: Open3D writes its counts there)."""
+    if b"\\" in data:
+        data = re.sub(rb"\\\r?\n", b" ", data)
+    lines = [line.lstrip() for line in data.splitlines()]
+    return [line.split(b"#", 1)[0] if b"#" in line and line[:1] != b"#" else line for line in lines]
 
 
 #: The counts Open3D writes at the top of an OBJ file.

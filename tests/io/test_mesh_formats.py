@@ -424,6 +424,24 @@ def test_obj_of_another_writer_keeps_its_order_and_its_polygons(tmp_path, caplog
         read_triangle_mesh(bad)
 
 
+def test_obj_indented_commented_and_continued_lines_read_as_the_plain_file(tmp_path):
+    # Indented statements, a comment after the data and a statement continued on the next line
+    # (a trailing backslash) are OBJ as the format describes it: the same mesh as the plain file.
+    plain = tmp_path / "plain.obj"
+    plain.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 1 3 4\n")
+    other = tmp_path / "other.obj"
+    other.write_text(
+        "# number of vertices: 4\n  v 0 0 0\n\tv 1 0 0 # corner\nv 1 \\\n 1 0\nv 0 1 0\n"
+        "  f 1 2 3   # first\nf 1 \\\r\n3 4\n"
+    )
+    for path in (plain, other):
+        mesh = read_triangle_mesh(path)
+        np.testing.assert_array_equal(
+            np.asarray(mesh.vertices), [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
+        )
+        np.testing.assert_array_equal(np.asarray(mesh.triangles), [[0, 1, 2], [0, 2, 3]])
+
+
 # -- glTF written by hand from the glTF 2.0 specification --------------------------------------
 
 
