@@ -17,6 +17,22 @@ def into_frame(frame: np.ndarray, points: np.ndarray) -> np.ndarray:
     return (points - frame[:3, 3]) @ frame[:3, :3]
 
 
+def fit_pose(source: np.ndarray, target: np.ndarray, scaling: bool) -> np.ndarray:
+    """Least-squares rotation (no reflection), translation and optional scale of ``(n, 3)``
+    ``source`` points onto ``target`` (Umeyama 1991), as a ``(4, 4)`` transformation; the
+    points must not all coincide."""
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+    a, b = source - mu_s, target - mu_t
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = 1.0 if np.linalg.det(vt.T @ u.T) >= 0 else -1.0
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    s = float(((a @ r.T) * b).sum() / (a * a).sum()) if scaling else 1.0
+    t = np.eye(4)
+    t[:3, :3] = s * r
+    t[:3, 3] = mu_t - s * r @ mu_s
+    return t
+
+
 def rotation_angle(transformation: np.ndarray) -> float:
     """Rotation angle (degrees) of a rigid or similarity transformation."""
     m = transformation[:3, :3]

@@ -31,6 +31,7 @@ from .._geometry import (
     bounds,
     face_cross,
     face_doubled_areas,
+    fit_pose,
     into_frame,
     row_norms,
     turned_triangles,
@@ -68,7 +69,7 @@ from .result import (
     RigidStart,
     SurfaceDistances,
 )
-from .rigid import default_start
+from .rigid import check_given_start, default_start
 from .terms import DistanceTerm
 from .verdict import judge, with_rigid_start
 
@@ -302,12 +303,7 @@ def registration_elastic(
         faces=fs,
         distances=measured.summary(),
         levels=fit.history,
-        quality=MapQuality(
-            min_jacobian_determinant=min(fit.det, fit.cell_det),
-            min_cell_jacobian_determinant=fit.cell_det,
-            flipped_triangles=flipped_triangles(points, fit.moved, fs),
-            supported=fit.supported,
-        ),
+        quality=_map_quality(vs, fs, fit),
         success=success,
         message=fit.converged if success else "; ".join(fit.failures),
     )
@@ -323,6 +319,9 @@ def registration_elastic(
         backward=measured.backward,
         target_moments=surface.moments,
     )
+    if rigid_start is None and (labels is None or labels.max() == 0):
+        # A given start is checked against the rigid search (one part: parts move apart).
+        rigid_start = check_given_start(vs, fs, surface.query, rigid, fit.moved)
     if rigid_start is None:
         return assessed
     return with_rigid_start(assessed, RigidStart.from_rigid(rigid_start))
@@ -342,6 +341,18 @@ class _Fit(NamedTuple):
     det: float
     cell_det: float
     converged: str = "all levels converged"
+
+
+def _map_quality(vs: np.ndarray, fs: np.ndarray, fit: _Fit) -> MapQuality:
+    """The folds of ``fit``'s map and its flipped triangles, against the template ``(vs, fs)``
+    in the pose the result took as a whole (a turn of the whole flips no triangle)."""
+    taken = apply_transformation(fit_pose(vs, fit.moved, False), vs)
+    return MapQuality(
+        min_jacobian_determinant=min(fit.det, fit.cell_det),
+        min_cell_jacobian_determinant=fit.cell_det,
+        flipped_triangles=flipped_triangles(taken, fit.moved, fs),
+        supported=fit.supported,
+    )
 
 
 def _coarse_to_fine(

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .._geometry import apply_transformation
+from .._geometry import apply_transformation, fit_pose
 from .._validation import as_points, check_bool
 from ..io.landmark_files import read_landmarks, select_labels
 
@@ -77,23 +77,6 @@ class LandmarkRegistrationResult:
         )
 
 
-def _umeyama(source: np.ndarray, target: np.ndarray, scaling: bool) -> np.ndarray:
-    """Least-squares rotation (no reflection), translation and optional scale of ``source``
-    onto ``target`` (Umeyama 1991; the fit of ``shape.procrustes``, which sits above this
-    stage)."""
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-    a, b = source - mu_s, target - mu_t
-    cross = a.T @ b  # finite: the caller checked that the squares of a and b are
-    u, _, vt = np.linalg.svd(cross)
-    d = 1.0 if np.linalg.det(vt.T @ u.T) >= 0 else -1.0
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    s = float(((a @ r.T) * b).sum() / (a * a).sum()) if scaling else 1.0
-    t = np.eye(4)
-    t[:3, :3] = s * r
-    t[:3, 3] = mu_t - s * r @ mu_s
-    return t
-
-
 def _fit_findings(
     labels: tuple[str, ...],
     ps: np.ndarray,
@@ -121,7 +104,7 @@ def _fit_findings(
         left_out = np.empty(kept.size)
         for j, i in enumerate(kept):
             others = kept[kept != i]
-            fit = _umeyama(ps[others], pt[others], with_scaling)
+            fit = fit_pose(ps[others], pt[others], with_scaling)
             left_out[j] = np.linalg.norm(apply_transformation(fit, ps[i]) - pt[i])
         worst = int(np.argmax(left_out))
         if left_out[worst] <= MISFIT_FRACTION * spread:
@@ -279,7 +262,7 @@ def registration_landmarks(
                 f"`{name}` landmarks are degenerate (all on one line or in one point): the "
                 "rotation about that line is undetermined; add a landmark off the line"
             )
-    t = _umeyama(ps, pt, with_scaling)
+    t = fit_pose(ps, pt, with_scaling)
     residuals = np.linalg.norm(apply_transformation(t, ps) - pt, axis=1)
     scale = float(np.cbrt(np.linalg.det(t[:3, :3])))
     warnings = _fit_findings(paired, ps, pt, residuals, with_scaling)

@@ -197,8 +197,10 @@ class MapQuality:
         Smallest ``det(dT/dx)`` over 8 interior samples (local coordinates 1/4 and 3/4) of every
         finest cell holding a source vertex: the map is one-to-one there when positive.
     flipped_triangles : int
-        Source triangles whose normal reverses between the rigidly aligned source and the
-        result (``n_rigid . n_registered <= 0``): local folds of the surface.
+        Source triangles whose normal reverses between the source in the pose the result
+        took as a whole (its least-squares rigid fit onto the result) and the result
+        (``n_pose . n_registered <= 0``): local folds of the surface, not a turn of the whole
+        (the levels recovering a start turned 90 degrees turn every triangle as far).
     supported : (n,) bool ndarray or None
         Per source vertex, whether the target has data for it at the end: ``False`` where a
         correspondence checker of the :class:`~o3dreg.DistanceEstimation` rejects its closest
@@ -233,8 +235,11 @@ class RegistrationVerdict:
     warnings : tuple of str
         One plain sentence per finding behind ``status`` (empty when ``'ok'``).
     rigid_start : RigidStart or None
-        The rigid start's winner and runner-up scores and warnings, when the start was searched
-        for (``None`` with a given ``init``).
+        The rigid search's winner and runner-up scores and warnings: the start, when none was
+        given; with a given ``init``, the search run to check the registration against it
+        (:func:`~o3dreg.registration.rigid.check_given_start`: a warning when the registration
+        ended in a distinct pose that fits clearly worse than the search's). ``None`` where the
+        search cannot run (sizes in other units) and for a template registered in parts.
     """
 
     status: str = "ok"

@@ -23,7 +23,13 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from .._geometry import apply_transformation, face_doubled_areas, rotation_angle, row_norms
+from .._geometry import (
+    apply_transformation,
+    face_doubled_areas,
+    fit_pose,
+    rotation_angle,
+    row_norms,
+)
 from .._validation import as_mesh_arrays, as_transformation, check_bool, check_positive
 from ..mesh.canonical import cluster_vertices
 from ..mesh.edges import SortedEdges
@@ -494,6 +500,78 @@ def default_start(
     )
 
 
+def check_given_start(
+    vs: np.ndarray,
+    fs: np.ndarray,
+    target: SurfaceDistanceQuery,
+    init: np.ndarray,
+    moved: np.ndarray,
+) -> RigidRegistrationResult | None:
+    """The rigid search, run to check a registration from a given ``init``.
+
+    Given ``init`` 60-135 degrees off, the levels wrap the template onto the target's wrong
+    parts, to surface distances as small as a right registration's and without a fold (an
+    asymmetric blob, a long bone, a skull-like cap: 10-45% of the diagonal from the truth, every
+    other finding quiet). The pose the registration took (the least-squares fit of the source
+    ``vs`` onto its registered vertices ``moved``) is then far from the pose the search finds
+    and scores far worse: those registrations 3-4 times, while right ones from starts 0-60
+    degrees off end within 2% of the diagonal of the search's pose.
+
+    Returns
+    -------
+    RigidRegistrationResult or None
+        The search's winner, its ``warnings`` replaced by one sentence when it is distinct from
+        the registration's pose (as the search tells distinct poses) and scores better than it
+        by more than :data:`AMBIGUITY_RATIO`, else empty. A search that is itself ambiguous
+        (two distinct poses in a near tie: a near-symmetric shape) warns of nothing: ``init``
+        settles such a tie (a quadric template of a long bone onto its own surface: the
+        search's two best poses, half a turn apart, both score better than the exact pose).
+        ``None`` when the search cannot run: sizes apart by more than
+        :data:`MAX_SIZE_RATIO`, or a source too small to pose.
+    """
+    scale = float(np.cbrt(abs(np.linalg.det(init[:3, :3]))))
+    scaling = abs(scale - 1.0) > 1e-9
+    try:
+        winner = default_start(vs, fs, target, with_scaling=scaling)
+    except ValueError:  # SizeMismatch or a source too small: the verdict's size rule speaks
+        return None
+    taken = fit_pose(vs, moved, scaling)
+    diagonal = float(np.linalg.norm(np.ptp(target.vertices, axis=0)))
+    search = _CandidateSearch(
+        vs, fs, target.vertices, target.faces, 0.05 * diagonal, diagonal, target
+    )
+    found = np.asarray(winner.transformation)
+    # The registration's pose is scored as the search scores its own poses, refined by ICP, as
+    # long as the refinement stays in its basin: a decimated template's exact pose scores up to
+    # twice its refined one (a long bone onto its own surface: 0.21 against 0.12), while ICP
+    # from a wrapped template's pose leaves for another basin.
+    taken_score = search.score(taken)
+    method = (
+        reg.TransformationEstimationPointToPoint(with_scaling=True)
+        if scaling
+        else reg.TransformationEstimationPointToPlane()
+    )
+    refined = np.asarray(
+        search.refine(taken, method, reg.ICPConvergenceCriteria(1e-6, 1e-6, 50)).transformation
+    )
+    if not search.distinct(refined, taken):
+        taken_score = min(taken_score, search.score(refined))
+    winner.warnings = ()
+    # The search's own near tie (a symmetric shape) is `init`'s to settle.
+    tied = winner.ambiguous or search.tie(winner.score, taken_score)
+    if tied or not search.distinct(found, taken, winner.score):
+        return winner
+    turn = rotation_angle(found @ np.linalg.inv(taken))
+    winner.warnings = (
+        f"the registration from the given `init` ended in a pose {turn:.0f} degrees from the "
+        f"one the rigid search finds, which fits the target {taken_score / winner.score:.1f} "
+        f"times better (symmetric distance {winner.score:.3g} against {taken_score:.3g}): the "
+        "levels may have wrapped the template onto the wrong parts; check `init`, or leave it "
+        "out for the rigid search",
+    )
+    return winner
+
+
 def _registration_rigid(
     vs: np.ndarray,
     fs: np.ndarray,
@@ -806,13 +884,13 @@ class _CandidateSearch:
         logger.debug("rigid start %s refined: score %.4g -> %.4g", entry[1], entry[0], score)
         return score, entry[1], icp
 
-    def _tie(self, best: float, other: float) -> bool:
+    def tie(self, best: float, other: float) -> bool:
         """Whether a score ``other`` is a near tie with the best score ``best``: within
         :data:`AMBIGUITY_RATIO`, or apart by rounding only (two exact fits score ~1e-17 of the
         diagonal, whose ratio means nothing)."""
         return other < AMBIGUITY_RATIO * best + 1e-9 * self.diagonal
 
-    def _distinct(self, a: np.ndarray, b: np.ndarray, score: float | None = None) -> bool:
+    def distinct(self, a: np.ndarray, b: np.ndarray, score: float | None = None) -> bool:
         """Whether two poses place the source apart by more than ICP's basin
         (:data:`DISTINCT_POSE`), and with the winner's ``score`` by more than the target's noise
         blurs on top (:data:`DISTINCT_NOISE`; the noise is measured only where a pose lies
@@ -903,9 +981,9 @@ class _CandidateSearch:
         one symmetry: a box fits itself in four poses), the tied one nearest the input pose, so
         that the input pose can break the tie (:meth:`_decide`)."""
         best = scored[0]
-        others = [o for o in scored[1:] if self._distinct(_pose(best), _pose(o))]
+        others = [o for o in scored[1:] if self.distinct(_pose(best), _pose(o))]
         runner = others[0] if others else None
-        tied = [o for o in others if self._tie(best[0], o[0])]
+        tied = [o for o in others if self.tie(best[0], o[0])]
         if tied and rotation_angle(_pose(best)) >= INPUT_POSE_FAR:
             runner = min(tied, key=lambda o: rotation_angle(_pose(o)))
         return runner
@@ -959,10 +1037,10 @@ class _CandidateSearch:
         :data:`RUNNER_UP_REFINED`), or by none. Refining both near poses keeps the better start;
         the ambiguity is judged against a pose that differs from it."""
         best = finals[0][0]
-        if len(finals) < 2 or self._distinct(_pose(finals[0]), _pose(finals[1]), best):
+        if len(finals) < 2 or self.distinct(_pose(finals[0]), _pose(finals[1]), best):
             return finals
         win = _pose(finals[0])
-        others = [o for o in scored if self._distinct(win, _pose(o), best)]
+        others = [o for o in scored if self.distinct(win, _pose(o), best)]
         if not others:
             return finals[:1]
         other = others[0]
@@ -980,10 +1058,10 @@ class _CandidateSearch:
         runner_t: np.ndarray | None = None
         if len(finals) > 1:
             other = _pose(finals[1])
-            if self._distinct(_pose(finals[0]), other, finals[0][0]):
+            if self.distinct(_pose(finals[0]), other, finals[0][0]):
                 runner_score, runner_t = finals[1][0], other
         warnings: list[str] = []
-        near_tie = runner_score is not None and self._tie(win_score, runner_score)
+        near_tie = runner_score is not None and self.tie(win_score, runner_score)
         blurred = False
         if near_tie and runner_t is not None:
             turns = (rotation_angle(_pose(finals[0])), rotation_angle(runner_t))
