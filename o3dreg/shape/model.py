@@ -211,7 +211,9 @@ class ShapeModel:
     @property
     def basis(self) -> np.ndarray:
         """``A`` as a ``(3n, k)`` matrix (coordinates ordered x1, y1, z1, x2, ...)."""
-        return self.modes.reshape(self.number_of_modes, -1).T
+        # The column length is explicit: a model of no modes has a (3n, 0) basis (``-1`` cannot
+        # be inferred from 0 values).
+        return self.modes.reshape(self.number_of_modes, 3 * self.number_of_points).T
 
     def variance_table(self, *, number_of_modes: int | None = None) -> str:
         """The paper's Table 4 as text: variance % and cumulated variance % per mode, the

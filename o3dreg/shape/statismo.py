@@ -366,7 +366,7 @@ def read_statismo(path: str | os.PathLike[str], *, template: Any = None) -> Shap
     try:
         model = ShapeModel(
             mean=mean,
-            modes=basis.T.reshape(k, -1, 3),
+            modes=basis.T.reshape(k, mean.shape[0], 3),
             variances=variances,
             faces=faces.astype(np.int64),
             total_variance=total,

@@ -262,3 +262,23 @@ def test_statismos_no_scores_placeholder_is_no_training_shape(tmp_path, modes):
     read = read_statismo(path)
     assert read.number_of_shapes == 0 and read.scores.shape == (0, modes)
     np.testing.assert_allclose(read.variances, built.variances, rtol=1e-5)
+
+
+def test_model_of_no_modes_round_trips(model, tmp_path):
+    """A model of the mean alone (no modes: the constructor takes it) has a (3n, 0) basis and
+    is written and read back; the basis raised 'cannot reshape array of size 0' and the file
+    written elsewhere was refused as 'holds no valid shape model'."""
+    n = model.number_of_points
+    empty = type(model)(
+        mean=model.mean,
+        modes=np.zeros((0, n, 3)),
+        variances=np.zeros(0),
+        faces=model.faces,
+        total_variance=model.total_variance,
+        scores=np.zeros((model.number_of_shapes, 0)),
+    )
+    assert empty.basis.shape == (3 * n, 0)
+    back = read_statismo(write_statismo(tmp_path / "mean.h5", empty))
+    assert back.number_of_modes == 0 and back.modes.shape == (0, n, 3)
+    np.testing.assert_allclose(back.mean, model.mean, rtol=1e-6, atol=1e-5)
+    np.testing.assert_array_equal(back.faces, model.faces)
