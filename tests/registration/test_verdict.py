@@ -3,8 +3,11 @@
 import dataclasses
 
 import numpy as np
+import open3d as o3d
 import pytest
+from scipy.spatial.transform import Rotation
 
+import o3dreg
 from o3dreg import (
     ElasticCriteria,
     ElasticLevel,
@@ -13,7 +16,7 @@ from o3dreg import (
     population_outliers,
     registration_elastic,
 )
-from o3dreg.app.synthetic import synthetic_form
+from o3dreg.app.synthetic import SmoothWarp, synthetic_form
 from o3dreg.registration.verdict import worst_status
 
 LEVELS = [ElasticLevel(2), ElasticLevel(4)]
@@ -496,3 +499,73 @@ def test_the_rim_rule_costs_no_table_of_points_by_open_edges():
     finally:
         tracemalloc.stop()
     assert peak < 60e6, f"{peak / 1e6:.0f} MB"
+
+
+# -- a given start, checked against the rigid search ------------------------------------------
+
+
+def _blob() -> o3d.geometry.TriangleMesh:
+    """An asymmetric bean with two knobs and a handle (no symmetry to confuse poses), 1 mm
+    marching cubes of its signed distance; about 95 x 100 x 70 mm."""
+    from skimage.measure import marching_cubes
+
+    def ball(p, c, r):
+        return np.linalg.norm(p - np.asarray(c, float), axis=-1) - r
+
+    def blend(a, b, k):  # a smooth union
+        h = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
+        return b * (1 - h) + a * h - k * h * (1 - h)
+
+    axes = [np.arange(lo, hi, 1.0) for lo, hi in ((-44, 59), (-59, 49), (-39, 39))]
+    p = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    a, b = np.array([5.0, -20, 0]), np.array([10.0, -42, 12])
+    t = np.clip(((p - a) @ (b - a)) / ((b - a) @ (b - a)), 0.0, 1.0)
+    handle = np.linalg.norm(p - (a + t[..., None] * (b - a)), axis=-1) - 7
+    sdf = blend(
+        blend(ball(p, (0, 0, 0), 30), ball(p, (28, 10, 5), 18), 12), ball(p, (-20, 18, -8), 14), 10
+    )
+    v, f, _, _ = marching_cubes(blend(sdf, handle, 8), 0.0)
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(v + [axis[0] for axis in axes]),
+        o3d.utility.Vector3iVector(f[:, ::-1].astype(np.int32)),
+    )
+    mesh.merge_close_vertices(1e-9)
+    mesh.remove_unreferenced_vertices()
+    return mesh
+
+
+@pytest.fixture(scope="module")
+def blob_case():
+    dense = _blob()
+    template = o3dreg.decimate(dense, 1500)
+    warp = SmoothWarp.random(np.asarray(dense.vertices), magnitude=0.03, seed=1)
+    target = (warp(np.asarray(dense.vertices)), np.asarray(dense.triangles))
+    return template, target, warp(np.asarray(template.vertices))
+
+
+def _turned(points, degrees, about):
+    c = about.mean(axis=0)
+    rotation = Rotation.from_rotvec(np.radians(degrees) * np.array([0.0, 1.0, 0.0])).as_matrix()
+    return (points - c) @ rotation.T + c
+
+
+def test_a_registration_from_a_wrong_init_is_suspect(blob_case):
+    # Turned 90 degrees from init=identity, the levels wrap the blob onto the wrong parts of the
+    # turned target: surface distances of a right registration, no fold, every vertex supported.
+    # Only the pose it ended in tells: far from the rigid search's, and fitting far worse.
+    template, (vt, ft), truth = blob_case
+    diagonal = np.linalg.norm(np.ptp(vt, axis=0))
+    target = (_turned(vt, 90, vt), ft)
+    result = o3dreg.registration_elastic(template, target, init=np.eye(4))
+    error = np.linalg.norm(result.vertices - _turned(truth, 90, vt), axis=1).mean()
+    assert error > 0.1 * diagonal  # wrong by a tenth of its size and more (measured: 28%)
+    assert result.distances.source_to_target_mean < 0.005 * diagonal  # and tidy
+    assert result.status == "suspect"
+    assert any("given `init` ended in a pose" in w for w in result.warnings), result.warnings
+    # The same target with the rigid step, and from a start 30 degrees off (which the levels
+    # recover): right, and nothing to warn of.
+    for init, turn in ((None, 90), (np.eye(4), 30)):
+        target = (_turned(vt, turn, vt), ft)
+        result = o3dreg.registration_elastic(template, target, init=init)
+        error = np.linalg.norm(result.vertices - _turned(truth, turn, vt), axis=1).mean()
+        assert error < 0.02 * diagonal and result.status == "ok", (turn, result.warnings)
