@@ -33,6 +33,17 @@ def fit_pose(source: np.ndarray, target: np.ndarray, scaling: bool) -> np.ndarra
     return t
 
 
+def polar_angles(matrices: np.ndarray) -> np.ndarray:
+    """Rotation angle (degrees) of the polar part of each of ``(k, 3, 3)`` matrices: how far
+    a map with these Jacobians turns space locally (180 where one reflects)."""
+    u, _, vt = np.linalg.svd(matrices)
+    rotations = u @ vt
+    cosine = (np.trace(rotations, axis1=1, axis2=2) - 1.0) / 2.0
+    angles = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+    angles[np.linalg.det(rotations) < 0] = 180.0
+    return angles
+
+
 def rotation_angle(transformation: np.ndarray) -> float:
     """Rotation angle (degrees) of a rigid or similarity transformation."""
     m = transformation[:3, :3]

@@ -82,8 +82,9 @@ class PatientRecord:
         The reasons behind ``verdict``, one plain sentence each.
     rigid_start : dict or None
         How the rigid start was chosen (``RigidStart.as_dict()``: the winner's and runner-up's
-        scores, candidates, ICP figures, ambiguity warnings); ``None`` when the start was given
-        (``init``) or for a failure.
+        scores, candidates, ICP figures, ambiguity warnings), or with a given ``init`` the
+        search that checked the registration against it; ``None`` for a failure, or where no
+        search could run.
     skipped : bool
         ``True`` when the record was read back from an earlier run.
     """
