@@ -83,8 +83,8 @@ class PatientRecord:
     rigid_start : dict or None
         How the rigid start was chosen (``RigidStart.as_dict()``: the winner's and runner-up's
         scores, candidates, ICP figures, ambiguity warnings), or with a given ``init`` the
-        search that checked the registration against it; ``None`` for a failure, or where no
-        search could run.
+        search that checked the registration against it (``ElasticRegistrationResult``'s
+        ``rigid_start``); ``None`` for a failure, or where no search ran.
     skipped : bool
         ``True`` when the record was read back from an earlier run.
     """

@@ -237,9 +237,11 @@ class RegistrationVerdict:
     rigid_start : RigidStart or None
         The rigid search's winner and runner-up scores and warnings: the start, when none was
         given; with a given ``init``, the search run to check the registration against it
-        (:func:`~o3dreg.registration.rigid.check_given_start`: a warning when the registration
-        ended in a distinct pose that fits clearly worse than the search's). ``None`` where the
-        search cannot run (sizes in other units) and for a template registered in parts.
+        where the map turns space by more than ``GIVEN_START_TURN`` degrees at a tenth of the
+        template's vertices (:func:`~o3dreg.registration.rigid.check_given_start`: a warning
+        when the registration ended in a distinct pose that fits clearly worse than the
+        search's). ``None`` otherwise, where the search cannot run (sizes in other units) and
+        for a template registered in parts.
     """
 
     status: str = "ok"

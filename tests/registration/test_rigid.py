@@ -7,7 +7,7 @@ from _helpers import assert_untouched, similarity_transform, snapshot
 from scipy.spatial.transform import Rotation
 
 from o3dreg import registration_rigid
-from o3dreg._geometry import rotation_angle
+from o3dreg._geometry import apply_transformation, fit_pose, polar_angles, rotation_angle
 from o3dreg.app.synthetic import synthetic_form
 from o3dreg.registration.rigid import moment_alignments, surface_moments
 
@@ -746,3 +746,17 @@ def test_the_search_weighs_away_the_pairs_of_a_partial_targets_missing_part(
     assert off(registration_rigid(template, part)) < 10.0
     monkeypatch.setattr(rigid, "SEARCH_KERNEL_WIDTH", 1e6)  # a biweight that weighs nothing
     assert off(registration_rigid(template, part)) > 30.0
+
+
+def test_polar_angles_and_fit_pose_are_the_rotations_they_stand_for():
+    # The polar part of a scaled, sheared rotation by 30 degrees turns by 30; a reflection
+    # reads 180; a stretch alone 0. fit_pose recovers a similarity exactly, without reflecting.
+    rotation = Rotation.from_rotvec(np.radians(30) * np.array([1.0, 2.0, 2.0]) / 3).as_matrix()
+    stretch = np.diag([1.5, 1.0, 0.8])
+    angles = polar_angles(np.stack([rotation @ stretch, np.diag([-1.0, 1, 1]), stretch]))
+    np.testing.assert_allclose(angles, [30.0, 180.0, 0.0], atol=1e-9)
+    points = np.random.default_rng(0).normal(size=(50, 3))
+    moved = 1.7 * points @ rotation.T + [1.0, -2.0, 3.0]
+    pose = fit_pose(points, moved, True)
+    np.testing.assert_allclose(apply_transformation(pose, points), moved, atol=1e-12)
+    assert np.linalg.det(fit_pose(points, points * [-1.0, 1, 1], False)[:3, :3]) > 0
