@@ -15,7 +15,7 @@ from skimage.measure import marching_cubes
 
 from .._validation import as_points, check_positive
 
-__all__ = ["FORMS", "SmoothWarp", "synthetic_form"]
+__all__ = ["FORMS", "SmoothWarp", "asymmetric_blob", "synthetic_form"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -195,4 +195,49 @@ def synthetic_form(name: str, number_of_vertices: int) -> Any:
         mesh = mesh.simplify_quadric_decimation(2 * n)
         mesh.remove_unreferenced_vertices()
     mesh.compute_vertex_normals()
+    return mesh
+
+
+def asymmetric_blob(voxel: float = 1.0) -> Any:
+    """A smooth closed shape without symmetry, in millimetres: a bean of radius 30 with three
+    knobs and a handle (smooth unions of balls and a capsule), about 80 x 80 x 72 mm,
+    extracted by marching cubes at ``voxel`` mm.
+
+    Every turn of it is told apart by its shape (no two poses fit alike), and it is smooth
+    enough for the levels to wrap a template onto it in any pose: the case of a registration
+    that is wrong only by its pose (a start far off given as ``init``).
+
+    Returns
+    -------
+    open3d.geometry.TriangleMesh
+        Closed, triangles oriented with outward normals.
+    """
+    step = check_positive(voxel, "voxel")
+
+    def ball(p: np.ndarray, centre: tuple[float, ...], radius: float) -> np.ndarray:
+        return np.linalg.norm(p - np.asarray(centre), axis=-1) - radius
+
+    def union(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:  # smooth, blend width k
+        h = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
+        return b * (1 - h) + a * h - k * h * (1 - h)
+
+    axes = [np.arange(lo, hi, step) for lo, hi in ((-44.0, 56.0), (-59.0, 41.0), (-40.0, 52.0))]
+    p = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    a, b = np.array([5.0, -20.0, 0.0]), np.array([10.0, -42.0, 12.0])
+    t = np.clip(((p - a) @ (b - a)) / ((b - a) @ (b - a)), 0.0, 1.0)
+    handle = np.linalg.norm(p - (a + t[..., None] * (b - a)), axis=-1) - 7.0
+    body = union(ball(p, (0, 0, 0), 30.0), ball(p, (28, 10, 5), 18.0), 12.0)
+    body = union(body, ball(p, (-20, 18, -8), 14.0), 10.0)
+    # Every ball is symmetric about any plane through its centre: a knob off the plane of the
+    # others leaves the blob no mirror plane either.
+    sdf = union(union(body, ball(p, (4, 6, 30), 12.0), 8.0), handle, 8.0)
+    verts, faces, _, _ = marching_cubes(sdf, level=0.0, spacing=(step,) * 3)
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(verts + [axis[0] for axis in axes]),
+        o3d.utility.Vector3iVector(faces.astype(np.int32)),  # outward normals (tested)
+    )
+    mesh.merge_close_vertices(1e-9)
+    mesh.remove_duplicated_triangles()
+    mesh.remove_degenerate_triangles()
+    mesh.remove_unreferenced_vertices()
     return mesh

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from _helpers import signed_volume
 
-from o3dreg.app.synthetic import FORMS, synthetic_form
+from o3dreg.app.synthetic import FORMS, asymmetric_blob, synthetic_form
 
 #: Analytic volumes (mm^3) of the shapes whose signed distance functions are sampled.
 VOLUMES = {
@@ -54,3 +54,25 @@ def test_synthetic_form_rejects_bad_input():
         synthetic_form("torus", 1000)
     with pytest.raises(ValueError, match="`number_of_vertices` must be >= 100"):
         synthetic_form("sphere", 50)
+
+
+def test_the_asymmetric_blob_is_closed_outward_and_has_no_symmetry():
+    from o3dreg.registration.distance import SurfaceDistanceQuery
+    from o3dreg.registration.rigid import surface_moments
+
+    mesh = asymmetric_blob(1.5)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    assert mesh.is_edge_manifold(allow_boundary_edges=False) and mesh.is_vertex_manifold()
+    assert mesh.euler_poincare_characteristic() == 2  # a sphere's topology, the handle joined
+    assert signed_volume((vertices, faces)) > 0  # outward
+    assert 75 < np.ptp(vertices, axis=0).max() < 90
+    # No symmetry: turned half a turn about any of its principal axes (the turns a shape with
+    # a symmetry would map onto itself), or mirrored across their planes, a part of it lies
+    # centimetres off itself (the 1.5 mm voxel's facets alone leave a fraction of a millimetre).
+    _, centre, covariance = surface_moments(vertices, faces)
+    query = SurfaceDistanceQuery(vertices, faces)
+    for axis in np.linalg.eigh(covariance)[1].T:
+        half_turn = 2 * np.outer(axis, axis) - np.eye(3)
+        for motion in (half_turn, np.eye(3) - 2 * np.outer(axis, axis)):
+            moved = (vertices - centre) @ motion.T + centre
+            assert query.distance(moved).max() > 10.0, (axis, motion)

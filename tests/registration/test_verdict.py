@@ -3,7 +3,6 @@
 import dataclasses
 
 import numpy as np
-import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
@@ -16,7 +15,7 @@ from o3dreg import (
     population_outliers,
     registration_elastic,
 )
-from o3dreg.app.synthetic import SmoothWarp, synthetic_form
+from o3dreg.app.synthetic import SmoothWarp, asymmetric_blob, synthetic_form
 from o3dreg.registration.verdict import worst_status
 
 LEVELS = [ElasticLevel(2), ElasticLevel(4)]
@@ -504,39 +503,9 @@ def test_the_rim_rule_costs_no_table_of_points_by_open_edges():
 # -- a given start, checked against the rigid search ------------------------------------------
 
 
-def _blob() -> o3d.geometry.TriangleMesh:
-    """An asymmetric bean with two knobs and a handle (no symmetry to confuse poses), 1 mm
-    marching cubes of its signed distance; about 95 x 100 x 70 mm."""
-    from skimage.measure import marching_cubes
-
-    def ball(p, c, r):
-        return np.linalg.norm(p - np.asarray(c, float), axis=-1) - r
-
-    def blend(a, b, k):  # a smooth union
-        h = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
-        return b * (1 - h) + a * h - k * h * (1 - h)
-
-    axes = [np.arange(lo, hi, 1.0) for lo, hi in ((-44, 59), (-59, 49), (-39, 39))]
-    p = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
-    a, b = np.array([5.0, -20, 0]), np.array([10.0, -42, 12])
-    t = np.clip(((p - a) @ (b - a)) / ((b - a) @ (b - a)), 0.0, 1.0)
-    handle = np.linalg.norm(p - (a + t[..., None] * (b - a)), axis=-1) - 7
-    sdf = blend(
-        blend(ball(p, (0, 0, 0), 30), ball(p, (28, 10, 5), 18), 12), ball(p, (-20, 18, -8), 14), 10
-    )
-    v, f, _, _ = marching_cubes(blend(sdf, handle, 8), 0.0)
-    mesh = o3d.geometry.TriangleMesh(
-        o3d.utility.Vector3dVector(v + [axis[0] for axis in axes]),
-        o3d.utility.Vector3iVector(f[:, ::-1].astype(np.int32)),
-    )
-    mesh.merge_close_vertices(1e-9)
-    mesh.remove_unreferenced_vertices()
-    return mesh
-
-
 @pytest.fixture(scope="module")
 def blob_case():
-    dense = _blob()
+    dense = asymmetric_blob()
     template = o3dreg.decimate(dense, 1500)
     warp = SmoothWarp.random(np.asarray(dense.vertices), magnitude=0.03, seed=1)
     target = (warp(np.asarray(dense.vertices)), np.asarray(dense.triangles))
