@@ -34,6 +34,7 @@ the masks alone).
     python benchmarks/bench_robust.py --noisy-cuts # the verdict on cuts under noise
     python benchmarks/bench_robust.py --verdict    # the verdict on cuts, noise, islands, copies
     python benchmarks/bench_robust.py --turned-parts  # the rigid step on turned noisy parts
+    python benchmarks/bench_robust.py --given-starts  # the verdict from a given init far off
 
 ``--mandibles``: the same 20% top cut on real anatomy, the PDDCA mandible masks (research data
 in ``../shared/data/mandibles``, or the PDDCA folder given as ``--data``; skipped with a
@@ -53,6 +54,13 @@ registrations, with no rigid step: a wrong start stays wrong). A result is *righ
 mean error over the vertices whose true position is below the cut is at most 2% of the
 diagonal; the table counts right results not `ok` (false alarms), wrong results `ok` (silent
 failures) and right results with a level stopped at its iteration limit (``success=False``).
+
+``--given-starts``: the verdict on registrations from a given ``init`` far off. The asymmetric
+blob (``o3dreg.app.synthetic.asymmetric_blob``, its quadric template of 1,500 vertices) onto its
+own surface under 3% warps (seeds 1 and 2), turned about its centroid by 0-180 degrees (8
+turns): from ``init=identity`` and with the rigid step. Right and wrong as for ``--noisy-cuts``
+(2% of the diagonal, here over every vertex); the last column counts the wrong results that
+only the given-start check flags.
 
 ``--turned-parts``: the rigid step alone (``registration_rigid``, no elastic levels) on bunny
 parts turned at random about the origin: the whole bunny, without its top 20% or 40% (y), its
@@ -465,6 +473,55 @@ def noisy_cuts_table() -> None:
         )
 
 
+def given_starts_table() -> None:
+    """A given ``init`` far off (see ``--given-starts``)."""
+    from scipy.spatial.transform import Rotation
+
+    import o3dreg
+    from o3dreg.app.synthetic import SmoothWarp, asymmetric_blob
+
+    dense = asymmetric_blob()
+    template = o3dreg.decimate(dense, 1500)
+    vt, ft = np.asarray(dense.vertices), np.asarray(dense.triangles)
+    diagonal = float(np.linalg.norm(np.ptp(vt, axis=0)))
+    turns = [(0, (0, 1, 0)), (30, (0, 1, 0)), (60, (0, 1, 0)), (90, (0, 1, 0)), (90, (1, 0, 0))]
+    turns += [(90, (0, 0, 1)), (135, (1, 1, 0)), (180, (0, 1, 0))]
+    rows = []
+    print(f"{'start':<10}{'seed':>5}{'turn':>6}  {'axis':<10}{'err %':>7}  verdict   pose check")
+    for seed in (1, 2):
+        warp = SmoothWarp.random(vt, magnitude=0.03, seed=seed)
+        warped, truth = warp(vt), warp(np.asarray(template.vertices))
+        centre = warped.mean(axis=0)
+        for start, init in (("identity", np.eye(4)), ("rigid", None)):
+            for angle, axis in turns:
+                rotation = Rotation.from_rotvec(
+                    np.radians(angle) * np.asarray(axis) / np.linalg.norm(axis)
+                ).as_matrix()
+                target = ((warped - centre) @ rotation.T + centre, ft)
+                result = o3dreg.registration_elastic(template, target, init=init)
+                moved = (truth - centre) @ rotation.T + centre
+                err = np.linalg.norm(result.vertices - moved, axis=1).mean() / diagonal
+                check = any("given `init`" in w for w in result.warnings)
+                rows.append((start, err, result.status, check, len(result.warnings)))
+                print(
+                    f"{start:<10}{seed:>5}{angle:>6}  {axis!s:<10}{100 * err:>7.2f}  "
+                    f"{result.status:<9} {'fired' if check else ''}",
+                    flush=True,
+                )
+    print(f"\n{'starts':<10}{'runs':>6}{'right':>7}{'false alarms':>14}{'wrong':>7}{'silent':>8}"
+          f"{'flagged by the check alone':>28}")  # fmt: skip
+    for start in ("identity", "rigid"):
+        chosen = [r for r in rows if r[0] == start]
+        right = [r for r in chosen if r[1] <= RIGHT]
+        wrong = [r for r in chosen if r[1] > RIGHT]
+        alone = sum(r[3] and r[4] == 1 for r in wrong)
+        print(
+            f"{start:<10}{len(chosen):>6}{len(right):>7}"
+            f"{sum(r[2] != 'ok' for r in right):>14}{len(wrong):>7}"
+            f"{sum(r[2] == 'ok' for r in wrong):>8}{alone:>28}"
+        )
+
+
 def verdict_scenarios(case) -> list[tuple[str, o3d.geometry.TriangleMesh, np.ndarray]]:
     """(name, target, which template vertices remain) of ``--verdict``."""
     v = np.asarray(case.target.vertices)
@@ -586,6 +643,11 @@ def main() -> None:
         "--noisy-cuts", action="store_true", help="the verdict on cuts under noise only"
     )
     parser.add_argument(
+        "--given-starts",
+        action="store_true",
+        help="the verdict on registrations from a given init far off only",
+    )
+    parser.add_argument(
         "--verdict",
         action="store_true",
         help="the verdict on cuts, noise, islands and overlapping copies only",
@@ -606,6 +668,8 @@ def main() -> None:
         verdict_table()
     elif args.noisy_cuts:
         noisy_cuts_table()
+    elif args.given_starts:
+        given_starts_table()
     elif args.plates:
         plates_table()
     elif args.mandibles:
