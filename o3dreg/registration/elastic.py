@@ -31,7 +31,6 @@ from .._geometry import (
     bounds,
     face_cross,
     face_doubled_areas,
-    fit_pose,
     into_frame,
     polar_angles,
     row_norms,
@@ -304,7 +303,7 @@ def registration_elastic(
         faces=fs,
         distances=measured.summary(),
         levels=fit.history,
-        quality=_map_quality(vs, fs, fit),
+        quality=_map_quality(points, fs, fit),
         success=success,
         message=fit.converged if success else "; ".join(fit.failures),
     )
@@ -362,14 +361,13 @@ def _turned_locally(deformation: Any, points: np.ndarray) -> bool:
     return bool(np.percentile(angles, 90) > GIVEN_START_TURN)
 
 
-def _map_quality(vs: np.ndarray, fs: np.ndarray, fit: _Fit) -> MapQuality:
-    """The folds of ``fit``'s map and its flipped triangles, against the template ``(vs, fs)``
-    in the pose the result took as a whole (a turn of the whole flips no triangle)."""
-    taken = apply_transformation(fit_pose(vs, fit.moved, False), vs)
+def _map_quality(points: np.ndarray, fs: np.ndarray, fit: _Fit) -> MapQuality:
+    """The folds of ``fit``'s map and its flipped triangles, against the template ``(points,
+    fs)`` in its start pose."""
     return MapQuality(
         min_jacobian_determinant=min(fit.det, fit.cell_det),
         min_cell_jacobian_determinant=fit.cell_det,
-        flipped_triangles=flipped_triangles(taken, fit.moved, fs),
+        flipped_triangles=flipped_triangles(points, fit.moved, fs),
         supported=fit.supported,
     )
 

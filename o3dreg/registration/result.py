@@ -197,10 +197,8 @@ class MapQuality:
         Smallest ``det(dT/dx)`` over 8 interior samples (local coordinates 1/4 and 3/4) of every
         finest cell holding a source vertex: the map is one-to-one there when positive.
     flipped_triangles : int
-        Source triangles whose normal reverses between the source in the pose the result
-        took as a whole (its least-squares rigid fit onto the result) and the result
-        (``n_pose . n_registered <= 0``): local folds of the surface, not a turn of the whole
-        (the levels recovering a start turned 90 degrees turn every triangle as far).
+        Source triangles whose normal reverses between the rigidly aligned source and the
+        result (``n_rigid . n_registered <= 0``): local folds of the surface.
     supported : (n,) bool ndarray or None
         Per source vertex, whether the target has data for it at the end: ``False`` where a
         correspondence checker of the :class:`~o3dreg.DistanceEstimation` rejects its closest
