@@ -247,6 +247,17 @@ def _is_number(text: str) -> bool:
     return True
 
 
+def _uncommented(lines: Any, *, keep_numbers: bool = True) -> Any:
+    """The lines of a CSV file without its comment lines (``#`` first; scalismo's reader skips
+    them too): each left empty, so that the rows keep their line numbers, or dropped (for a
+    header row, which must come first)."""
+    for line in lines:
+        if not line.lstrip().startswith("#"):
+            yield line
+        elif keep_numbers:
+            yield "\n"
+
+
 def _read_headerless_csv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
     """``label,x,y,z`` (or ``x,y,z``) rows without a header, as statismo and scalismo write
     landmarks; the file does not say its coordinate system."""
@@ -254,7 +265,7 @@ def _read_headerless_csv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | 
     points: list[list[float]] = []
     width = 0
     with open(path, newline="", encoding="utf-8-sig") as fh:
-        for number, row in enumerate(csv.reader(fh), start=1):
+        for number, row in enumerate(csv.reader(_uncommented(fh)), start=1):
             if not any(field.strip() for field in row):
                 continue
             width = width or len(row)
@@ -273,11 +284,12 @@ def _read_headerless_csv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | 
 
 def _read_csv(path: str) -> tuple[tuple[str, ...], np.ndarray, str | None]:
     with open(path, newline="", encoding="utf-8-sig") as fh:
-        first = next(csv.reader(fh), [])
+        rows = (row for row in csv.reader(_uncommented(fh)) if any(f.strip() for f in row))
+        first = next(rows, [])
     if len(first) in (3, 4) and all(_is_number(v) for v in first[-3:]):
         return _read_headerless_csv(path)
     with open(path, newline="", encoding="utf-8-sig") as fh:
-        reader = csv.DictReader(fh)
+        reader = csv.DictReader(_uncommented(fh, keep_numbers=False))
         fields = [f.strip().lower() for f in (reader.fieldnames or [])]
         declared: str | None = None
         columns: tuple[str, ...] = ("x", "y", "z")

@@ -130,6 +130,17 @@ def test_statismo_landmark_csv_without_a_header(tmp_path):
     bad = _write(tmp_path, "bad.csv", ["A,1,2,3", "B,1,2"])
     with pytest.raises(ValueError, match="line 2: label,x,y,z expected"):
         read_landmarks(bad)
+    # Comment lines (# first), which scalismo's reader skips, and a header file's too; a row's
+    # line number stays its line in the file.
+    commented = _write(tmp_path, "c.csv", ["# landmarks of patient 7", "A,585.14,490.43,-242.97",
+                                           "  # placed twice", "B,1e2,-3.5,0"])  # fmt: skip
+    labels, points = read_landmarks(commented, file_coordinate_system="LPS")
+    assert labels == ("A", "B") and points[1].tolist() == [100.0, -3.5, 0.0]
+    headed = _write(tmp_path, "h.csv", ["# exported", "label,l,p,s", "A,1,2,3", "# end"])
+    assert read_landmarks(headed)[1].tolist() == [[1.0, 2.0, 3.0]]
+    bad = _write(tmp_path, "bad2.csv", ["# header", "A,1,2,3", "B,1,2"])
+    with pytest.raises(ValueError, match="line 3: label,x,y,z expected"):
+        read_landmarks(bad)
 
 
 def test_scalismo_landmark_json(tmp_path):
