@@ -47,6 +47,7 @@ from o3dreg import (
     specificity,
     write_statismo,
 )
+from o3dreg.io.mesh import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 MASK_SUFFIX = "_Mandible.nrrd"
@@ -159,10 +160,10 @@ def cached_surface(path: Path, mask: str | Path, number_of_vertices: int | None)
         "vertices": number_of_vertices,
     }
     stamp = path.with_suffix(".json")
-    if path.exists() and stamp.exists() and json.loads(stamp.read_text()) == key:
+    if path.exists() and stamp.exists() and stamp.read_text() == json.dumps(key):
         return
     o3dreg.write_triangle_mesh(path, reconstruct(mask, number_of_vertices), overwrite=True)
-    stamp.write_text(json.dumps(key))
+    atomic_write_text(stamp, json.dumps(key), overwrite=True)
 
 
 def size_outliers(diagonals: dict[str, float]) -> dict[str, str]:

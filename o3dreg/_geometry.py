@@ -17,16 +17,39 @@ def into_frame(frame: np.ndarray, points: np.ndarray) -> np.ndarray:
     return (points - frame[:3, 3]) @ frame[:3, :3]
 
 
-def fit_pose(source: np.ndarray, target: np.ndarray, scaling: bool) -> np.ndarray:
-    """Least-squares rotation (no reflection), translation and optional scale of ``(n, 3)``
-    ``source`` points onto ``target`` (Umeyama 1991), as a ``(4, 4)`` transformation; the
-    points must not all coincide."""
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-    a, b = source - mu_s, target - mu_t
+def proper_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Proper rotation ``R`` minimising ``|a R^T - b|`` for centred ``(n, 3)`` ``a``, ``b``
+    (Kabsch: no reflection)."""
     u, _, vt = np.linalg.svd(a.T @ b)
-    d = 1.0 if np.linalg.det(vt.T @ u.T) >= 0 else -1.0
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    s = float(((a @ r.T) * b).sum() / (a * a).sum()) if scaling else 1.0
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    d = 1.0 if d == 0 else d
+    return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+
+
+def fit_pose(
+    source: np.ndarray, target: np.ndarray, scaling: bool, weights: np.ndarray | None = None
+) -> np.ndarray:
+    """Least-squares rigid (or similarity) map of ``source`` onto ``target`` (Umeyama 1991), as
+    a ``(4, 4)`` transformation, optionally with a non-negative weight per point pair; no
+    reflection.
+
+    For arrays already checked (``(n, 3)`` float arrays of the same shape, the points not all
+    coincident; positive weights): no validation, for inner loops.
+    """
+    if weights is None:
+        mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+        a, b = source - mu_s, target - mu_t
+        wa = a
+    else:
+        w = weights / weights.sum()
+        mu_s, mu_t = w @ source, w @ target
+        a, b = source - mu_s, target - mu_t
+        wa = a * w[:, None]
+    r = proper_rotation(wa, b)
+    s = 1.0
+    if scaling:
+        denom = float((wa * a).sum())
+        s = float(((wa @ r.T) * b).sum()) / denom if denom > 0 else 1.0
     t = np.eye(4)
     t[:3, :3] = s * r
     t[:3, 3] = mu_t - s * r @ mu_s

@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from .._geometry import apply_transformation
+from .._geometry import apply_transformation, proper_rotation
+from .._geometry import fit_pose as fit_transformation
 from .._validation import as_points, check_bool, check_positive
 
 __all__ = [
@@ -55,44 +56,6 @@ def as_shape_array(shapes: Any, name: str = "shapes", *, min_shapes: int = 2) ->
                 f"semilandmarks); {name}[0] has {n}, {name}[{k}] has {arr.shape[0]}"
             )
     return np.stack(arrays)
-
-
-def _rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Proper rotation ``R`` minimising ``|a R^T - b|`` for centred ``a``, ``b`` (Kabsch)."""
-    h = a.T @ b
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    d = 1.0 if d == 0 else d
-    return vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-
-
-def fit_transformation(
-    source: np.ndarray, target: np.ndarray, scaling: bool, weights: np.ndarray | None = None
-) -> np.ndarray:
-    """Least-squares rigid (or similarity) map of ``source`` onto ``target``, optionally with
-    a non-negative weight per point pair; no reflection.
-
-    The kernel of :func:`procrustes_transform` for arrays already checked (``(n, 3)`` float
-    arrays of the same shape; positive weights): no validation, for inner loops.
-    """
-    if weights is None:
-        mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-        a, b = source - mu_s, target - mu_t
-        wa = a
-    else:
-        w = weights / weights.sum()
-        mu_s, mu_t = w @ source, w @ target
-        a, b = source - mu_s, target - mu_t
-        wa = a * w[:, None]
-    r = _rotation(wa, b)
-    s = 1.0
-    if scaling:
-        denom = float((wa * a).sum())
-        s = float(((wa @ r.T) * b).sum()) / denom if denom > 0 else 1.0
-    t = np.eye(4)
-    t[:3, :3] = s * r
-    t[:3, 3] = mu_t - s * r @ mu_s
-    return t
 
 
 def procrustes_transform(source: Any, target: Any, *, scaling: bool = False) -> np.ndarray:
@@ -254,7 +217,7 @@ def _generalized_procrustes(
         new_mean = aligned.mean(axis=0)
         new_mean -= new_mean.mean(axis=0)
         # Keep the orientation of the previous mean (a rotation of all shapes is free).
-        new_mean = new_mean @ _rotation(new_mean, mean).T
+        new_mean = new_mean @ proper_rotation(new_mean, mean).T
         if scaling:
             norm = float(np.sqrt((new_mean**2).sum()))
             new_mean *= size / norm if norm > 0 else 1.0
