@@ -35,6 +35,7 @@ the masks alone).
     python benchmarks/bench_robust.py --verdict    # the verdict on cuts, noise, islands, copies
     python benchmarks/bench_robust.py --turned-parts  # the rigid step on turned noisy parts
     python benchmarks/bench_robust.py --given-starts  # the verdict from a given init far off
+    python benchmarks/bench_robust.py --stretched  # near ties of the rigid start on stretched targets
 
 ``--mandibles``: the same 20% top cut on real anatomy, the PDDCA mandible masks (research data
 in ``../shared/data/mandibles``, or the PDDCA folder given as ``--data``; skipped with a
@@ -61,6 +62,13 @@ own surface under 3% warps (seeds 1 and 2), turned about its centroid by 0-180 d
 turns): from ``init=identity`` and with the rigid step. Right and wrong as for ``--noisy-cuts``
 (2% of the diagonal, here over every vertex); the last column counts the wrong results that
 only the given-start check flags.
+
+``--stretched``: near ties of the rigid start, settled by the levels. The asymmetric blob (as
+for ``--given-starts``) under 3% warps (seeds 1 and 2), stretched about its centroid along x, y
+or z by 0.7, 1.3, 1.4 and 1.5 (24 registrations, the rigid step and the defaults): no rigid pose
+removes a stretch, so a wrong pose can score near the right one. The table counts the rigid
+starts that were ambiguous, how the registrations from both poses settled them (``tie_kept``),
+and right and wrong results as above (2% of the diagonal, every vertex).
 
 ``--turned-parts``: the rigid step alone (``registration_rigid``, no elastic levels) on bunny
 parts turned at random about the origin: the whole bunny, without its top 20% or 40% (y), its
@@ -522,6 +530,51 @@ def given_starts_table() -> None:
         )
 
 
+def stretched_table() -> None:
+    """Near ties of the rigid start on stretched targets (see ``--stretched``)."""
+    import o3dreg
+    from o3dreg.app.synthetic import SmoothWarp, asymmetric_blob
+
+    dense = asymmetric_blob()
+    template = o3dreg.decimate(dense, 1500)
+    vt, ft = np.asarray(dense.vertices), np.asarray(dense.triangles)
+    rows = []
+    print(f"{'seed':>4}{'axis':>5}{'factor':>7}{'err %':>7}  {'verdict':<9}{'tie':<11}fits")
+    for seed in (1, 2):
+        warp = SmoothWarp.random(vt, magnitude=0.03, seed=seed)
+        warped, truth = warp(vt), warp(np.asarray(template.vertices))
+        centre = warped.mean(axis=0)
+        for axis in range(3):
+            for factor in (0.7, 1.3, 1.4, 1.5):
+                stretch = np.ones(3)
+                stretch[axis] = factor
+                target = ((warped - centre) * stretch + centre, ft)
+                diagonal = float(np.linalg.norm(np.ptp(target[0], axis=0)))
+                result = o3dreg.registration_elastic(template, target)
+                moved = (truth - centre) * stretch + centre
+                err = np.linalg.norm(result.vertices - moved, axis=1).mean() / diagonal
+                start = result.rigid_start
+                tied = start.tie_fits is not None
+                tie = (start.tie_kept or "unsettled") if tied else "-"
+                fits = "" if not tied else "{:.3g} / {:.3g}".format(*start.tie_fits)
+                rows.append((err, result.status, tied, start.tie_kept))
+                print(
+                    f"{seed:>4}{'xyz'[axis]:>5}{factor:>7}{100 * err:>7.2f}  "
+                    f"{result.status:<9}{tie:<11}{fits}",
+                    flush=True,
+                )
+    right = [r for r in rows if r[0] <= RIGHT]
+    wrong = [r for r in rows if r[0] > RIGHT]
+    tied = [r for r in rows if r[2]]
+    print(
+        f"\nruns {len(rows)}, ambiguous rigid starts {len(tied)} (settled for the winner "
+        f"{sum(r[3] == 'winner' for r in tied)}, for the runner-up "
+        f"{sum(r[3] == 'runner-up' for r in tied)}, unsettled {sum(r[3] is None for r in tied)}); "
+        f"right {len(right)} (false alarms {sum(r[1] != 'ok' for r in right)}), wrong "
+        f"{len(wrong)} (silent {sum(r[1] == 'ok' for r in wrong)})"
+    )
+
+
 def verdict_scenarios(case) -> list[tuple[str, o3d.geometry.TriangleMesh, np.ndarray]]:
     """(name, target, which template vertices remain) of ``--verdict``."""
     v = np.asarray(case.target.vertices)
@@ -648,6 +701,11 @@ def main() -> None:
         help="the verdict on registrations from a given init far off only",
     )
     parser.add_argument(
+        "--stretched",
+        action="store_true",
+        help="near ties of the rigid start on stretched targets only",
+    )
+    parser.add_argument(
         "--verdict",
         action="store_true",
         help="the verdict on cuts, noise, islands and overlapping copies only",
@@ -670,6 +728,8 @@ def main() -> None:
         noisy_cuts_table()
     elif args.given_starts:
         given_starts_table()
+    elif args.stretched:
+        stretched_table()
     elif args.plates:
         plates_table()
     elif args.mandibles:

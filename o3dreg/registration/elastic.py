@@ -71,6 +71,7 @@ from .result import (
 )
 from .rigid import check_given_start, default_start
 from .terms import DistanceTerm
+from .tie import settle_tie
 from .verdict import judge, with_rigid_start
 
 __all__ = ["evaluate_elastic", "registration_elastic"]
@@ -187,7 +188,9 @@ def registration_elastic(
         The patient surface the source is matched to. Not modified.
     init : (4, 4) array_like, optional
         The rigid (or similarity) transformation of the source. Default ``None``: computed by
-        :func:`~o3dreg.registration_rigid` (moment-based guess refined by ICP).
+        :func:`~o3dreg.registration_rigid` (moment-based guess refined by ICP); where that start
+        is ambiguous, the levels run from its runner-up's pose as well and settle the tie where
+        they tell the two apart (:func:`~o3dreg.registration.tie.settle_tie`).
     levels : list of ElasticLevel, optional
         The hierarchy, coarse to fine, at most 16 levels. Default
         :func:`~o3dreg.default_levels` of the source (2, 4, 8, 16 cells per axis, and 32 for an
@@ -254,7 +257,6 @@ def registration_elastic(
     levels_ = _check_levels(levels, vs)
     estimation_method = _check_estimation(estimation_method)
     surface = TargetSurface.from_mesh(*target_arrays, estimation_method.min_target_component)
-    vt, ft = surface.mesh
     criteria, padding = _check_options(
         criteria, padding, callback, parts, with_scaling, init is not None
     )
@@ -265,66 +267,108 @@ def registration_elastic(
         rigid = np.array(rigid_start.transformation)
     else:
         rigid = as_transformation(init, "init", similarity=True)
-
-    points = apply_transformation(rigid, vs)
-    # The levels work along the template's own axes (the start's rotation): the lattices, the
-    # bending energy, the target's levels of detail and subsamples then do not depend on how
-    # the patient lies in the scanner.
-    frame = _lattice_frame(rigid)
-    local, local_points = surface, points
-    if frame is not None:
-        local = surface.in_frame(frame)
-        local_points = into_frame(frame, points)
-    labels = template_parts(vs.shape[0], fs) if parts == "connected" else None
-    if labels is not None and labels.max() > 0:
-        fit = _register_parts(
-            local_points,
-            fs,
-            local,
-            labels,
-            levels_,
-            estimation_method,
-            criteria,
-            padding,
-            callback,
-        )
-    else:
-        fit = _coarse_to_fine(
-            local_points, fs, local, levels_, estimation_method, criteria, padding, callback
-        )
-    if frame is not None:
-        fit = _laid_in(frame, fit, points)
-    measured = surface.distances(fit.moved, fs, forward=fit.forward)
-    success = not fit.failures
-    result = ElasticRegistrationResult(
-        transformation=rigid,
-        deformation=fit.deformation,
-        vertices=fit.moved,
-        faces=fs,
-        distances=measured.summary(),
-        levels=fit.history,
-        quality=_map_quality(points, fs, fit),
-        success=success,
-        message=fit.converged if success else "; ".join(fit.failures),
-    )
-    # The verdict from the distances just measured and the target's moments (as
-    # assess_registration(result, (vs, fs), (vt, ft), rigid=rigid_start) would measure them).
-    assessed = judge(
-        result,
-        points,
-        fs,
-        vt,
-        ft,
-        forward=measured.forward,
-        backward=measured.backward,
-        target_moments=surface.moments,
-    )
-    if rigid_start is None and _turned_locally(fit.deformation, points):
+    run = _LevelRun(vs, fs, surface, levels_, estimation_method, criteria, padding, parts)
+    done = run(rigid, callback)
+    start = None
+    if rigid_start is not None:
+        start = RigidStart.from_rigid(rigid_start)
+        if rigid_start.ambiguous and rigid_start.runner_up_transformation is not None:
+            done, start = _settled(run, done, rigid_start, surface)
+    elif _turned_locally(done.deformation, done.points):
         # A given start is checked against the rigid search (one part: parts move apart).
-        rigid_start = check_given_start(vs, fs, surface.query, rigid, fit.moved)
-    if rigid_start is None:
-        return assessed
-    return with_rigid_start(assessed, RigidStart.from_rigid(rigid_start))
+        checked = check_given_start(vs, fs, surface.query, rigid, done.result.vertices)
+        start = None if checked is None else RigidStart.from_rigid(checked)
+    return done.result if start is None else with_rigid_start(done.result, start)
+
+
+class _Done(NamedTuple):
+    """A registration from one start: the assessed result (no rigid start yet), the template
+    rigidly aligned and the map of space."""
+
+    result: ElasticRegistrationResult
+    points: np.ndarray
+    deformation: LatticeDeformation | PartitionedDeformation
+
+
+@dataclass(frozen=True)
+class _LevelRun:
+    """The levels of :func:`registration_elastic` from a rigid start, on inputs validated."""
+
+    vs: np.ndarray
+    fs: np.ndarray
+    surface: TargetSurface
+    levels: list[ElasticLevel]
+    method: DistanceEstimation
+    criteria: ElasticCriteria
+    padding: float
+    parts: str
+
+    def __call__(self, rigid: np.ndarray, callback: Any) -> _Done:
+        """The assessed registration from the start ``rigid``."""
+        fs, surface = self.fs, self.surface
+        points = apply_transformation(rigid, self.vs)
+        # The levels work along the template's own axes (the start's rotation): the lattices,
+        # the bending energy, the target's levels of detail and subsamples then do not depend
+        # on how the patient lies in the scanner.
+        frame = _lattice_frame(rigid)
+        local, local_points = surface, points
+        if frame is not None:
+            local = surface.in_frame(frame)
+            local_points = into_frame(frame, points)
+        labels = template_parts(self.vs.shape[0], fs) if self.parts == "connected" else None
+        options = (self.method, self.criteria, self.padding, callback)
+        if labels is not None and labels.max() > 0:
+            fit = _register_parts(local_points, fs, local, labels, self.levels, *options)
+        else:
+            fit = _coarse_to_fine(local_points, fs, local, self.levels, *options)
+        if frame is not None:
+            fit = _laid_in(frame, fit, points)
+        measured = surface.distances(fit.moved, fs, forward=fit.forward)
+        success = not fit.failures
+        result = ElasticRegistrationResult(
+            transformation=rigid,
+            deformation=fit.deformation,
+            vertices=fit.moved,
+            faces=fs,
+            distances=measured.summary(),
+            levels=fit.history,
+            quality=_map_quality(points, fs, fit),
+            success=success,
+            message=fit.converged if success else "; ".join(fit.failures),
+        )
+        # The verdict from the distances just measured and the target's moments (as
+        # assess_registration(result, (vs, fs), (vt, ft)) would measure them).
+        vt, ft = surface.mesh
+        assessed = judge(
+            result,
+            points,
+            fs,
+            vt,
+            ft,
+            forward=measured.forward,
+            backward=measured.backward,
+            target_moments=surface.moments,
+        )
+        return _Done(assessed, points, fit.deformation)
+
+
+def _settled(
+    run: _LevelRun, done: _Done, rigid: Any, surface: TargetSurface
+) -> tuple[_Done, RigidStart]:
+    """An ambiguous rigid start's tie, settled where the registration from its runner-up's pose
+    tells the two apart (:func:`~o3dreg.registration.tie.settle_tie`); ``done`` is the
+    registration from its winner's. The runner-up's levels are not reported to the callback."""
+    if not isinstance(done.deformation, LatticeDeformation):
+        return done, RigidStart.from_rigid(rigid)  # parts: each moves on its own
+    other = run(np.array(rigid.runner_up_transformation), None)
+    turned = (
+        _turned_locally(done.deformation, done.points),
+        _turned_locally(other.deformation, other.points),
+    )
+    lo, hi = bounds(surface.mesh[0])
+    diagonal = float(np.linalg.norm(hi - lo))
+    kept, start = settle_tie(rigid, (done.result, other.result), turned, diagonal)
+    return (done, other)[kept], start
 
 
 class _Fit(NamedTuple):

@@ -146,7 +146,15 @@ class RigidStart:
         The rigid step's warnings (an ambiguity, when the runner-up came too close; a scale
         found on a partial target), also among the verdict's warnings.
     ambiguous : bool
-        Whether the runner-up came too close (:attr:`RigidRegistrationResult.ambiguous`).
+        Whether the runner-up came too close (:attr:`RigidRegistrationResult.ambiguous`) and the
+        elastic step did not settle it (``tie_kept``).
+    tie_kept : {'winner', 'runner-up'} or None
+        Where the runner-up came too close, the elastic registration was run from both poses
+        and settled the tie (:func:`~o3dreg.registration.tie.settle_tie`): the pose whose
+        registration is kept, the ambiguity warning dropped. ``None`` otherwise.
+    tie_fits : (float, float) or None
+        The symmetric surface distances (mean of both directions' means) of the registrations
+        from the winner's and the runner-up's pose, where both were run.
     """
 
     score: float
@@ -156,6 +164,8 @@ class RigidStart:
     inlier_rmse: float
     warnings: tuple[str, ...] = ()
     ambiguous: bool = False
+    tie_kept: str | None = None
+    tie_fits: tuple[float, float] | None = None
 
     @classmethod
     def from_rigid(cls, rigid: Any) -> RigidStart:
@@ -175,7 +185,9 @@ class RigidStart:
         runner = "none" if self.runner_up_score is None else f"{self.runner_up_score:.4g}"
         return (
             f"RigidStart(score={self.score:.4g}, runner_up_score={runner}, "
-            f"candidates={self.candidates}, ambiguous={self.ambiguous})"
+            f"candidates={self.candidates}, ambiguous={self.ambiguous}"
+            + ("" if self.tie_kept is None else f", tie_kept={self.tie_kept!r}")
+            + ")"
         )
 
     def as_dict(self) -> dict[str, Any]:

@@ -75,6 +75,8 @@ PARTIAL_BOUNDARY = 2.5
 #: A distinct pose whose score is within this factor of the winner's is an ambiguity: the
 #: demo's flipped poses score 1.7-2.5 times the right one.
 AMBIGUITY_RATIO = 1.2
+#: The opening words of the ambiguity warning.
+AMBIGUOUS_START = "the rigid start is ambiguous"
 #: A near tie is broken by the input pose when one of the two poses is within the first of these
 #: rotations of it and the other beyond the second: scans of one protocol come in a common
 #: orientation (the demo's patients within 10 degrees, the test populations within 40), while the
@@ -1090,7 +1092,7 @@ class _CandidateSearch:
                 "landmarks"
             )
             warnings.append(
-                f"the rigid start is ambiguous: two distinct poses fit almost equally well "
+                f"{AMBIGUOUS_START}: two distinct poses fit almost equally well "
                 f"(symmetric distances {win_score:.3g} and {runner_score:.3g}); {cause}"
             )
             logger.warning("registration_rigid: %s", warnings[-1])
