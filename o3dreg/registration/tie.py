@@ -22,7 +22,7 @@ from .._geometry import row_norms
 from .result import RigidStart
 from .rigid import AMBIGUOUS_START
 
-__all__ = ["TIE_AGREEMENT", "TIE_FIT_RATIO", "settle_tie", "symmetric_fit"]
+__all__ = ["TIE_AGREEMENT", "TIE_CLOSE_FIT", "TIE_FIT_RATIO", "settle_tie", "symmetric_fit"]
 
 logger = logging.getLogger("o3dreg")
 
@@ -36,6 +36,13 @@ logger = logging.getLogger("o3dreg")
 #: turns space by 12-56 degrees there, and near-symmetric shapes (a dumbbell, its mirror
 #: image) fit alike from both poses (ratio 1.0).
 TIE_FIT_RATIO = 1.5
+#: ... and when it fits the target closely: a symmetric distance of at most this fraction of the
+#: target's diagonal (the registrations kept above: 0.015-0.063%). A coarse hierarchy on a
+#: deformed sphere (levels of 2 and 4 cells) fits from two poses 85 degrees apart to 0.29% and
+#: 0.46%, the closer one 4.8% off: neither fit says much of the pose. Noisy and partial
+#: targets (whose distances hold the noise, or the template beyond the cut) are settled only
+#: by registrations ending alike.
+TIE_CLOSE_FIT = 0.001
 #: Registrations from the two poses that end within this fraction of the target's diagonal of
 #: each other (mean vertex distance) settle the tie too: the result does not depend on it (a
 #: long bone shortened by a quarter or a third, a dumbbell stretched: 0.1-0.5%; distinct
@@ -77,7 +84,8 @@ def settle_tie(
         0 for the winner's registration, 1 for the runner-up's.
     start : RigidStart
         The rigid start to report: ``tie_kept`` set and the ambiguity warning dropped when the
-        tie is settled (:data:`TIE_FIT_RATIO`, :data:`TIE_AGREEMENT`), else as the rigid step
+        tie is settled (:data:`TIE_FIT_RATIO`, :data:`TIE_CLOSE_FIT`, :data:`TIE_AGREEMENT`),
+        else as the rigid step
         left it (ambiguous, the winner's registration kept).
     """
     fits = (symmetric_fit(registrations[0]), symmetric_fit(registrations[1]))
@@ -86,7 +94,11 @@ def settle_tie(
     kept = int(np.argmin(fits))
     if apart <= TIE_AGREEMENT * diagonal:
         kept = 0
-    elif turned[kept] or not fits[1 - kept] >= TIE_FIT_RATIO * fits[kept]:
+    elif (
+        turned[kept]
+        or not fits[1 - kept] >= TIE_FIT_RATIO * fits[kept]
+        or not fits[kept] <= TIE_CLOSE_FIT * diagonal
+    ):
         logger.info(
             "rigid start: near tie not settled by the registrations from both poses "
             "(symmetric distances %.4g and %.4g, %.4g apart)",

@@ -8,7 +8,13 @@ import pytest
 import o3dreg
 from o3dreg.app.synthetic import SmoothWarp, asymmetric_blob, synthetic_form
 from o3dreg.registration.rigid import AMBIGUOUS_START, RigidRegistrationResult
-from o3dreg.registration.tie import TIE_AGREEMENT, TIE_FIT_RATIO, settle_tie, symmetric_fit
+from o3dreg.registration.tie import (
+    TIE_AGREEMENT,
+    TIE_CLOSE_FIT,
+    TIE_FIT_RATIO,
+    settle_tie,
+    symmetric_fit,
+)
 
 AMBIGUOUS = RigidRegistrationResult(
     score=4.0,
@@ -42,11 +48,12 @@ def test_symmetric_fit_is_the_mean_of_both_directions():
         ((1.01 * TIE_FIT_RATIO, 1.0), (False, False), 0.5, 1, "runner-up"),
         ((1.0, 3.0), (True, False), 0.5, 0, None),  # closer, but turned round locally
         ((3.0, 1.0), (False, True), 0.5, 0, None),
+        ((1.01, 3.0), (False, False), 0.5, 0, None),  # closer, but not close to the target
     ],
 )
 def test_which_registration_settles_the_tie(fits, turned, apart, kept, settled):
-    diagonal = 1.0
-    pair = (_registration(fits[0], 0.0), _registration(fits[1], [apart, 0.0, 0.0]))
+    diagonal = 1.0 / TIE_CLOSE_FIT  # a fit of 1 is as loose as a settling fit may be
+    pair = (_registration(fits[0], 0.0), _registration(fits[1], [apart * diagonal, 0.0, 0.0]))
     index, start = settle_tie(AMBIGUOUS, pair, turned, diagonal)
     assert index == kept and start.tie_kept == settled
     assert start.tie_fits == fits
