@@ -71,7 +71,7 @@ from .result import (
 )
 from .rigid import check_given_start, default_start
 from .terms import DistanceTerm
-from .tie import settle_tie
+from .tie import local_turn, settle_tie
 from .verdict import judge, with_rigid_start
 
 __all__ = ["evaluate_elastic", "registration_elastic"]
@@ -361,13 +361,13 @@ def _settled(
     if not isinstance(done.deformation, LatticeDeformation):
         return done, RigidStart.from_rigid(rigid)  # parts: each moves on its own
     other = run(np.array(rigid.runner_up_transformation), None)
-    turned = (
-        _turned_locally(done.deformation, done.points),
-        _turned_locally(other.deformation, other.points),
+    turns = (
+        local_turn(done.deformation, done.points, done.result.vertices),
+        local_turn(other.deformation, other.points, other.result.vertices),
     )
     lo, hi = bounds(surface.mesh[0])
     diagonal = float(np.linalg.norm(hi - lo))
-    kept, start = settle_tie(rigid, (done.result, other.result), turned, diagonal)
+    kept, start = settle_tie(rigid, (done.result, other.result), turns, diagonal)
     return (done, other)[kept], start
 
 

@@ -18,26 +18,33 @@ from typing import Any
 
 import numpy as np
 
-from .._geometry import row_norms
+from .._geometry import polar_angles, proper_rotation, row_norms
 from .result import RigidStart
 from .rigid import AMBIGUOUS_START
 
-__all__ = ["TIE_AGREEMENT", "TIE_CLOSE_FIT", "TIE_FIT_RATIO", "settle_tie", "symmetric_fit"]
+__all__ = [
+    "TIE_AGREEMENT",
+    "TIE_CLOSE_FIT",
+    "TIE_FIT_RATIO",
+    "TIE_TURN",
+    "local_turn",
+    "settle_tie",
+    "symmetric_fit",
+]
 
 logger = logging.getLogger("o3dreg")
 
 #: A registration settles the tie when it fits the target this many times closer than the other
-#: pose's (symmetric distances) and its map turns space by at most
-#: :data:`~o3dreg.registration.elastic.GIVEN_START_TURN` at 90% of the template's vertices.
-#: Measured on 25 ambiguous starts (an asymmetric blob, a long bone, a skull-like cap, a
-#: dumbbell: turned, stretched, bent, twisted; a single-surface cap): the registrations kept
-#: by that rule fit 1.7-36 times closer and are all right (within 1.4% of the diagonal); every
-#: wrong one that fits closer (bent or twisted targets, a blob stretched by half: 4.7-49% off)
-#: turns space by 12-56 degrees there, and near-symmetric shapes (a dumbbell, its mirror
-#: image) fit alike from both poses (ratio 1.0).
+#: pose's (symmetric distances), closely (:data:`TIE_CLOSE_FIT`), and without turning parts of
+#: the template against each other (:data:`TIE_TURN`). Measured on 27 ambiguous starts (an
+#: asymmetric blob, a long bone, a skull-like cap, a dumbbell: turned, stretched, bent,
+#: twisted; a single-surface cap; rigid and similarity starts): the registrations kept by that
+#: rule fit 1.7-36 times closer and are all right (within 1.4% of the diagonal); every wrong one
+#: that fits closer and closely (twisted targets, 6% off) turns parts by 20-24 degrees, and
+#: near-symmetric shapes (a dumbbell, its mirror image) fit alike from both poses (ratio 1.0).
 TIE_FIT_RATIO = 1.5
-#: ... and when it fits the target closely: a symmetric distance of at most this fraction of the
-#: target's diagonal (the registrations kept above: 0.015-0.063%). A coarse hierarchy on a
+#: The largest symmetric distance, as a fraction of the target's diagonal, of a registration
+#: that settles a tie by its fit (the registrations kept: 0.015-0.063%). A coarse hierarchy on a
 #: deformed sphere (levels of 2 and 4 cells) fits from two poses 85 degrees apart to 0.29% and
 #: 0.46%, the closer one 4.8% off: neither fit says much of the pose. Noisy and partial
 #: targets (whose distances hold the noise, or the template beyond the cut) are settled only
@@ -48,6 +55,23 @@ TIE_CLOSE_FIT = 0.001
 #: long bone shortened by a quarter or a third, a dumbbell stretched: 0.1-0.5%; distinct
 #: results lie 3-60% apart).
 TIE_AGREEMENT = 0.01
+#: The largest local turn (degrees; :func:`local_turn`) of a registration that settles a tie by
+#: its fit. The registrations kept turn parts of the template by 2.6-8.9 degrees against the
+#: map's overall rotation (which a similarity start 11 degrees off adds to every vertex: the
+#: turn against the start would read 12.5); on bent and twisted targets, and stretched ones
+#: that both registrations miss, 12-51.
+TIE_TURN = 10.0
+
+
+def local_turn(deformation: Any, points: np.ndarray, moved: np.ndarray) -> float:
+    """How far a map of space turns parts of a template against each other: the 90th
+    percentile, over the template ``points`` (rigidly aligned; ``moved`` where the map sends
+    them), of the angle (degrees) between the map's local rotation (the polar part of its
+    Jacobian) and its overall rotation (the least-squares rotation of ``points`` onto
+    ``moved``)."""
+    overall = proper_rotation(points - points.mean(axis=0), moved - moved.mean(axis=0))
+    local = np.einsum("ji,kjl->kil", overall, deformation.jacobian(points))
+    return float(np.percentile(polar_angles(local), 90))
 
 
 def symmetric_fit(result: Any) -> float:
@@ -60,7 +84,7 @@ def symmetric_fit(result: Any) -> float:
 def settle_tie(
     rigid: Any,
     registrations: tuple[Any, Any],
-    turned: tuple[bool, bool],
+    turns: tuple[float, float],
     diagonal: float,
 ) -> tuple[int, RigidStart]:
     """Which of the registrations from an ambiguous rigid start's two poses to keep.
@@ -71,10 +95,9 @@ def settle_tie(
         The ambiguous rigid start.
     registrations : (ElasticRegistrationResult, ElasticRegistrationResult)
         The registrations from its winner's and its runner-up's pose.
-    turned : (bool, bool)
-        Whether each one's map turns space by more than
-        :data:`~o3dreg.registration.elastic.GIVEN_START_TURN` at a tenth of the template's
-        vertices.
+    turns : (float, float)
+        How far each one's map turns parts of the template against each other
+        (:func:`local_turn`).
     diagonal : float
         The target's bounding-box diagonal.
 
@@ -84,8 +107,8 @@ def settle_tie(
         0 for the winner's registration, 1 for the runner-up's.
     start : RigidStart
         The rigid start to report: ``tie_kept`` set and the ambiguity warning dropped when the
-        tie is settled (:data:`TIE_FIT_RATIO`, :data:`TIE_CLOSE_FIT`, :data:`TIE_AGREEMENT`),
-        else as the rigid step
+        tie is settled (:data:`TIE_FIT_RATIO`, :data:`TIE_CLOSE_FIT`, :data:`TIE_TURN`,
+        :data:`TIE_AGREEMENT`), else as the rigid step
         left it (ambiguous, the winner's registration kept).
     """
     fits = (symmetric_fit(registrations[0]), symmetric_fit(registrations[1]))
@@ -95,7 +118,7 @@ def settle_tie(
     if apart <= TIE_AGREEMENT * diagonal:
         kept = 0
     elif (
-        turned[kept]
+        not turns[kept] <= TIE_TURN
         or not fits[1 - kept] >= TIE_FIT_RATIO * fits[kept]
         or not fits[kept] <= TIE_CLOSE_FIT * diagonal
     ):

@@ -12,6 +12,7 @@ from o3dreg.registration.tie import (
     TIE_AGREEMENT,
     TIE_CLOSE_FIT,
     TIE_FIT_RATIO,
+    local_turn,
     settle_tie,
     symmetric_fit,
 )
@@ -39,22 +40,22 @@ def test_symmetric_fit_is_the_mean_of_both_directions():
 
 
 @pytest.mark.parametrize(
-    ("fits", "turned", "apart", "kept", "settled"),
+    ("fits", "turns", "apart", "kept", "settled"),
     [
-        ((1.0, 1.0), (False, False), 0.0, 0, "winner"),  # both ended alike: the tie is moot
-        ((1.0, 5.0), (True, True), 0.5 * TIE_AGREEMENT, 0, "winner"),  # alike, however turned
-        ((1.0, 0.99 * TIE_FIT_RATIO), (False, False), 0.5, 0, None),  # not clearly closer
-        ((1.0, 1.01 * TIE_FIT_RATIO), (False, False), 0.5, 0, "winner"),
-        ((1.01 * TIE_FIT_RATIO, 1.0), (False, False), 0.5, 1, "runner-up"),
-        ((1.0, 3.0), (True, False), 0.5, 0, None),  # closer, but turned round locally
-        ((3.0, 1.0), (False, True), 0.5, 0, None),
-        ((1.01, 3.0), (False, False), 0.5, 0, None),  # closer, but not close to the target
+        ((1.0, 1.0), (3.0, 3.0), 0.0, 0, "winner"),  # both ended alike: the tie is moot
+        ((1.0, 5.0), (50.0, 50.0), 0.5 * TIE_AGREEMENT, 0, "winner"),  # alike, however turned
+        ((1.0, 0.99 * TIE_FIT_RATIO), (3.0, 3.0), 0.5, 0, None),  # not clearly closer
+        ((1.0, 1.01 * TIE_FIT_RATIO), (3.0, 3.0), 0.5, 0, "winner"),
+        ((1.01 * TIE_FIT_RATIO, 1.0), (3.0, 3.0), 0.5, 1, "runner-up"),
+        ((1.0, 3.0), (50.0, 3.0), 0.5, 0, None),  # closer, but turning parts apart
+        ((3.0, 1.0), (3.0, 50.0), 0.5, 0, None),
+        ((1.01, 3.0), (3.0, 3.0), 0.5, 0, None),  # closer, but not close to the target
     ],
 )
-def test_which_registration_settles_the_tie(fits, turned, apart, kept, settled):
+def test_which_registration_settles_the_tie(fits, turns, apart, kept, settled):
     diagonal = 1.0 / TIE_CLOSE_FIT  # a fit of 1 is as loose as a settling fit may be
     pair = (_registration(fits[0], 0.0), _registration(fits[1], [apart * diagonal, 0.0, 0.0]))
-    index, start = settle_tie(AMBIGUOUS, pair, turned, diagonal)
+    index, start = settle_tie(AMBIGUOUS, pair, turns, diagonal)
     assert index == kept and start.tie_kept == settled
     assert start.tie_fits == fits
     assert start.ambiguous == (settled is None)
@@ -62,6 +63,44 @@ def test_which_registration_settles_the_tie(fits, turned, apart, kept, settled):
     assert (start.score, start.runner_up_score) == (4.0, 4.2)
     assert "scale: other" in start.warnings
     assert any(w.startswith(AMBIGUOUS_START) for w in start.warnings) == (settled is None)
+
+
+def _turn(degrees, axis=(0.0, 0.0, 1.0)):
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.radians(degrees) * np.asarray(axis)).as_matrix()
+
+
+class _Map:
+    """A map of space given by its Jacobian at each point (what local_turn reads)."""
+
+    def __init__(self, jacobians):
+        self.jacobians = jacobians
+
+    def jacobian(self, points):
+        return self.jacobians
+
+
+def test_a_map_turning_everything_alike_turns_no_part():
+    # The whole template turned by 40 degrees (a start that far off, corrected by the levels):
+    # every local rotation is the overall one, so no part turns against another.
+    points = np.random.default_rng(0).normal(size=(200, 3))
+    rotation = _turn(40.0, (1.0, 2.0, 3.0) / np.sqrt(14.0))
+    turn = local_turn(_Map(np.repeat(rotation[None], 200, axis=0)), points, points @ rotation.T)
+    assert turn == pytest.approx(0.0, abs=1e-5)
+
+
+def test_two_halves_turned_apart_turn_by_their_angle():
+    # Two ends of a bar twisted by +30 and -30 degrees about its axis (z): the overall rotation
+    # is none, each part turns 30 degrees against it.
+    # A grid symmetric in x, y and z: the least-squares overall rotation is exactly none.
+    grid = np.arange(-2.0, 3.0)
+    x, y, z = np.meshgrid(grid, grid, np.r_[-5.0:0.0, 1.0:6.0], indexing="ij")
+    points = np.column_stack([x.ravel(), y.ravel(), 4.0 * z.ravel()])
+    up = points[:, 2] > 0
+    rotations = np.where(up[:, None, None], _turn(30.0), _turn(-30.0))
+    moved = np.einsum("kij,kj->ki", rotations, points)
+    assert local_turn(_Map(rotations), points, moved) == pytest.approx(30.0, abs=1e-6)
 
 
 @pytest.fixture(scope="module")
