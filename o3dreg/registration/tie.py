@@ -6,8 +6,8 @@ third, a skull-like cap under a smooth warp), no pose fits closely and a wrong o
 within :data:`~o3dreg.registration.rigid.AMBIGUITY_RATIO` of the right one: the start is then
 reported ambiguous and the registration ``suspect``, however right. The levels remove what the
 rigid fit cannot, so the registrations from the two poses tell them apart where the shape does:
-the one from the right pose fits closely while turning space little, the one from the wrong
-pose fits worse or has to turn the template round locally to fit.
+the one from the right pose fits closely without turning the template's parts against each
+other, the one from the wrong pose fits worse or has to turn its parts round to fit.
 """
 
 from __future__ import annotations
