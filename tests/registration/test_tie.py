@@ -65,6 +65,20 @@ def test_which_registration_settles_the_tie(fits, turns, apart, kept, settled):
     assert any(w.startswith(AMBIGUOUS_START) for w in start.warnings) == (settled is None)
 
 
+def test_on_a_partial_target_only_the_vertices_both_support_must_agree():
+    # Two registrations that place the 80 vertices with data alike and the 20 without 10% of
+    # the diagonal apart: the tie is settled (the rest hangs where no data say). Where the two
+    # support different vertices, every vertex counts and they stay apart.
+    diagonal = 1.0 / TIE_CLOSE_FIT
+    first, second = _registration(5.0, 0.0), _registration(5.0, 0.0)
+    second.vertices[80:] += [0.1 * diagonal, 0.0, 0.0]
+    first.supported = second.supported = np.arange(100) < 80
+    index, start = settle_tie(AMBIGUOUS, (first, second), (3.0, 3.0), diagonal)
+    assert (index, start.tie_kept) == (0, "winner")
+    second.supported = np.arange(100) >= 20  # 60 shared of 80 each: too few to stand for them
+    assert settle_tie(AMBIGUOUS, (first, second), (3.0, 3.0), diagonal)[1].ambiguous
+
+
 def _turn(degrees, axis=(0.0, 0.0, 1.0)):
     from scipy.spatial.transform import Rotation
 
