@@ -307,13 +307,18 @@ class _LevelRun:
         """The assessed registration from the start ``rigid``."""
         fs, surface = self.fs, self.surface
         points = apply_transformation(rigid, self.vs)
+        pulled = surface
+        if self.method.min_target_component is not None:
+            # Islands the start does not reach are left to the verdict, not pulled towards;
+            # the result is measured and judged on the whole target.
+            pulled = surface.without_islands(points)
         # The levels work along the template's own axes (the start's rotation): the lattices,
         # the bending energy, the target's levels of detail and subsamples then do not depend
         # on how the patient lies in the scanner.
         frame = _lattice_frame(rigid)
-        local, local_points = surface, points
+        local, local_points = pulled, points
         if frame is not None:
-            local = surface.in_frame(frame)
+            local = pulled.in_frame(frame)
             local_points = into_frame(frame, points)
         labels = template_parts(self.vs.shape[0], fs) if self.parts == "connected" else None
         options = (self.method, self.criteria, self.padding, callback)
@@ -323,7 +328,8 @@ class _LevelRun:
             fit = _coarse_to_fine(local_points, fs, local, self.levels, *options)
         if frame is not None:
             fit = _laid_in(frame, fit, points)
-        measured = surface.distances(fit.moved, fs, forward=fit.forward)
+        forward = fit.forward if pulled is surface else None
+        measured = surface.distances(fit.moved, fs, forward=forward)
         success = not fit.failures
         result = ElasticRegistrationResult(
             transformation=rigid,

@@ -467,24 +467,39 @@ def _smooth_normals(vt: np.ndarray, ft: np.ndarray, at: np.ndarray) -> np.ndarra
 
 def _reached(result: Any, vt: np.ndarray, ft: np.ndarray, noise: float) -> np.ndarray | None:
     """The target vertices of the components the registration reached, when the others are
-    islands it may ignore (:data:`UNREACHED_AREA_FRACTION`, areas measured through the target's
-    ``noise``: :func:`_component_areas`); ``None`` to judge them all."""
-    components = mesh_components(vt, ft)
-    if len(components) < 2:
-        return None
+    islands it may ignore (:func:`reached_faces`); ``None`` to judge them all."""
     points = result.vertices
     supported = getattr(result, "supported", None)
     if supported is not None and supported.any():
         points = points[supported]
+    faces = reached_faces(points, vt, ft, noise)
+    if faces is None:
+        return None
+    reached = np.zeros(vt.shape[0], dtype=bool)
+    reached[ft[faces].ravel()] = True
+    return reached
+
+
+def reached_faces(
+    points: np.ndarray, vt: np.ndarray, ft: np.ndarray, noise: float
+) -> np.ndarray | None:
+    """The target triangles of the components holding the closest point of some of
+    ``points``, when the other components are islands (their area at most
+    :data:`UNREACHED_AREA_FRACTION` of the reached ones', measured through the target's
+    ``noise``: :func:`_component_areas`); ``None`` when the target is one component, every
+    component is reached, or the unreached ones are too large to be islands."""
+    components = mesh_components(vt, ft)
+    if len(components) < 2:
+        return None
     face = SurfaceDistanceQuery(vt, ft).closest_few(points)[1]
     used = np.zeros(len(components), dtype=bool)
     used[components.labels[face]] = True
+    if used.all():
+        return None
     areas = _component_areas(vt, ft, components.labels, len(components), AREA_NOISE * noise)
     if areas[~used].sum() > UNREACHED_AREA_FRACTION * areas[used].sum():
         return None
-    reached = np.zeros(vt.shape[0], dtype=bool)
-    reached[ft[used[components.labels]].ravel()] = True
-    return reached
+    return used[components.labels]
 
 
 def _component_areas(
