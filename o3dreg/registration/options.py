@@ -312,8 +312,11 @@ class DistanceEstimation:
     min_target_component : float or None
         Ignore the connected components of the target with fewer vertices than this fraction
         of its largest component (islands, debris, loose fragments a marching-cubes surface
-        keeps). Default 0.01; ``None`` uses every component. The reported distances still
-        measure the whole target.
+        keeps). Unless ``None``, the components that no template vertex has its closest point
+        on after the rigid start are left out of the levels too, where their area is at most
+        half that of the others (the verdict's island rule): a neighbouring bone or debris the
+        template does not model is not pulled towards. Default 0.01; ``None`` uses every
+        component. The reported distances and the verdict still measure the whole target.
     more_terms : tuple of DistanceTerm
         Distance terms added to those the fields above describe (a term of your own: any
         :class:`~o3dreg.DistanceTerm` with ``bind``). Default none; :meth:`compose` puts there
