@@ -89,7 +89,7 @@ class TargetSurface:
         bone the template does not model, which the levels are not to pull it towards (a
         mandible with a copy of 30% of its size beside its condyle: the condyle pulled 14% of
         the diagonal off). Itself where nothing is left out."""
-        if len(mesh_components(self.vertices, self.faces)) < 2:
+        if self.component_count < 2:
             return self
         kept = reached_faces(points, self.vertices, self.faces, noise_level(*self.mesh))
         if kept is None:
@@ -182,6 +182,11 @@ class TargetSurface:
             relative = per_point[group] / (total / points.shape[0])
         self._relative_areas[budget] = relative
         return relative
+
+    @cached_property
+    def component_count(self) -> int:
+        """Connected components of the target (counted once: an edge sort)."""
+        return len(mesh_components(self.vertices, self.faces))
 
     @cached_property
     def moments(self) -> Moments:
