@@ -562,16 +562,36 @@ def noisy_cuts_table() -> None:
         )
 
 
+def right_and_wrong(rows: list) -> str:
+    """The count of right and wrong results among ``(error, status, ...)`` rows (error as a
+    fraction of the diagonal, right within :data:`RIGHT`), with false alarms and silent ones."""
+    right = [r for r in rows if r[0] <= RIGHT]
+    wrong = [r for r in rows if r[0] > RIGHT]
+    return (
+        f"right {len(right)} (false alarms {sum(r[1] != 'ok' for r in right)}), wrong "
+        f"{len(wrong)} (silent {sum(r[1] == 'ok' for r in wrong)})"
+    )
+
+
+def blob_case():
+    """The asymmetric blob of ``--given-starts`` and ``--stretched``: its 1,500-vertex quadric
+    template and its own surface's arrays."""
+    import o3dreg
+    from o3dreg.app.synthetic import asymmetric_blob
+
+    dense = asymmetric_blob()
+    template = o3dreg.decimate(dense, 1500)
+    return template, np.asarray(dense.vertices), np.asarray(dense.triangles)
+
+
 def given_starts_table() -> None:
     """A given ``init`` far off (see ``--given-starts``)."""
     from scipy.spatial.transform import Rotation
 
     import o3dreg
-    from o3dreg.app.synthetic import SmoothWarp, asymmetric_blob
+    from o3dreg.app.synthetic import SmoothWarp
 
-    dense = asymmetric_blob()
-    template = o3dreg.decimate(dense, 1500)
-    vt, ft = np.asarray(dense.vertices), np.asarray(dense.triangles)
+    template, vt, ft = blob_case()
     diagonal = float(np.linalg.norm(np.ptp(vt, axis=0)))
     turns = [(0, (0, 1, 0)), (30, (0, 1, 0)), (60, (0, 1, 0)), (90, (0, 1, 0)), (90, (1, 0, 0))]
     turns += [(90, (0, 0, 1)), (135, (1, 1, 0)), (180, (0, 1, 0))]
@@ -614,11 +634,9 @@ def given_starts_table() -> None:
 def stretched_table() -> None:
     """Near ties of the rigid start on stretched targets (see ``--stretched``)."""
     import o3dreg
-    from o3dreg.app.synthetic import SmoothWarp, asymmetric_blob
+    from o3dreg.app.synthetic import SmoothWarp
 
-    dense = asymmetric_blob()
-    template = o3dreg.decimate(dense, 1500)
-    vt, ft = np.asarray(dense.vertices), np.asarray(dense.triangles)
+    template, vt, ft = blob_case()
     rows = []
     print(f"{'seed':>4}{'axis':>5}{'factor':>7}{'err %':>7}  {'verdict':<9}{'tie':<11}fits")
     for seed in (1, 2):
@@ -644,15 +662,12 @@ def stretched_table() -> None:
                     f"{result.status:<9}{tie:<11}{fits}",
                     flush=True,
                 )
-    right = [r for r in rows if r[0] <= RIGHT]
-    wrong = [r for r in rows if r[0] > RIGHT]
     tied = [r for r in rows if r[2]]
     print(
         f"\nruns {len(rows)}, ambiguous rigid starts {len(tied)} (settled for the winner "
         f"{sum(r[3] == 'winner' for r in tied)}, for the runner-up "
         f"{sum(r[3] == 'runner-up' for r in tied)}, unsettled {sum(r[3] is None for r in tied)}); "
-        f"right {len(right)} (false alarms {sum(r[1] != 'ok' for r in right)}), wrong "
-        f"{len(wrong)} (silent {sum(r[1] == 'ok' for r in wrong)})"
+        + right_and_wrong(rows)
     )
 
 
@@ -687,13 +702,7 @@ def islands_table() -> None:
                             f"{100 * err:>7.2f}  {result.status}",
                             flush=True,
                         )
-    right = [r for r in rows if r[0] <= RIGHT]
-    wrong = [r for r in rows if r[0] > RIGHT]
-    print(
-        f"\nruns {len(rows)}: right {len(right)} (false alarms "
-        f"{sum(r[1] != 'ok' for r in right)}), wrong {len(wrong)} (silent "
-        f"{sum(r[1] == 'ok' for r in wrong)})"
-    )
+    print(f"\nruns {len(rows)}: " + right_and_wrong(rows))
 
 
 def verdict_scenarios(case) -> list[tuple[str, o3d.geometry.TriangleMesh, np.ndarray]]:
