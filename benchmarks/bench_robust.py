@@ -35,8 +35,8 @@ the masks alone).
     python benchmarks/bench_robust.py --verdict    # the verdict on cuts, noise, islands, copies
     python benchmarks/bench_robust.py --turned-parts  # the rigid step on turned noisy parts
     python benchmarks/bench_robust.py --given-starts  # the verdict from a given init far off
-    python benchmarks/bench_robust.py --stretched  # near ties of the rigid start on stretched targets
-    python benchmarks/bench_robust.py --islands    # the verdict beside copies at 30-50% of the size
+    python benchmarks/bench_robust.py --stretched  # near ties of the rigid start, settled
+    python benchmarks/bench_robust.py --islands    # the verdict beside copies of 30-50% size
     python benchmarks/bench_robust.py --mandibles-hostile  # cuts, noise, islands on CT mandibles
 
 ``--mandibles``: the same 20% top cut on real anatomy, the PDDCA mandible masks (research data
@@ -573,15 +573,22 @@ def right_and_wrong(rows: list) -> str:
     )
 
 
-def blob_case():
-    """The asymmetric blob of ``--given-starts`` and ``--stretched``: its 1,500-vertex quadric
-    template and its own surface's arrays."""
+def warped_blobs():
+    """The asymmetric blob of ``--given-starts`` and ``--stretched`` under 3% warps (seeds 1
+    and 2): per warp its 1,500-vertex quadric template, the warped surface's vertices and
+    triangles, the template's true positions, the surface's centroid and the unwarped blob's
+    diagonal."""
     import o3dreg
-    from o3dreg.app.synthetic import asymmetric_blob
+    from o3dreg.app.synthetic import SmoothWarp, asymmetric_blob
 
     dense = asymmetric_blob()
     template = o3dreg.decimate(dense, 1500)
-    return template, np.asarray(dense.vertices), np.asarray(dense.triangles)
+    vt, ft = np.asarray(dense.vertices), np.asarray(dense.triangles)
+    diagonal = float(np.linalg.norm(np.ptp(vt, axis=0)))
+    for seed in (1, 2):
+        warp = SmoothWarp.random(vt, magnitude=0.03, seed=seed)
+        warped, truth = warp(vt), warp(np.asarray(template.vertices))
+        yield seed, template, (warped, ft), truth, warped.mean(axis=0), diagonal
 
 
 def given_starts_table() -> None:
@@ -589,18 +596,12 @@ def given_starts_table() -> None:
     from scipy.spatial.transform import Rotation
 
     import o3dreg
-    from o3dreg.app.synthetic import SmoothWarp
 
-    template, vt, ft = blob_case()
-    diagonal = float(np.linalg.norm(np.ptp(vt, axis=0)))
     turns = [(0, (0, 1, 0)), (30, (0, 1, 0)), (60, (0, 1, 0)), (90, (0, 1, 0)), (90, (1, 0, 0))]
     turns += [(90, (0, 0, 1)), (135, (1, 1, 0)), (180, (0, 1, 0))]
     rows = []
     print(f"{'start':<10}{'seed':>5}{'turn':>6}  {'axis':<10}{'err %':>7}  verdict   pose check")
-    for seed in (1, 2):
-        warp = SmoothWarp.random(vt, magnitude=0.03, seed=seed)
-        warped, truth = warp(vt), warp(np.asarray(template.vertices))
-        centre = warped.mean(axis=0)
+    for seed, template, (warped, ft), truth, centre, diagonal in warped_blobs():
         for start, init in (("identity", np.eye(4)), ("rigid", None)):
             for angle, axis in turns:
                 rotation = Rotation.from_rotvec(
@@ -634,15 +635,10 @@ def given_starts_table() -> None:
 def stretched_table() -> None:
     """Near ties of the rigid start on stretched targets (see ``--stretched``)."""
     import o3dreg
-    from o3dreg.app.synthetic import SmoothWarp
 
-    template, vt, ft = blob_case()
     rows = []
     print(f"{'seed':>4}{'axis':>5}{'factor':>7}{'err %':>7}  {'verdict':<9}{'tie':<11}fits")
-    for seed in (1, 2):
-        warp = SmoothWarp.random(vt, magnitude=0.03, seed=seed)
-        warped, truth = warp(vt), warp(np.asarray(template.vertices))
-        centre = warped.mean(axis=0)
+    for seed, template, (warped, ft), truth, centre, _ in warped_blobs():
         for axis in range(3):
             for factor in (0.7, 1.3, 1.4, 1.5):
                 stretch = np.ones(3)

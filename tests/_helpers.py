@@ -12,6 +12,7 @@ find the correspondences; the *truth* is the template's vertices moved by the sa
 
 from __future__ import annotations
 
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,25 @@ from o3dreg import Barycentre, ElasticLevel, PointToSurface
 from o3dreg.registration._cost import LevelProblem
 from o3dreg.registration.distance import SurfaceDistanceQuery
 from o3dreg.registration.lattice import TrilinearLattice
+
+
+@lru_cache(maxsize=1)
+def warped_blob() -> tuple[o3d.geometry.TriangleMesh, tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """The asymmetric blob (``o3dreg.app.synthetic.asymmetric_blob``) under a 3% warp (seed 1):
+    its 1,500-vertex quadric template, the warped surface ``(vertices, faces)`` and the
+    template's true positions on it. Built once per session; the arrays are read-only."""
+    from o3dreg import decimate
+    from o3dreg.app.synthetic import SmoothWarp, asymmetric_blob
+
+    dense = asymmetric_blob()
+    template = decimate(dense, 1500)
+    vertices, faces = np.asarray(dense.vertices), np.asarray(dense.triangles)
+    warp = SmoothWarp.random(vertices, magnitude=0.03, seed=1)
+    arrays = warp(vertices), faces.copy(), warp(np.asarray(template.vertices))
+    for array in arrays:
+        array.setflags(write=False)
+    return template, arrays[:2], arrays[2]
+
 
 #: Three quick levels (2, 4, 8 cells per axis; regularisation 0.1) for tests of the pipeline, not
 #: of the accuracy of a full hierarchy.

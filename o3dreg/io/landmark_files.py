@@ -158,8 +158,8 @@ def read_landmarks(
     file_coordinate_system : {'LPS', 'RAS'}, optional
         System of a file that does not say which it is in (``x,y,z`` CSV, ``.pp``, scalismo's
         ``.json``, ``.fcsv`` without a ``CoordinateSystem`` line). Default: such a file is
-        taken to be in ``coordinate_system`` (an ``.fcsv``: RAS) and a ``UserWarning`` says so. A file that
-        says otherwise raises ``ValueError``.
+        taken to be in ``coordinate_system`` (an ``.fcsv``: RAS) and a ``UserWarning`` says
+        so. A file that says otherwise raises ``ValueError``.
 
     name : str, optional
         How messages name ``path`` (a command line passes its option). Default ``'path'``.

@@ -18,7 +18,7 @@ import numpy as np
 
 from .._geometry import bounds, vertex_areas
 from ..mesh.canonical import canonical_mesh, cluster_vertices, oriented_faces, sorted_triangles
-from ..mesh.cleaning import drop_small_components, mesh_components
+from ..mesh.cleaning import Components, drop_small_components, mesh_components
 from ..mesh.edges import SortedEdges
 from ..mesh.noise import noise_level
 from ..mesh.sampling import spatial_subsample_weights, voxel_ranks
@@ -89,9 +89,15 @@ class TargetSurface:
         bone the template does not model, which the levels are not to pull it towards (a
         mandible with a copy of 30% of its size beside its condyle: the condyle pulled 14% of
         the diagonal off). Itself where nothing is left out."""
-        if self.component_count < 2:
+        if len(self.components) < 2:
             return self
-        kept = reached_faces(points, self.vertices, self.faces, noise_level(*self.mesh))
+        kept = reached_faces(
+            points,
+            *self.mesh,
+            lambda: noise_level(*self.mesh),
+            components=self.components,
+            query=self.query,
+        )
         if kept is None:
             return self
         used = np.unique(self.faces[kept])
@@ -184,9 +190,9 @@ class TargetSurface:
         return relative
 
     @cached_property
-    def component_count(self) -> int:
-        """Connected components of the target (counted once: an edge sort)."""
-        return len(mesh_components(self.vertices, self.faces))
+    def components(self) -> Components:
+        """Connected components of the target (found once: an edge sort)."""
+        return mesh_components(self.vertices, self.faces)
 
     @cached_property
     def moments(self) -> Moments:

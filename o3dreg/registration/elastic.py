@@ -273,8 +273,8 @@ def registration_elastic(
     if rigid_start is not None:
         start = RigidStart.from_rigid(rigid_start)
         if rigid_start.ambiguous and rigid_start.runner_up_transformation is not None:
-            done, start = _settled(run, done, rigid_start, surface)
-    elif _turned_locally(done.deformation, done.points):
+            done, start = _settled(run, done, rigid_start)
+    elif _turned_locally(done.result.deformation, done.points):
         # A given start is checked against the rigid search (one part: parts move apart).
         checked = check_given_start(vs, fs, surface.query, rigid, done.result.vertices)
         start = None if checked is None else RigidStart.from_rigid(checked)
@@ -282,12 +282,11 @@ def registration_elastic(
 
 
 class _Done(NamedTuple):
-    """A registration from one start: the assessed result (no rigid start yet), the template
-    rigidly aligned and the map of space."""
+    """A registration from one start: the assessed result (no rigid start yet) and the
+    template rigidly aligned there."""
 
     result: ElasticRegistrationResult
     points: np.ndarray
-    deformation: LatticeDeformation | PartitionedDeformation
 
 
 @dataclass(frozen=True)
@@ -355,23 +354,21 @@ class _LevelRun:
             backward=measured.backward,
             target_moments=surface.moments,
         )
-        return _Done(assessed, points, fit.deformation)
+        return _Done(assessed, points)
 
 
-def _settled(
-    run: _LevelRun, done: _Done, rigid: Any, surface: TargetSurface
-) -> tuple[_Done, RigidStart]:
+def _settled(run: _LevelRun, done: _Done, rigid: Any) -> tuple[_Done, RigidStart]:
     """An ambiguous rigid start's tie, settled where the registration from its runner-up's pose
     tells the two apart (:func:`~o3dreg.registration.tie.settle_tie`); ``done`` is the
     registration from its winner's. The runner-up's levels are not reported to the callback."""
-    if not isinstance(done.deformation, LatticeDeformation):
+    if not isinstance(done.result.deformation, LatticeDeformation):
         return done, RigidStart.from_rigid(rigid)  # parts: each moves on its own
     other = run(np.array(rigid.runner_up_transformation), None)
     turns = (
-        local_turn(done.deformation, done.points, done.result.vertices),
-        local_turn(other.deformation, other.points, other.result.vertices),
+        local_turn(done.result.deformation, done.points, done.result.vertices),
+        local_turn(other.result.deformation, other.points, other.result.vertices),
     )
-    lo, hi = bounds(surface.mesh[0])
+    lo, hi = bounds(run.surface.vertices)
     diagonal = float(np.linalg.norm(hi - lo))
     kept, start = settle_tie(rigid, (done.result, other.result), turns, diagonal)
     return (done, other)[kept], start

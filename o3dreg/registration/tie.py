@@ -114,8 +114,8 @@ def settle_tie(
     start : RigidStart
         The rigid start to report: ``tie_kept`` set and the ambiguity warning dropped when the
         tie is settled (:data:`TIE_FIT_RATIO`, :data:`TIE_CLOSE_FIT`, :data:`TIE_TURN`,
-        :data:`TIE_AGREEMENT`), else as the rigid step
-        left it (ambiguous, the winner's registration kept).
+        :data:`TIE_AGREEMENT`), else as the rigid step left it (ambiguous, the winner's
+        registration kept).
     """
     fits = (symmetric_fit(registrations[0]), symmetric_fit(registrations[1]))
     apart = _apart(*registrations)

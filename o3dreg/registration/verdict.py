@@ -23,7 +23,7 @@ locally tidy (:func:`o3dreg.app.population.check_population`).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from .._geometry import apply_transformation, bounds, corner_cross, face_cross, row_norms
 from .._validation import as_mesh_arrays
-from ..mesh.cleaning import mesh_components
+from ..mesh.cleaning import Components, mesh_components
 from ..mesh.noise import noise_level
 from .distance import SurfaceDistanceQuery
 from .result import RigidStart
@@ -472,7 +472,7 @@ def _reached(result: Any, vt: np.ndarray, ft: np.ndarray, noise: float) -> np.nd
     supported = getattr(result, "supported", None)
     if supported is not None and supported.any():
         points = points[supported]
-    faces = reached_faces(points, vt, ft, noise)
+    faces = reached_faces(points, vt, ft, lambda: noise)
     if faces is None:
         return None
     reached = np.zeros(vt.shape[0], dtype=bool)
@@ -481,22 +481,31 @@ def _reached(result: Any, vt: np.ndarray, ft: np.ndarray, noise: float) -> np.nd
 
 
 def reached_faces(
-    points: np.ndarray, vt: np.ndarray, ft: np.ndarray, noise: float
+    points: np.ndarray,
+    vt: np.ndarray,
+    ft: np.ndarray,
+    noise: Callable[[], float],
+    *,
+    components: Components | None = None,
+    query: SurfaceDistanceQuery | None = None,
 ) -> np.ndarray | None:
     """The target triangles of the components holding the closest point of some of
     ``points``, when the other components are islands (their area at most
     :data:`UNREACHED_AREA_FRACTION` of the reached ones', measured through the target's
-    ``noise``: :func:`_component_areas`); ``None`` when the target is one component, every
-    component is reached, or the unreached ones are too large to be islands."""
-    components = mesh_components(vt, ft)
+    noise, asked of ``noise`` only then: :func:`_component_areas`); ``None`` when the target is
+    one component, every component is reached, or the unreached ones are too large to be
+    islands. ``components`` and ``query``: the target's, where the caller has them."""
+    if components is None:
+        components = mesh_components(vt, ft)
     if len(components) < 2:
         return None
-    face = SurfaceDistanceQuery(vt, ft).closest_few(points)[1]
+    face = (query or SurfaceDistanceQuery(vt, ft)).closest_few(points)[1]
     used = np.zeros(len(components), dtype=bool)
     used[components.labels[face]] = True
     if used.all():
         return None
-    areas = _component_areas(vt, ft, components.labels, len(components), AREA_NOISE * noise)
+    cube = AREA_NOISE * noise()
+    areas = _component_areas(vt, ft, components.labels, len(components), cube)
     if areas[~used].sum() > UNREACHED_AREA_FRACTION * areas[used].sum():
         return None
     return used[components.labels]

@@ -6,7 +6,7 @@ from dataclasses import replace
 import numpy as np
 import open3d as o3d
 import pytest
-from _helpers import FAST, ct_mandible, ct_mandible_masks
+from _helpers import FAST, ct_mandible, ct_mandible_masks, warped_blob
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -707,13 +707,7 @@ def test_an_island_the_start_does_not_reach_does_not_pull_the_template():
     # leave it out and end where they end without it (measured 0.23% of the diagonal from the
     # truth both ways). Kept in the levels (min_target_component=None, every piece counts),
     # it pulls the side facing it (0.35%, the worst vertex 1.2% against 0.58%).
-    from o3dreg.app.synthetic import asymmetric_blob
-
-    dense = asymmetric_blob()
-    template = o3dreg.decimate(dense, 1500)
-    vt, ft = np.asarray(dense.vertices), np.asarray(dense.triangles)
-    warp = SmoothWarp.random(vt, magnitude=0.03, seed=1)
-    warped, truth = warp(vt), warp(np.asarray(template.vertices))
+    template, (warped, ft), truth = warped_blob()
     diagonal = np.linalg.norm(np.ptp(warped, axis=0))
     centre = warped.mean(axis=0)
     island = (warped - centre) * 0.3 + centre + [0.5 * diagonal, 0.0, 0.0]

@@ -4,6 +4,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from _helpers import warped_blob
 from scipy.spatial.transform import Rotation
 
 import o3dreg
@@ -15,7 +16,7 @@ from o3dreg import (
     population_outliers,
     registration_elastic,
 )
-from o3dreg.app.synthetic import SmoothWarp, asymmetric_blob, synthetic_form
+from o3dreg.app.synthetic import synthetic_form
 from o3dreg.registration.verdict import worst_status
 
 LEVELS = [ElasticLevel(2), ElasticLevel(4)]
@@ -505,11 +506,7 @@ def test_the_rim_rule_costs_no_table_of_points_by_open_edges():
 
 @pytest.fixture(scope="module")
 def blob_case():
-    dense = asymmetric_blob()
-    template = o3dreg.decimate(dense, 1500)
-    warp = SmoothWarp.random(np.asarray(dense.vertices), magnitude=0.03, seed=1)
-    target = (warp(np.asarray(dense.vertices)), np.asarray(dense.triangles))
-    return template, target, warp(np.asarray(template.vertices))
+    return warped_blob()
 
 
 def _turned(points, degrees, about):

@@ -266,8 +266,7 @@ def test_statismos_no_scores_placeholder_is_no_training_shape(tmp_path, modes):
 
 def test_model_of_no_modes_round_trips(model, tmp_path):
     """A model of the mean alone (no modes: the constructor takes it) has a (3n, 0) basis and
-    is written and read back; the basis raised 'cannot reshape array of size 0' and the file
-    written elsewhere was refused as 'holds no valid shape model'."""
+    is written and read back as such."""
     n = model.number_of_points
     empty = type(model)(
         mean=model.mean,
