@@ -37,7 +37,11 @@ WINDOW, PANEL = (900, 600), 360
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):
     root = tmp_path_factory.mktemp("explorer")
-    (tv, tf), targets, *_ = population(4, seed=7)
+    # The egg fits itself half a turn away almost as well (a near tie the input pose breaks):
+    # in this population every such runner-up lies 165-178 degrees from the input pose, far
+    # from the 90 degrees where the tie is no longer broken (seed 7's lay at 89.7-97 degrees,
+    # on either side by the last bits of the arithmetic, and left a patient out of the model).
+    (tv, tf), targets, *_ = population(4, seed=6)
     write_triangle_mesh(root / "template.ply", (tv, tf))
     paths = []
     for i, t in enumerate(targets):
