@@ -155,6 +155,9 @@ class RigidStart:
     tie_fits : (float, float) or None
         The symmetric surface distances (mean of both directions' means) of the registrations
         from the winner's and the runner-up's pose, where both were run.
+    mirror_score : float or None
+        The score of the template's mirror image where it was refined
+        (:attr:`RigidRegistrationResult.mirror_score`): a warning says when it fits better.
     """
 
     score: float
@@ -166,6 +169,7 @@ class RigidStart:
     ambiguous: bool = False
     tie_kept: str | None = None
     tie_fits: tuple[float, float] | None = None
+    mirror_score: float | None = None
 
     @classmethod
     def from_rigid(cls, rigid: Any) -> RigidStart:
@@ -179,6 +183,7 @@ class RigidStart:
             inlier_rmse=float(rigid.inlier_rmse),
             warnings=tuple(rigid.warnings),
             ambiguous=bool(rigid.ambiguous),
+            mirror_score=None if rigid.mirror_score is None else float(rigid.mirror_score),
         )
 
     def __repr__(self) -> str:
