@@ -816,11 +816,15 @@ def read_obj(path: str, name: str = "path") -> tuple[np.ndarray, np.ndarray]:
 def _obj_lines(data: bytes) -> list[bytes]:
     """The lines of an OBJ file as the format reads them: a line ending in a backslash goes on
     on the next, leading whitespace and a comment after the data are dropped (comment lines
-    are kept whole: Open3D writes its counts there)."""
+    are kept whole: Open3D writes its counts there), an ``fo`` line is read as ``f``."""
     if b"\\" in data:
         data = re.sub(rb"\\\r?\n", b" ", data)
     lines = [line.lstrip() for line in data.splitlines()]
-    return [line.split(b"#", 1)[0] if b"#" in line and line[:1] != b"#" else line for line in lines]
+    lines = [
+        line.split(b"#", 1)[0] if b"#" in line and line[:1] != b"#" else line for line in lines
+    ]
+    # ``fo`` (face outline) is the older specification's name for a face.
+    return [b"f" + line[2:] if line[:3] in (b"fo ", b"fo\t") else line for line in lines]
 
 
 #: The counts Open3D writes at the top of an OBJ file.

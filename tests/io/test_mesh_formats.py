@@ -434,7 +434,10 @@ def test_obj_indented_commented_and_continued_lines_read_as_the_plain_file(tmp_p
         "# number of vertices: 4\n  v 0 0 0\n\tv 1 0 0 # corner\nv 1 \\\n 1 0\nv 0 1 0\n"
         "  f 1 2 3   # first\nf 1 \\\r\n3 4\n"
     )
-    for path in (plain, other):
+    # ``fo`` (face outline), the older specification's name for a face.
+    outline = tmp_path / "outline.obj"
+    outline.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nfo 1 2 3\nfo\t1 3 4\n")
+    for path in (plain, other, outline):
         mesh = read_triangle_mesh(path)
         np.testing.assert_array_equal(
             np.asarray(mesh.vertices), [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]]
