@@ -85,7 +85,7 @@ def crossings() -> set[tuple[str, str]]:
 FLOORS = {"io": 0, "mesh": 1, "volume": 2, "registration": 3, "shape": 4, "app": 5, "cli": 6}
 
 #: The only private modules at the package root: the ground floor every room stands on.
-ROOT_PRIVATE = {"_geometry.py", "_startup.py", "_validation.py"}
+ROOT_PRIVATE = {"_geometry.py", "_startup.py", "_text.py", "_validation.py"}
 
 #: Test modules at the root of tests/: the checks of the whole package and of its root modules.
 #: Every other test module lives in the folder of the room it tests (tests/registration/, ...).
@@ -101,6 +101,7 @@ ROOT_TESTS = {
     "test_mandible_folders.py",
     "test_mesh_types.py",
     "test_packaging.py",
+    "test_text.py",
 }
 
 #: Most lines of a function's code (after its docstring) in o3dreg/registration/.

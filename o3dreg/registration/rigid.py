@@ -32,6 +32,7 @@ from .._geometry import (
     rotation_angle,
     row_norms,
 )
+from .._text import ratio_text
 from .._validation import as_mesh_arrays, as_transformation, check_bool, check_positive
 from ..mesh.canonical import cluster_vertices
 from ..mesh.edges import SortedEdges
@@ -536,7 +537,7 @@ def mirror_warnings(score: float, mirror_score: float | None) -> tuple[str, ...]
     if mirror_score is None or score <= MIRROR_RATIO * mirror_score:
         return ()
     text = (
-        f"the template's mirror image fits the target {score / mirror_score:.2g} times better "
+        f"the template's mirror image fits the target {ratio_text(score, mirror_score)} times better "
         f"than the template (symmetric distances {mirror_score:.3g} and {score:.3g}): the "
         "target may be the other side (left and right swapped); register the other side's "
         "template, or mirror the target"

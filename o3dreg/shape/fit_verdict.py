@@ -30,6 +30,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from .._geometry import face_doubled_areas
+from .._text import ratio_text
 from ..registration.distance import SurfaceDistanceQuery
 from ..registration.verdict import worst_status
 from .model import ShapeModel
@@ -264,7 +265,7 @@ def assess_model_fit(model: ShapeModel, fit: Any, target: Any, *, mirrored: Any 
                     found.append(
                         (
                             level,
-                            f"the patient's mirror image fits the model {1 / ratio:.1f} times "
+                            f"the patient's mirror image fits the model {ratio_text(own, other)} times "
                             "closer than the patient (the best alignment is a reflection, "
                             "determinant < 0): the patient is a mirror image of the model's "
                             "anatomy, left and right are swapped",

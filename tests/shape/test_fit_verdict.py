@@ -84,6 +84,17 @@ def test_a_mirrored_patient_fails_with_the_reflection_named(chiral):
     assert any("wound the other way" in w for w in fit.warnings)
 
 
+def test_the_mirrored_mean_shape_is_named_without_meaningless_digits(chiral):
+    # The mean shape mirrored: its mirror image is the mean, fitted to rounding, and the ratio
+    # of the two fits is a number of 14 digits.
+    model, faces, _ = chiral
+    mirrored = model.mean * np.array([-1.0, 1.0, 1.0])
+    fit = fit_shape_model(model, (mirrored, faces[:, ::-1]))
+    assert fit.status == "failed"
+    (text,) = [w for w in fit.warnings if "mirror image" in w]
+    assert "fits the model over 1000 times closer" in text
+
+
 def test_a_patient_one_and_a_half_times_the_size_fails(chiral):
     model, faces, draw = chiral
     fit = fit_shape_model(model, (_posed(draw() * 1.5, 8), faces))
