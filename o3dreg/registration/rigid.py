@@ -623,10 +623,10 @@ def check_given_start(
     turn = rotation_angle(found @ np.linalg.inv(taken))
     winner.warnings += (
         f"the registration from the given `init` ended in a pose {turn:.0f} degrees from the "
-        f"one the rigid search finds, which fits the target {taken_score / winner.score:.1f} "
-        f"times better (symmetric distance {winner.score:.3g} against {taken_score:.3g}): the "
-        "levels may have wrapped the template onto the wrong parts; check `init`, or leave it "
-        "out for the rigid search",
+        "one the rigid search finds, which fits the target "
+        f"{ratio_text(taken_score, winner.score)} times better (symmetric distance "
+        f"{winner.score:.3g} against {taken_score:.3g}): the levels may have wrapped the "
+        "template onto the wrong parts; check `init`, or leave it out for the rigid search",
     )
     return winner
 
