@@ -39,8 +39,9 @@ def folder(tmp_path_factory):
     root = tmp_path_factory.mktemp("explorer")
     # The egg fits itself half a turn away almost as well (a near tie the input pose breaks):
     # in this population every such runner-up lies 165-178 degrees from the input pose, far
-    # from the 90 degrees where the tie is no longer broken (seed 7's lay at 89.7-97 degrees,
-    # on either side by the last bits of the arithmetic, and left a patient out of the model).
+    # from the 90 degrees where the tie is no longer broken. A runner-up near 90 degrees falls
+    # on either side with the arithmetic's last bits, which differ between CPUs (seed 7 has
+    # one at 89.7 on an AMD EPYC), and its patient would be left out of the model.
     (tv, tf), targets, *_ = population(4, seed=6)
     write_triangle_mesh(root / "template.ply", (tv, tf))
     paths = []
