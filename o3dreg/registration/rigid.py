@@ -535,31 +535,36 @@ def registration_rigid(
     )
 
 
-def mirror_warnings(score: float, mirror_score: float | None) -> tuple[str, ...]:
-    """The warning for a source whose mirror image scores ``mirror_score`` against its own
-    ``score`` (:attr:`RigidRegistrationResult.mirrored`); empty when it does not fit better by
-    :data:`MIRROR_RATIO`."""
-    if mirror_score is None or score <= MIRROR_RATIO * mirror_score:
+def mirror_warnings(result: RigidRegistrationResult) -> tuple[str, ...]:
+    """The warning for a ``result`` whose source's mirror image fits better
+    (:attr:`RigidRegistrationResult.mirrored`); empty otherwise."""
+    if not result.mirrored:
         return ()
-    text = (
-        f"the template's mirror image fits the target {ratio_text(score, mirror_score)} times better "
-        f"than the template (symmetric distances {mirror_score:.3g} and {score:.3g}): the "
+    score, mirror = result.score, float(result.mirror_score or 0.0)
+    return (
+        f"the template's mirror image fits the target {ratio_text(score, mirror)} times "
+        f"better than the template (symmetric distances {mirror:.3g} and {score:.3g}): the "
         "target may be the other side (left and right swapped); register the other side's "
-        "template, or mirror the target"
+        "template, or mirror the target",
     )
-    return (text,)
 
 
 def default_start(
-    vs: np.ndarray, fs: np.ndarray, target: SurfaceDistanceQuery, *, with_scaling: bool = False
+    vs: np.ndarray,
+    fs: np.ndarray,
+    target: SurfaceDistanceQuery,
+    *,
+    with_scaling: bool = False,
+    mirror: bool = True,
 ) -> RigidRegistrationResult:
     """``registration_rigid((vs, fs), (target.vertices, target.faces),
     with_scaling=with_scaling)`` with its other defaults, for a target already validated and
     given with its distance query (``registration_elastic``'s): the AABB tree of a large target
-    is not built a second time."""
+    is not built a second time. ``mirror=False`` leaves out the mirror check (a caller that
+    checks reflections its own way: ``fit_shape_model``)."""
     vs, fs = as_mesh_arrays((vs, fs), "source", drop_degenerate=True)
     return _registration_rigid(
-        vs, fs, target.vertices, target.faces, target, with_scaling=with_scaling
+        vs, fs, target.vertices, target.faces, target, with_scaling=with_scaling, mirror=mirror
     )
 
 
@@ -620,7 +625,7 @@ def check_given_start(
     if not search.distinct(refined, taken):
         taken_score = min(taken_score, search.score(refined))
     # What the search says of the pose is `init`'s to settle; a mirror image is not.
-    winner.warnings = mirror_warnings(winner.score, winner.mirror_score)
+    winner.warnings = mirror_warnings(winner)
     # The search's own near tie (a symmetric shape) is `init`'s to settle.
     tied = winner.ambiguous or search.tie(winner.score, taken_score)
     if tied or not search.distinct(found, taken, winner.score):
@@ -648,9 +653,11 @@ def _registration_rigid(
     with_scaling: bool = False,
     estimation_method: Any = None,
     criteria: Any = None,
+    mirror: bool = True,
 ) -> RigidRegistrationResult:
     """:func:`registration_rigid` on validated arrays; ``target_query``: the target's distance
-    query when one exists (built here otherwise)."""
+    query when one exists (built here otherwise); ``mirror``: whether the source's mirror image
+    is searched too (:data:`MIRROR_RATIO`)."""
     if vt.shape[0] > LARGE_TARGET:
         vt, ft = _simplified(vt, ft, DETAIL_VERTICES)
         target_query = None
@@ -674,7 +681,8 @@ def _registration_rigid(
         known = target_query.open_edges[0] if target_query is not None else None
         cut = open_boundary_ratio(vt, ft, known)
         candidates = _candidates(moments_s, moments_t, with_scaling, cut > PARTIAL_BOUNDARY)
-        candidates += _mirror_starts(moments_s, candidates)
+        if mirror:
+            candidates += _mirror_starts(moments_s, candidates)
     diagonal = float(np.linalg.norm(np.ptp(vt, axis=0)))
     if max_correspondence_distance is None:
         max_correspondence_distance = 0.05 * diagonal
@@ -1017,9 +1025,9 @@ class _CandidateSearch:
             result.mirror_score = self._refined(
                 mirrored[0], self.refine(_pose(mirrored[0]), method, criteria)
             )[0]
-            result.warnings += mirror_warnings(result.score, result.mirror_score)
-            if result.mirrored:
-                logger.warning("registration_rigid: %s", result.warnings[-1])
+            for text in mirror_warnings(result):
+                result.warnings += (text,)
+                logger.warning("registration_rigid: %s", text)
         return result
 
     def _search(

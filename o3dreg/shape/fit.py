@@ -212,7 +212,10 @@ def _best_fit(
     shift = np.eye(4)
     shift[:3, 3] = vt.mean(axis=0) - model.mean.mean(axis=0)
     # registration_rigid on the validated patient, scored with its tree (built once here).
-    rigid = default_start(model.mean, model.faces, surface, with_scaling=model.scaling)
+    # The fit tells a mirrored patient by fitting its mirror image (check_reflection).
+    rigid = default_start(
+        model.mean, model.faces, surface, with_scaling=model.scaling, mirror=False
+    )
     starts = [np.array(rigid.transformation), shift]
     coarse_tolerance = max(tolerance, COARSE_TOLERANCE)
     coarse_iterations = min(max_iteration, COARSE_ITERATIONS)

@@ -9,6 +9,7 @@ from o3dreg import registration_elastic, registration_rigid
 from o3dreg._geometry import apply_transformation
 from o3dreg.registration.rigid import (
     MIRROR_RATIO,
+    RigidRegistrationResult,
     _candidates,
     _mirror_starts,
     mirror_warnings,
@@ -51,9 +52,12 @@ def test_the_mirror_starts_are_the_improper_moment_frames(bunny_template, bunny_
 
 
 def test_the_mirror_warning_speaks_only_beyond_the_ratio():
-    assert mirror_warnings(1.0, None) == ()
-    assert mirror_warnings(MIRROR_RATIO, 1.0) == ()
-    (text,) = mirror_warnings(2.0, 1.0)
+    result = RigidRegistrationResult(score=2.0)
+    assert mirror_warnings(result) == ()  # the mirror image was not refined
+    result.mirror_score = 2.0 / MIRROR_RATIO
+    assert not result.mirrored and mirror_warnings(result) == ()
+    result.mirror_score = 1.0
+    (text,) = mirror_warnings(result)
     assert "left and right swapped" in text and "2 times better" in text
 
 
